@@ -1,0 +1,31 @@
+# Two commands on a fresh machine: `make demo` and `make test`.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+ROBOTS ?= 3
+SEED ?= 0
+
+.PHONY: demo test venv bench lint clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/kimera-multi sim sims/office.toml --robots $(ROBOTS) --seed $(SEED) --mode odometry --out runs/demo --no-rerun
+
+test: $(STAMP)
+	$(BIN)/ruff check kimera_multi_py tests benchmarks
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
+	$(BIN)/python benchmarks/sim_raycast.py --json
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache
