@@ -1,0 +1,1 @@
+"""Evaluation: trajectory, map and object metrics, and the Results container."""
