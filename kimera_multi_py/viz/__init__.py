@@ -1,0 +1,1 @@
+"""Visualisation sinks (Rerun), with a null object when visualisation is off."""
