@@ -396,6 +396,7 @@ class World:
         if not resolution > 0:
             raise ConfigError("resolution", f"must be positive, got {resolution}")
         lo, hi = self.bounds()
+        lo, hi = lo - resolution, hi + resolution  # a margin of unknown cells all round
         origin = np.floor(lo / resolution - 1e-9) * resolution
         shape = tuple(int(v) for v in np.ceil((hi - origin) / resolution - 1e-9))
         labels = np.full(shape, -1, dtype=np.int8)

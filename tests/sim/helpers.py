@@ -1,0 +1,36 @@
+"""Generators of small scenarios for simulator tests."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from kimera_multi_py.config import validate
+from kimera_multi_py.sim.scenario import ScenarioConfig, check_references
+
+REPO = Path(__file__).resolve().parents[2]
+TINY = REPO / "sims" / "tiny.toml"
+OFFICE = REPO / "sims" / "office.toml"
+
+
+def one_room(**overrides: Any) -> dict[str, Any]:
+    """A 4 x 4 m room (walls 0.1 m, floor surface at z = 0.05) with one robot crossing it."""
+    data: dict[str, Any] = {
+        "name": "one_room",
+        "spaces": [{"name": "room", "min": [0.0, 0.0], "max": [4.0, 4.0], "layout": "l"}],
+        "layouts": {"l": {"objects": []}},
+        "robots": [{"waypoints": [[1.0, 1.0], [3.0, 1.0]]}],
+    }
+    data.update(overrides)
+    return data
+
+
+def scenario(data: dict[str, Any]) -> ScenarioConfig:
+    cfg = validate(ScenarioConfig, data)
+    check_references(cfg)
+    return cfg
+
+
+def write_toml(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path

@@ -1,0 +1,59 @@
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+EXE = Path(sys.executable).parent / "kimera-multi"
+
+
+def cli(*args, timeout=120):
+    return subprocess.run([str(EXE), *map(str, args)], capture_output=True, text=True, timeout=timeout,
+                          cwd=REPO)
+
+
+def test_console_script_is_installed():
+    assert EXE.exists(), "pip install -e . should install the kimera-multi console script"
+
+
+def test_sim_runs_end_to_end_on_tiny_scenario(tmp_path):
+    t0 = time.perf_counter()
+    out = tmp_path / "run"
+    proc = cli("sim", "sims/tiny.toml", "--robots", 2, "--seed", 1, "--mode", "odometry", "--out", out, "--rerun")
+    assert proc.returncode == 0, proc.stderr
+    assert time.perf_counter() - t0 < 30
+    res = json.loads((out / "results.json").read_text())
+    assert res["seed"] == 1 and res["scenario"] == "tiny" and len(res["robots"]) == 2
+    assert np.isfinite(res["team"]["ate_rmse_m"]) and res["team"]["ate_rmse_m"] > 0
+    for r in range(2):
+        assert (out / f"robot{r}_est.tum").stat().st_size > 0 and (out / f"robot{r}_gt.tum").exists()
+    assert (out / "recording.rrd").stat().st_size > 1000
+    assert "ATE" in proc.stdout and "team" in proc.stdout  # the results table
+
+
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("[[robots]]\nroute = 'room_a'\n", "robots[2].route"),  # a string, not a list
+        ("[ground_truth]\nresolution = -1.0\n", "ground_truth.resolution"),
+    ],
+)
+def test_config_error_is_one_line_and_exit_1(tmp_path, text, needle):
+    bad = tmp_path / "bad.toml"
+    bad.write_text((REPO / "sims" / "tiny.toml").read_text() + "\n" + text)
+    proc = cli("sim", bad, "--out", tmp_path / "o", "--no-rerun")
+    assert proc.returncode == 1
+    assert "Traceback" not in proc.stderr + proc.stdout
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and needle in lines[0], proc.stderr
+
+
+def test_missing_scenario_and_bad_team_size(tmp_path):
+    proc = cli("sim", tmp_path / "missing.toml", "--no-rerun")
+    assert proc.returncode == 1 and "file not found" in proc.stderr and "Traceback" not in proc.stderr
+    proc = cli("sim", "sims/tiny.toml", "--robots", 0, "--out", tmp_path / "o", "--no-rerun")
+    assert proc.returncode == 1 and "robots" in proc.stderr
