@@ -487,7 +487,7 @@ def cast_rays(prims: Primitives, origin: np.ndarray, dirs: np.ndarray,
             for i in range(3):
                 di = d_l[i][:nb]
                 with np.errstate(divide="ignore"):
-                    inv = 1.0 / np.where(np.abs(di) < 1e-12, 1e-12, di)
+                    inv = 1.0 / np.where(np.abs(di) < 1e-12, np.copysign(1e-12, di), di)
                 oi, hi = o_l[i][:nb], H[:nb, i, None]
                 ta = (-hi - oi) * inv
                 tb = (hi - oi) * inv
