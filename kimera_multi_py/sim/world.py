@@ -239,7 +239,8 @@ class World:
         return Primitives.build(items)
 
     def _door_leaves(self) -> tuple[Primitives, list[GroundTruthObject]]:
-        items, objects = [], []
+        items: list[tuple[int, np.ndarray, np.ndarray, float, int, str]] = []
+        objects: list[GroundTruthObject] = []
         t = self.cfg.building.wall_thickness
         leaf_t, leaf_h = 0.04, min(2.0, self.cfg.building.height - 0.05)
         for i, (d, dc) in enumerate(zip(self.doors, self.cfg.doors, strict=True)):
@@ -267,7 +268,8 @@ class World:
         return Primitives.build(items), objects
 
     def _furniture(self, start_id: int) -> tuple[Primitives, list[GroundTruthObject]]:
-        items, objects = [], []
+        items: list[tuple[int, np.ndarray, np.ndarray, float, int, str]] = []
+        objects: list[GroundTruthObject] = []
         for space in self.cfg.spaces:
             if space.layout is None:
                 continue
