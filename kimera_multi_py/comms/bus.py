@@ -1,0 +1,445 @@
+"""The async Bus Protocol, and the pieces both implementations share.
+
+A bus belongs to one robot of one team. It publishes and receives typed messages
+(:mod:`kimera_multi_py.comms.messages`) on key expressions (:mod:`kimera_multi_py.comms.keys`),
+serves and sends queries for large data, holds a presence token and tracks peers, and counts
+bytes and messages per topic. :class:`~kimera_multi_py.comms.loopback.LoopbackBus` and
+:class:`~kimera_multi_py.comms.zenoh_bus.ZenohBus` implement it.
+
+Received bytes are decoded and validated on the asyncio thread (:meth:`BusBase.accept`):
+messages of another team, from an unknown robot, whose key names another robot than the
+envelope's sender, or that fail validation are dropped, logged at debug level and counted in
+``counters.dropped`` by reason (``team``, ``src``, ``key``, ``invalid``, ``queue_full``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import logging
+import threading
+from collections import deque
+from collections.abc import AsyncIterator, Awaitable, Callable, Collection, Iterable
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar, runtime_checkable
+
+from kimera_multi_py.comms import keys
+from kimera_multi_py.comms.codec import Codec, CodecError, Envelope
+from kimera_multi_py.comms.messages import Message
+from kimera_multi_py.errors import KimeraMultiError, MessageError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_QUEUE_SIZE = 10_000
+
+Reply = Message | Iterable[Message] | None
+Handler = Callable[[str, Message | None], Awaitable[Reply] | Reply]
+"""A queryable handler: ``(key, request or None) -> reply message(s) or None``; sync or async."""
+
+
+class BusClosedError(KimeraMultiError):
+    """An operation was attempted on a closed bus."""
+
+
+# ---------------------------------------------------------------------------- counters
+@dataclass
+class TopicCount:
+    """Messages and payload bytes for one topic."""
+
+    messages: int = 0
+    bytes: int = 0
+
+
+class TrafficCounters:
+    """Per-topic sent/received counters and drop counts by reason. Thread-safe.
+
+    Topics are labels from :func:`keys.topic_label` (``pgo/public_poses``, ``keyframe``, ...).
+    Byte counts are encoded payload sizes (what goes on the wire, before transport framing).
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.sent: dict[str, TopicCount] = {}
+        self.received: dict[str, TopicCount] = {}
+        self.dropped: dict[str, int] = {}
+
+    def count_sent(self, key: str, nbytes: int) -> None:
+        self._add(self.sent, key, nbytes)
+
+    def count_received(self, key: str, nbytes: int) -> None:
+        self._add(self.received, key, nbytes)
+
+    def count_dropped(self, reason: str) -> None:
+        with self._lock:
+            self.dropped[reason] = self.dropped.get(reason, 0) + 1
+
+    def _add(self, table: dict[str, TopicCount], key: str, nbytes: int) -> None:
+        label = keys.topic_label(key)
+        with self._lock:
+            c = table.setdefault(label, TopicCount())
+            c.messages += 1
+            c.bytes += nbytes
+
+    def total(self, direction: str = "sent") -> TopicCount:
+        """Sum over topics of ``"sent"`` or ``"received"``."""
+        table = self.sent if direction == "sent" else self.received
+        with self._lock:
+            return TopicCount(
+                sum(c.messages for c in table.values()), sum(c.bytes for c in table.values())
+            )
+
+    def snapshot(self) -> dict[str, Any]:
+        """A JSON-ready copy: ``{"sent": {topic: {messages, bytes}}, "received", "dropped"}``."""
+        with self._lock:
+            return {
+                "sent": _table(self.sent),
+                "received": _table(self.received),
+                "dropped": dict(self.dropped),
+            }
+
+
+def _table(table: dict[str, TopicCount]) -> dict[str, dict[str, int]]:
+    return {k: {"messages": c.messages, "bytes": c.bytes} for k, c in table.items()}
+
+
+# ---------------------------------------------------------------------------- streams
+T = TypeVar("T")
+
+
+class Stream(Generic[T]):
+    """An async iterator over items pushed from the bus (on the event-loop thread).
+
+    ``push`` never blocks: when ``maxsize`` items are pending the new one is dropped and
+    counted. Iteration ends when the stream (or its bus) is closed; pending items are discarded.
+    Use as ``async with`` to close. (A deque plus waiter futures: cheaper than asyncio.Queue.)
+    """
+
+    def __init__(
+        self,
+        maxsize: int = DEFAULT_QUEUE_SIZE,
+        on_close: Callable[[Stream[T]], None] | None = None,
+        on_overflow: Callable[[], None] | None = None,
+    ) -> None:
+        self._items: deque[T] = deque()
+        self._waiters: deque[asyncio.Future[None]] = deque()
+        self._maxsize = maxsize
+        self._on_close = on_close
+        self._on_overflow = on_overflow
+        self.closed = False
+
+    def push(self, item: T) -> None:
+        if self.closed:
+            return
+        if len(self._items) >= self._maxsize:
+            if self._on_overflow is not None:
+                self._on_overflow()
+            return
+        self._items.append(item)
+        self._wake()
+
+    def _wake(self) -> None:
+        while self._waiters:
+            waiter = self._waiters.popleft()
+            if not waiter.done():
+                waiter.set_result(None)
+                return
+
+    async def recv(self, timeout: float | None = None) -> T:
+        """The next item; ``TimeoutError`` after ``timeout`` s, ``BusClosedError`` once closed."""
+        if self._items:
+            return self._items.popleft()
+        loop = asyncio.get_running_loop()
+        deadline = None if timeout is None else loop.time() + timeout
+        while not self._items:
+            if self.closed:
+                raise BusClosedError("stream closed")
+            waiter: asyncio.Future[None] = loop.create_future()
+            self._waiters.append(waiter)
+            timer = None
+            if deadline is not None:
+                timer = loop.call_at(deadline, _expire, waiter, timeout)
+            try:
+                await waiter
+            except BaseException:
+                if self._items:  # we were woken for an item but leave: pass the wake-up on
+                    self._wake()
+                raise
+            finally:
+                if timer is not None:
+                    timer.cancel()
+        return self._items.popleft()
+
+    def __aiter__(self) -> AsyncIterator[T]:
+        return self
+
+    async def __anext__(self) -> T:
+        try:
+            return await self.recv()
+        except BusClosedError:
+            raise StopAsyncIteration from None
+
+    def pending(self) -> int:
+        """Items queued and not yet consumed."""
+        return len(self._items)
+
+    def close(self) -> None:
+        """Stop the stream: pending and future iterations end. Idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        self._items.clear()
+        while self._waiters:
+            waiter = self._waiters.popleft()
+            if not waiter.done():
+                waiter.set_result(None)
+        if self._on_close is not None:
+            self._on_close(self)
+
+    async def __aenter__(self) -> Stream[T]:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _expire(waiter: asyncio.Future[None], timeout: float | None) -> None:
+    if not waiter.done():
+        waiter.set_exception(TimeoutError(f"nothing received within {timeout} s"))
+
+
+class Subscription(Stream[Message]):
+    """Messages arriving on ``key_expr``, decoded and validated on arrival by the owning bus."""
+
+    def __init__(
+        self,
+        bus: BusBase,
+        key_expr: str,
+        maxsize: int = DEFAULT_QUEUE_SIZE,
+        on_close: Callable[[Stream[Message]], None] | None = None,
+    ) -> None:
+        super().__init__(maxsize, on_close, lambda: bus.counters.count_dropped("queue_full"))
+        self.key_expr = key_expr
+        self._bus = bus
+
+    def push(self, item: Any) -> None:
+        """Decode ``(key, payload bytes)`` now (so counters reflect arrivals) and queue it."""
+        if self.closed:
+            return
+        key, data = item
+        env = self._bus.accept(key, data)
+        if env is not None:
+            super().push(env.msg)
+
+
+@dataclass(frozen=True)
+class PresenceEvent:
+    """Robot ``robot`` appeared (``alive``) or disappeared."""
+
+    robot: int
+    alive: bool
+
+
+class Closeable(Protocol):
+    def close(self) -> None: ...
+
+
+# ---------------------------------------------------------------------------- protocol
+@runtime_checkable
+class Bus(Protocol):
+    """What the runtime needs from a transport. All methods run on the asyncio thread."""
+
+    team: str
+    robot: int
+    counters: TrafficCounters
+
+    def key(self, topic: str, robot: int | None = None) -> str:
+        """The concrete key of ``topic`` for ``robot`` (default: this bus's robot)."""
+        ...
+
+    async def publish(self, key: str, msg: Message) -> None:
+        """Encode and send ``msg`` on the concrete ``key``."""
+        ...
+
+    def subscribe(self, key_expr: str) -> Subscription:
+        """Start receiving on ``key_expr`` now; iterate the result for decoded messages."""
+        ...
+
+    async def wait_for_subscribers(self, key: str, timeout: float) -> None:
+        """Wait until a subscriber matches ``key`` (so a publication is not lost)."""
+        ...
+
+    async def serve(self, key_expr: str, handler: Handler) -> Closeable:
+        """Answer queries on ``key_expr`` with ``handler`` until the handle is closed."""
+        ...
+
+    async def query(
+        self, selector: str, msg: Message | None = None, timeout: float = 1.0
+    ) -> list[Message]:
+        """Send a query (optionally carrying ``msg``) and collect valid replies until done."""
+        ...
+
+    async def announce(self) -> None:
+        """Hold this robot's presence token until close."""
+        ...
+
+    def peers(self) -> frozenset[int]:
+        """Robots of the team currently present (excluding this one)."""
+        ...
+
+    def presence(self) -> Stream[PresenceEvent]:
+        """Presence events, starting with one ``alive`` event per current peer."""
+        ...
+
+    async def wait_for_peers(self, robots: Collection[int], timeout: float) -> frozenset[int]:
+        """Wait until all ``robots`` are present; raise ``TimeoutError`` otherwise."""
+        ...
+
+    async def close(self) -> None:
+        """Withdraw presence, stop every stream and release the transport. Idempotent."""
+        ...
+
+
+# ---------------------------------------------------------------------------- shared base
+class BusBase:
+    """Bookkeeping shared by the implementations: codec, counters, streams and peers."""
+
+    def __init__(
+        self,
+        team: str,
+        robot: int,
+        robots: Collection[int] | None = None,
+        queue_size: int = DEFAULT_QUEUE_SIZE,
+    ) -> None:
+        self.team = keys.check_team(team)
+        self.robot = robot
+        keys.robot_chunk(robot)
+        self.robots = frozenset(robots) if robots is not None else None
+        if self.robots is not None and robot not in self.robots:
+            raise MessageError(f"robot: {robot} is not one of the team's robots")
+        self.codec = Codec(team, robot, self.robots)
+        self.counters = TrafficCounters()
+        self.queue_size = queue_size
+        self.closed = False
+        self._own_keys: set[str] = set()
+        self._peers: set[int] = set()
+        self._presence_streams: list[Stream[PresenceEvent]] = []
+        self._peers_changed = asyncio.Event()
+
+    def key(self, topic: str, robot: int | None = None) -> str:
+        return keys.topic_key(self.team, self.robot if robot is None else robot, topic)
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise BusClosedError(f"bus of robot {self.robot} is closed")
+
+    # decoding --------------------------------------------------------------------------
+    def accept(self, key: str, data: bytes, from_owner: bool = True) -> Envelope | None:
+        """Decode and validate bytes received on ``key``; count and return None if rejected.
+
+        ``from_owner``: the sender must be the robot named in ``key`` (true for publications
+        and replies, false for query requests, which name the server's key).
+        """
+        try:
+            env = self.codec.decode(data)
+            chunks = key.split("/")
+            if len(chunks) < 3 or chunks[0] != keys.ROOT or chunks[1] != self.team:
+                raise CodecError("team", f"key {key!r} is not of team {self.team!r}")
+            if from_owner and keys.parse_key(key).robot != env.src:
+                raise CodecError("key", f"key {key!r} does not belong to sender {env.src}")
+        except MessageError as exc:
+            reason = exc.field if isinstance(exc, CodecError) else "invalid"
+            if reason not in ("team", "src", "key", "size"):
+                reason = "invalid"
+            self.counters.count_dropped(reason)
+            log.debug("robot %d dropped a message on %s: %s", self.robot, key, exc)
+            return None
+        self.counters.count_received(key, len(data))
+        return env
+
+    def encode_for(self, key: str, msg: Message) -> bytes:
+        """Encode ``msg`` for sending on ``key``; refuse keys of other teams or robots."""
+        self._check_open()
+        if key not in self._own_keys:
+            parsed = keys.parse_key(key)
+            if parsed.alive or parsed.team != self.team or parsed.robot != self.robot:
+                raise MessageError(
+                    f"key: robot {self.robot} of {self.team} cannot send on {key!r}"
+                )
+            if len(self._own_keys) < 10_000:
+                self._own_keys.add(key)
+        return self.codec.encode(msg)
+
+    # presence --------------------------------------------------------------------------
+    def _set_alive(self, robot: int, alive: bool) -> None:
+        if robot == self.robot or (self.robots is not None and robot not in self.robots):
+            return
+        if alive == (robot in self._peers):
+            return
+        if alive:
+            self._peers.add(robot)
+        else:
+            self._peers.discard(robot)
+        log.info("robot %d sees robot %d %s", self.robot, robot, "appear" if alive else "leave")
+        event = PresenceEvent(robot, alive)
+        for stream in list(self._presence_streams):
+            stream.push(event)
+        self._peers_changed.set()
+        self._peers_changed = asyncio.Event()
+
+    def peers(self) -> frozenset[int]:
+        return frozenset(self._peers)
+
+    def presence(self) -> Stream[PresenceEvent]:
+        stream: Stream[PresenceEvent] = Stream(
+            self.queue_size, on_close=self._presence_streams.remove
+        )
+        for robot in sorted(self._peers):
+            stream.push(PresenceEvent(robot, True))
+        self._presence_streams.append(stream)
+        return stream
+
+    async def wait_for_peers(self, robots: Collection[int], timeout: float) -> frozenset[int]:
+        return await self._wait_peers(lambda p: set(robots) <= p, timeout)
+
+    async def wait_for_absent(self, robots: Collection[int], timeout: float) -> frozenset[int]:
+        """Wait until none of ``robots`` is present; raise ``TimeoutError`` otherwise."""
+        return await self._wait_peers(lambda p: not (set(robots) & p), timeout)
+
+    async def _wait_peers(self, done: Callable[[set[int]], bool], timeout: float) -> frozenset[int]:
+        async def wait() -> None:
+            while not done(self._peers):
+                await self._peers_changed.wait()
+
+        try:
+            await asyncio.wait_for(wait(), timeout)
+        except asyncio.TimeoutError:
+            raise TimeoutError(
+                f"robot {self.robot}: peers still {sorted(self._peers)} after {timeout} s"
+            ) from None
+        return self.peers()
+
+    def _close_streams(self) -> None:
+        for stream in list(self._presence_streams):
+            stream.close()
+
+    # queries ---------------------------------------------------------------------------
+    @staticmethod
+    async def run_handler(handler: Handler, key: str, request: Message | None) -> list[Message]:
+        """Call a sync or async handler and normalise its result to a list of messages."""
+        result = handler(key, request)
+        if inspect.isawaitable(result):
+            result = await result
+        if result is None:
+            return []
+        if isinstance(result, Message):
+            return [result]
+        return list(result)
+
+    async def __aenter__(self) -> BusBase:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def close(self) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError

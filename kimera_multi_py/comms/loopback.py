@@ -1,0 +1,432 @@
+"""In-process bus with deterministic fault injection, for the single-process sim and tests.
+
+One :class:`LoopbackNetwork` connects the buses of many robots inside one asyncio loop. Every
+message really goes through the codec (so validation runs and byte counts are real), then
+crosses a link per receiving robot where :class:`Faults` may drop, delay (``delay`` plus
+uniform ``±jitter``), duplicate or reorder (hold back by ``reorder_delay``) it, or cut it
+during a :class:`Partition`. All random draws come from one ``random.Random(seed)`` in
+publish order, so a run is reproducible for a given seed. A robot hears its own publications
+without faults, as a Zenoh session does.
+
+Queries cross the same faulty links (request and reply each may be dropped or delayed).
+Presence follows ``announce()`` and ``close()``; ``peers()`` also hides robots that a partition
+currently separates from this one.
+
+Example::
+
+    net = LoopbackNetwork(seed=1, faults=Faults(drop=0.1, delay=0.01, jitter=0.005))
+    a, b = net.bus(0), net.bus(1)
+    sub = b.subscribe(keys.topic_all(b.team, keys.HEARTBEAT))
+    await a.publish(a.key(keys.HEARTBEAT), Heartbeat(robot=0, keyframes=3))
+    await net.settle()              # wait until nothing is in flight
+    print(net.stats, b.counters.snapshot())
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import itertools
+import logging
+import math
+import random
+from collections.abc import Callable, Collection, Iterable
+from dataclasses import dataclass, field, fields
+
+from kimera_multi_py.comms import keys
+from kimera_multi_py.comms.bus import (
+    DEFAULT_QUEUE_SIZE,
+    BusBase,
+    Handler,
+    Stream,
+    Subscription,
+)
+from kimera_multi_py.comms.messages import Message
+from kimera_multi_py.errors import ConfigError, MessageError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Partition:
+    """Between ``start`` and ``end`` (network clock, s), robots in different ``groups`` are cut off.
+
+    Robots listed in no group are unaffected.
+    """
+
+    groups: tuple[frozenset[int], ...]
+    start: float = 0.0
+    end: float = math.inf
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "groups", tuple(frozenset(g) for g in self.groups))
+        if not self.end >= self.start:
+            raise ConfigError("partition", f"end {self.end} before start {self.start}")
+
+    def cuts(self, a: int, b: int, now: float) -> bool:
+        if not self.start <= now < self.end:
+            return False
+        ga = next((i for i, g in enumerate(self.groups) if a in g), None)
+        gb = next((i for i, g in enumerate(self.groups) if b in g), None)
+        return ga is not None and gb is not None and ga != gb
+
+
+@dataclass(frozen=True)
+class Faults:
+    """Per-link fault rates. Probabilities are in [0, 1]; times are seconds."""
+
+    drop: float = 0.0
+    duplicate: float = 0.0
+    reorder: float = 0.0
+    delay: float = 0.0
+    jitter: float = 0.0
+    reorder_delay: float = 0.005
+    partitions: tuple[Partition, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("drop", "duplicate", "reorder"):
+            p = getattr(self, name)
+            if not 0.0 <= p <= 1.0:
+                raise ConfigError(f"faults.{name}", f"probability {p} not in [0, 1]")
+        for name in ("delay", "jitter", "reorder_delay"):
+            t = getattr(self, name)
+            if not (math.isfinite(t) and t >= 0.0):
+                raise ConfigError(f"faults.{name}", f"time {t} must be finite and >= 0")
+        object.__setattr__(self, "partitions", tuple(self.partitions))
+
+
+@dataclass
+class FaultStats:
+    """What the links did: one ``attempted`` per (message, receiving robot)."""
+
+    attempted: int = 0
+    delivered: int = 0
+    dropped: int = 0
+    partitioned: int = 0
+    duplicated: int = 0
+    reordered: int = 0
+    delayed: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@dataclass
+class _Served:
+    bus: LoopbackBus
+    key_expr: str
+    handler: Handler
+    closed: bool = False
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.bus.network._served.remove(self)
+
+
+@dataclass
+class _Flight:
+    """Deliveries scheduled but not yet done, so tests can wait for a quiet network."""
+
+    count: int = 0
+    idle: asyncio.Event = field(default_factory=asyncio.Event)
+
+
+class LoopbackNetwork:
+    """The shared medium of the in-process buses. Create buses with :meth:`bus`."""
+
+    def __init__(
+        self,
+        team: str = "t0",
+        seed: int = 0,
+        faults: Faults | None = None,
+        robots: Collection[int] | None = None,
+        clock: Callable[[], float] | None = None,
+        queue_size: int = DEFAULT_QUEUE_SIZE,
+    ) -> None:
+        self.team = keys.check_team(team)
+        self.faults = faults or Faults()
+        self.robots = frozenset(robots) if robots is not None else None
+        self.queue_size = queue_size
+        self.stats = FaultStats()
+        self._rng = random.Random(seed)
+        self._clock = clock
+        self._t0: float | None = None
+        self._buses: dict[tuple[str, int], LoopbackBus] = {}
+        self._served: list[_Served] = []
+        self._alive: set[tuple[str, int]] = set()
+        self._partitions: list[Partition] = list(self.faults.partitions)
+        self._flight = _Flight()
+        self._flight.idle.set()
+        self._heap: list[tuple[float, int, Callable[[], None]]] = []
+        self._order = itertools.count()
+        self._tick: float | None = None
+        self._subs_changed = asyncio.Event()
+
+    # setup ----------------------------------------------------------------------------
+    def bus(self, robot: int, team: str | None = None) -> LoopbackBus:
+        """A new bus for ``robot`` (of ``team``, default the network's) on this network."""
+        team = self.team if team is None else team
+        if (team, robot) in self._buses:
+            raise ConfigError("robot", f"robot {robot} of team {team} already has a bus")
+        bus = LoopbackBus(self, team, robot)
+        self._buses[(team, robot)] = bus
+        return bus
+
+    def now(self) -> float:
+        """Network time in seconds: the custom clock, or loop time since first use."""
+        if self._clock is not None:
+            return self._clock()
+        t = asyncio.get_running_loop().time()
+        if self._t0 is None:
+            self._t0 = t
+        return t - self._t0
+
+    def partition(self, groups: Iterable[Iterable[int]], duration: float = math.inf) -> Partition:
+        """Cut the links between ``groups`` from now for ``duration`` seconds."""
+        start = self.now()
+        p = Partition(tuple(frozenset(g) for g in groups), start, start + duration)
+        self._partitions.append(p)
+        return p
+
+    def heal(self) -> None:
+        """Remove every partition, configured or manual."""
+        self._partitions.clear()
+
+    def reachable(self, a: int, b: int) -> bool:
+        """True when no partition currently separates robots ``a`` and ``b``."""
+        if a == b:
+            return True
+        now = self.now()
+        return not any(p.cuts(a, b, now) for p in self._partitions)
+
+    async def settle(self, timeout: float = 10.0) -> None:
+        """Wait until no delayed delivery or query is in flight."""
+        try:
+            await asyncio.wait_for(self._flight.idle.wait(), timeout)
+        except asyncio.TimeoutError:
+            raise TimeoutError(f"{self._flight.count} deliveries still in flight") from None
+
+    # links ----------------------------------------------------------------------------
+    def _link_delays(self, src: int, dst: int) -> list[float]:
+        """Delays of the copies that cross link src->dst (empty: lost). Draws in fixed order."""
+        self.stats.attempted += 1
+        if src == dst:
+            self.stats.delivered += 1
+            return [0.0]
+        if not self.reachable(src, dst):
+            self.stats.partitioned += 1
+            return []
+        f, rng = self.faults, self._rng
+        if f.drop and rng.random() < f.drop:
+            self.stats.dropped += 1
+            return []
+        copies = 2 if f.duplicate and rng.random() < f.duplicate else 1
+        if copies == 2:
+            self.stats.duplicated += 1
+        delays = []
+        for _ in range(copies):
+            d = f.delay + (rng.uniform(-f.jitter, f.jitter) if f.jitter else 0.0)
+            if f.reorder and rng.random() < f.reorder:
+                d += f.reorder_delay
+                self.stats.reordered += 1
+            d = max(0.0, d)
+            if d > 0:
+                self.stats.delayed += 1
+            delays.append(d)
+        self.stats.delivered += 1
+        return delays
+
+    def _after(self, delay: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` after ``delay`` s. Deliveries run in (due time, schedule order) order, and
+        every delivery scheduled in one event-loop step shares that step's start time, so the
+        order does not depend on how fast the publishing code runs."""
+        if delay <= 0:
+            fn()
+            return
+        loop = asyncio.get_running_loop()
+        if self._tick is None:
+            self._tick = loop.time()
+            loop.call_soon(self._end_tick)
+        due = self._tick + delay
+        self._flight.count += 1
+        self._flight.idle.clear()
+        heapq.heappush(self._heap, (due, next(self._order), fn))
+        loop.call_at(due, self._pump, due)
+
+    def _end_tick(self) -> None:
+        self._tick = None
+
+    def _pump(self, until: float) -> None:
+        while self._heap and self._heap[0][0] <= until:
+            _, _, fn = heapq.heappop(self._heap)
+            self._flight.count -= 1
+            if self._flight.count == 0:
+                self._flight.idle.set()
+            fn()
+
+    def _route(self, sender: LoopbackBus, key: str, data: bytes) -> None:
+        for (_, robot), bus in sorted(self._buses.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+            subs = [s for s in bus._subs if keys.intersects(s.key_expr, key)]
+            if not subs:
+                continue
+            for d in self._link_delays(sender.robot, robot):
+                self._after(d, lambda subs=subs: [s.push((key, data)) for s in subs])
+
+    def _set_alive(self, bus: LoopbackBus, alive: bool) -> None:
+        ident = (bus.team, bus.robot)
+        if alive:
+            self._alive.add(ident)
+        else:
+            self._alive.discard(ident)
+        for other in self._buses.values():
+            if other is not bus and other.team == bus.team:
+                other._set_alive(bus.robot, alive)
+
+    def _forget(self, bus: LoopbackBus) -> None:
+        self._buses.pop((bus.team, bus.robot), None)
+        self._served = [s for s in self._served if s.bus is not bus]
+
+
+class LoopbackBus(BusBase):
+    """One robot's bus on a :class:`LoopbackNetwork` (create it with ``network.bus(robot)``)."""
+
+    def __init__(self, network: LoopbackNetwork, team: str, robot: int) -> None:
+        super().__init__(team, robot, network.robots, network.queue_size)
+        self.network = network
+        self._subs: list[Subscription] = []
+        self._announced = False
+        # presence already announced by others
+        for team_, other in network._alive:
+            if team_ == team:
+                self._set_alive(other, True)
+
+    async def publish(self, key: str, msg: Message) -> None:
+        data = self.encode_for(key, msg)
+        self.counters.count_sent(key, len(data))
+        self.network._route(self, key, data)
+
+    def subscribe(self, key_expr: str) -> Subscription:
+        self._check_open()
+        sub = Subscription(self, key_expr, self.queue_size, on_close=self._subs.remove)
+        self._subs.append(sub)
+        self.network._subs_changed.set()
+        self.network._subs_changed = asyncio.Event()
+        return sub
+
+    async def wait_for_subscribers(self, key: str, timeout: float) -> None:
+        """Wait until some bus on the network subscribes to ``key``; else ``TimeoutError``."""
+        self._check_open()
+        net = self.network
+
+        def matched() -> bool:
+            return any(
+                keys.intersects(s.key_expr, key) for b in net._buses.values() for s in b._subs
+            )
+
+        async def wait() -> None:
+            while not matched():
+                await net._subs_changed.wait()
+
+        try:
+            await asyncio.wait_for(wait(), timeout)
+        except asyncio.TimeoutError:
+            raise TimeoutError(f"no subscriber matched {key!r} within {timeout} s") from None
+
+    async def serve(self, key_expr: str, handler: Handler) -> _Served:
+        self._check_open()
+        served = _Served(self, key_expr, handler)
+        self.network._served.append(served)
+        return served
+
+    async def query(
+        self, selector: str, msg: Message | None = None, timeout: float = 1.0
+    ) -> list[Message]:
+        self._check_open()
+        request = None
+        if msg is not None:
+            request = self.codec.encode(msg)
+        net = self.network
+        targets = [
+            s for s in net._served
+            if s.bus.team == self.team and keys.intersects(s.key_expr, selector)
+        ]
+        loop = asyncio.get_running_loop()
+        futures = []
+        for served in targets:
+            if request is not None:
+                self.counters.count_sent(selector, len(request))
+            fut: asyncio.Future[list[Message]] = loop.create_future()
+            futures.append(fut)
+            delays = net._link_delays(self.robot, served.bus.robot)[:1]
+            for d in delays:
+                net._after(d, lambda s=served, f=fut: loop.create_task(
+                    self._answer(s, selector, request, f)))
+        if not futures:
+            return []
+        done, _ = await asyncio.wait(futures, timeout=timeout)
+        replies: list[Message] = []
+        for fut in futures:
+            if fut in done:
+                replies.extend(fut.result())
+            else:
+                fut.cancel()
+        return replies
+
+    async def _answer(
+        self, served: _Served, selector: str, request: bytes | None, fut: asyncio.Future
+    ) -> None:
+        """Run ``served``'s handler for one query and route the replies back with link faults."""
+        server, net = served.bus, self.network
+        req_msg = None
+        if request is not None:
+            env = server.accept(selector, request, from_owner=False)
+            if env is None:
+                return
+            req_msg = env.msg
+        reply_key = selector if keys.is_concrete(selector) else served.key_expr
+        if served.closed or server.closed or not keys.is_concrete(reply_key):
+            return
+        try:
+            replies = await BusBase.run_handler(served.handler, reply_key, req_msg)
+        except Exception:
+            server.counters.count_dropped("handler_error")
+            log.exception("robot %d: query handler for %s failed", server.robot, reply_key)
+            return
+        good: list[Message] = []
+        for reply in replies:
+            try:
+                data = server.encode_for(reply_key, reply)
+            except MessageError as exc:
+                log.warning("robot %d: cannot reply on %s: %s", server.robot, reply_key, exc)
+                continue
+            server.counters.count_sent(reply_key, len(data))
+            env = self.accept(reply_key, data)
+            if env is not None:
+                good.append(env.msg)
+        delays = net._link_delays(server.robot, self.robot)[:1]
+        for d in delays:
+            net._after(d, lambda: fut.done() or fut.set_result(good))
+
+    async def announce(self) -> None:
+        self._check_open()
+        if not self._announced:
+            self._announced = True
+            self.network._set_alive(self, True)
+
+    def peers(self) -> frozenset[int]:
+        return frozenset(p for p in self._peers if self.network.reachable(self.robot, p))
+
+    async def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        if self._announced:
+            self.network._set_alive(self, False)
+        for sub in list(self._subs):
+            sub.close()
+        self._close_streams()
+        self.network._forget(self)
+
+
+__all__ = ["FaultStats", "Faults", "LoopbackBus", "LoopbackNetwork", "Partition", "Stream"]

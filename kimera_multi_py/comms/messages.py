@@ -1,0 +1,478 @@
+"""Typed messages: one frozen dataclass per message type, validated on construction.
+
+Every message carries ``robot``, the id of the robot that sends it; the codec checks that it
+equals the envelope's sender. Arrays are numpy arrays with a fixed dtype and a shape pattern
+whose symbolic dimensions (``"n"``, ``"c"``, ...) must agree across the fields of one message.
+
+Constructing a message coerces lists and compatible dtypes (``same_kind`` casts) and validates
+types, shapes, ranges and finiteness; anything wrong raises :class:`MessageError` naming the
+field, e.g. ``PublicPoses.poses: expected shape (n, 4, 4), got (3, 4)``.
+
+Messages are values: the dataclasses are frozen, and the arrays of a *received* message are
+read-only views on the received bytes (copy one before changing it in place).
+
+``SCHEMA_VERSION`` is bumped whenever a message layout changes; the codec refuses other versions.
+Add new types by subclassing :class:`Message` with ``@message("Name", topic)``.
+
+Pose keys are gtsam ``Symbol`` keys as int64 (robot ``i`` owns ``Symbol(chr(ord('a')+i), k)``);
+poses are 4x4 homogeneous float64 matrices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+
+from kimera_multi_py.comms import keys
+from kimera_multi_py.errors import MessageError
+
+SCHEMA_VERSION = 1
+MAX_ROBOT_ID = 4095
+MAX_STR_LEN = 256
+INT64_MIN = -(2**63)
+INT64_MAX = 2**63 - 1
+
+
+# ---------------------------------------------------------------------------- field specs
+@dataclass(frozen=True)
+class Int:
+    """An integer field (never bool) within ``[lo, hi]``."""
+
+    lo: int = INT64_MIN
+    hi: int = INT64_MAX
+
+
+@dataclass(frozen=True)
+class Float:
+    """A float field within ``[lo, hi]``; finite unless ``finite`` is False."""
+
+    lo: float = -math.inf
+    hi: float = math.inf
+    finite: bool = True
+
+
+@dataclass(frozen=True)
+class Bool:
+    """A boolean field."""
+
+
+@dataclass(frozen=True)
+class Str:
+    """A string field of at most ``max_len`` characters, optionally from ``choices``."""
+
+    max_len: int = MAX_STR_LEN
+    choices: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Array:
+    """A numpy array field: exact ``dtype`` on the wire, shape matching ``shape``.
+
+    ``shape`` entries are ints (fixed sizes) or names (sizes shared across the message's fields).
+    Float arrays must be finite when ``finite`` is set; all values must be within ``[lo, hi]``.
+    """
+
+    dtype: str
+    shape: tuple[int | str, ...]
+    finite: bool = True
+    lo: float | None = None
+    hi: float | None = None
+
+
+Spec = Int | Float | Bool | Str | Array
+
+
+def _f(spec: Spec, default: Any = dataclasses.MISSING, factory: Any = dataclasses.MISSING) -> Any:
+    return field(default=default, default_factory=factory, metadata={"spec": spec})
+
+
+def robot_id() -> Any:
+    return _f(Int(0, MAX_ROBOT_ID))
+
+
+def count() -> Any:
+    return _f(Int(0, INT64_MAX))
+
+
+def arr(dtype: str, *shape: int | str, lo: float | None = None, hi: float | None = None) -> Any:
+    return _f(Array(dtype, tuple(shape), lo=lo, hi=hi))
+
+
+# ---------------------------------------------------------------------------- base class
+class Message:
+    """Base of every message. Subclasses are frozen dataclasses registered by :func:`message`."""
+
+    TYPE: ClassVar[str] = ""
+    TOPIC: ClassVar[str] = ""
+    SPECS: ClassVar[dict[str, Spec]] = {}
+
+    robot: int
+
+    def __post_init__(self) -> None:
+        values = {name: getattr(self, name) for name in self.SPECS}
+        for name, value in _validate(type(self), values, strict=False).items():
+            object.__setattr__(self, name, value)
+
+    @classmethod
+    def from_wire(cls, body: Any) -> Message:
+        """Build a message from a decoded body, checking types strictly (no coercion)."""
+        if not isinstance(body, dict):
+            raise MessageError(f"{cls.TYPE}: body must be a map, got {type(body).__name__}")
+        missing = [n for n in cls.SPECS if n not in body]
+        if missing:
+            raise MessageError(f"{cls.TYPE}.{missing[0]}: missing field")
+        extra = [k for k in body if k not in cls.SPECS]
+        if extra:
+            raise MessageError(f"{cls.TYPE}.{extra[0]!r}: unknown field")
+        values = _validate(cls, body, strict=True)
+        msg = object.__new__(cls)  # already validated: skip __post_init__
+        for name, value in values.items():
+            object.__setattr__(msg, name, value)
+        return msg
+
+    def to_wire(self) -> dict[str, Any]:
+        """The body map: field name to value (arrays stay numpy arrays)."""
+        return {name: getattr(self, name) for name in self.SPECS}
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        for name in self.SPECS:
+            a, b = getattr(self, name), getattr(other, name)
+            if isinstance(a, np.ndarray):
+                if a.dtype != b.dtype or not np.array_equal(a, b):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def nbytes(self) -> int:
+        """Bytes held in the message's arrays (a quick size estimate)."""
+        return sum(v.nbytes for v in self.to_wire().values() if isinstance(v, np.ndarray))
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {}
+
+M = TypeVar("M", bound=type[Message])
+
+
+def message(type_name: str, topic: str) -> Callable[[M], M]:
+    """Class decorator: make a frozen dataclass, collect its specs and register its type name."""
+
+    def wrap(cls: M) -> M:
+        if type_name in MESSAGE_TYPES:
+            raise ValueError(f"duplicate message type {type_name!r}")
+        dc = dataclass(frozen=True, eq=False)(cls)
+        dc.TYPE = type_name
+        dc.TOPIC = topic
+        dc.SPECS = {f.name: f.metadata["spec"] for f in dataclasses.fields(dc)}
+        MESSAGE_TYPES[type_name] = dc
+        return dc
+
+    return wrap
+
+
+# ---------------------------------------------------------------------------- validation
+def _validate(cls: type[Message], values: Mapping[str, Any], strict: bool) -> dict[str, Any]:
+    """Check (and, unless ``strict``, coerce) every field; return the coerced values."""
+    out: dict[str, Any] = {}
+    dims: dict[str, tuple[int, str]] = {}
+    for name, spec in cls.SPECS.items():
+        where = f"{cls.TYPE}.{name}"
+        value = values[name]
+        if isinstance(spec, Array):
+            value = _check_array(where, spec, value, strict)
+            for size, want in zip(value.shape, spec.shape, strict=True):
+                if isinstance(want, str):
+                    seen = dims.setdefault(want, (size, name))
+                    if seen[0] != size:
+                        raise MessageError(
+                            f"{where}: dimension {want}={size} disagrees with "
+                            f"{seen[1]} ({want}={seen[0]})"
+                        )
+        elif isinstance(spec, Int):
+            value = _check_int(where, spec, value, strict)
+        elif isinstance(spec, Float):
+            value = _check_float(where, spec, value, strict)
+        elif isinstance(spec, Bool):
+            value = _check_bool(where, value, strict)
+        else:
+            value = _check_str(where, spec, value)
+        out[name] = value
+    return out
+
+
+def _check_int(where: str, spec: Int, value: Any, strict: bool) -> int:
+    if not strict and isinstance(value, np.integer):
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise MessageError(f"{where}: expected int, got {type(value).__name__}")
+    if not spec.lo <= value <= spec.hi:
+        raise MessageError(f"{where}: {value} outside [{spec.lo}, {spec.hi}]")
+    return value
+
+
+def _check_float(where: str, spec: Float, value: Any, strict: bool) -> float:
+    if not strict and isinstance(value, int | np.integer | np.floating) and not isinstance(
+        value, bool
+    ):
+        value = float(value)
+    if not isinstance(value, float):
+        raise MessageError(f"{where}: expected float, got {type(value).__name__}")
+    if spec.finite and not math.isfinite(value):
+        raise MessageError(f"{where}: not finite ({value})")
+    if math.isnan(value) or not spec.lo <= value <= spec.hi:
+        raise MessageError(f"{where}: {value} outside [{spec.lo}, {spec.hi}]")
+    return value
+
+
+def _check_bool(where: str, value: Any, strict: bool) -> bool:
+    if not strict and isinstance(value, np.bool_):
+        value = bool(value)
+    if not isinstance(value, bool):
+        raise MessageError(f"{where}: expected bool, got {type(value).__name__}")
+    return value
+
+
+def _check_str(where: str, spec: Str, value: Any) -> str:
+    if not isinstance(value, str):
+        raise MessageError(f"{where}: expected str, got {type(value).__name__}")
+    if len(value) > spec.max_len:
+        raise MessageError(f"{where}: longer than {spec.max_len} characters")
+    if spec.choices and value not in spec.choices:
+        raise MessageError(f"{where}: {value!r} not one of {spec.choices}")
+    return value
+
+
+def _check_array(where: str, spec: Array, value: Any, strict: bool) -> np.ndarray:
+    want = np.dtype(spec.dtype)
+    if strict:
+        if not isinstance(value, np.ndarray):
+            raise MessageError(f"{where}: expected array, got {type(value).__name__}")
+    else:
+        try:
+            value = np.asarray(value)
+        except (ValueError, TypeError) as exc:
+            raise MessageError(f"{where}: not an array ({exc})") from exc
+        if value.dtype != want:
+            same = np.can_cast(value.dtype, want, casting="same_kind")
+            if not (same or value.size == 0):
+                raise MessageError(f"{where}: cannot cast {value.dtype} to {want}")
+            value = value.astype(want)
+        value = np.ascontiguousarray(value)
+    if value.dtype != want:
+        raise MessageError(f"{where}: expected dtype {want}, got {value.dtype}")
+    if value.ndim != len(spec.shape):
+        raise MessageError(
+            f"{where}: expected shape {_fmt(spec.shape)}, got {tuple(value.shape)}"
+        )
+    for size, fixed in zip(value.shape, spec.shape, strict=True):
+        if isinstance(fixed, int) and size != fixed:
+            raise MessageError(
+                f"{where}: expected shape {_fmt(spec.shape)}, got {tuple(value.shape)}"
+            )
+    if value.size:
+        if spec.finite and want.kind == "f" and not np.isfinite(value).all():
+            raise MessageError(f"{where}: contains non-finite values")
+        if spec.lo is not None and value.min() < spec.lo:
+            raise MessageError(f"{where}: value {value.min()} below {spec.lo}")
+        if spec.hi is not None and value.max() > spec.hi:
+            raise MessageError(f"{where}: value {value.max()} above {spec.hi}")
+    return value
+
+
+def _fmt(shape: tuple[int | str, ...]) -> str:
+    return "(" + ", ".join(str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+# ---------------------------------------------------------------------------- messages
+PGO_COMMANDS = ("start", "round", "update_weights", "stop")
+
+
+@message("PublicPoses", keys.PUBLIC_POSES)
+class PublicPoses(Message):
+    """A robot's public poses (those touching inter-robot edges) after a PGO round."""
+
+    robot: int = robot_id()
+    round: int = count()
+    keys: np.ndarray = arr("int64", "n")
+    poses: np.ndarray = arr("float64", "n", 4, 4)
+
+
+@message("PgoStatus", keys.PGO_STATUS)
+class PgoStatus(Message):
+    """A robot's PGO progress: ``ready`` once the relative pose change is below tolerance."""
+
+    robot: int = robot_id()
+    round: int = count()
+    ready: bool = _f(Bool())
+    cost: float = _f(Float(lo=0.0))
+    rel_change: float = _f(Float(lo=0.0))
+
+
+@message("PgoCommand", keys.PGO_COMMAND)
+class PgoCommand(Message):
+    """A schedule decision: which robots update in ``round`` (one colour of the robot graph)."""
+
+    robot: int = robot_id()
+    round: int = count()
+    command: str = _f(Str(choices=PGO_COMMANDS))
+    active: np.ndarray = arr("int64", "m", lo=0, hi=MAX_ROBOT_ID)
+
+
+@message("GncWeights", keys.GNC_WEIGHTS)
+class GncWeights(Message):
+    """GNC-TLS weights of the inter-robot edges between ``robot`` and ``peer``.
+
+    Edge ``i`` joins pose keys ``keys_a[i]`` (owned by ``robot``) and ``keys_b[i]`` (``peer``).
+    """
+
+    robot: int = robot_id()
+    peer: int = robot_id()
+    round: int = count()
+    keys_a: np.ndarray = arr("int64", "m")
+    keys_b: np.ndarray = arr("int64", "m")
+    weights: np.ndarray = arr("float64", "m", lo=0.0, hi=1.0)
+    mu: float = _f(Float(lo=0.0))
+
+
+@message("KeyframeDescriptor", keys.DESCRIPTORS)
+class KeyframeDescriptor(Message):
+    """A compact place descriptor of one keyframe (flattened); full data is served on request."""
+
+    robot: int = robot_id()
+    keyframe: int = _f(Int())
+    stamp: float = _f(Float())
+    kind: str = _f(Str(max_len=64))
+    descriptor: np.ndarray = arr("float32", "d")
+
+
+@message("LoopClosureRequest", keys.LC_REQUEST)
+class LoopClosureRequest(Message):
+    """Ask ``target`` for keyframe ``keyframe`` to verify it against our ``query_keyframe``."""
+
+    robot: int = robot_id()
+    target: int = robot_id()
+    request_id: int = count()
+    keyframe: int = _f(Int())
+    query_keyframe: int = _f(Int())
+
+
+@message("LoopClosureReply", keys.LC_REPLY)
+class LoopClosureReply(Message):
+    """A keyframe's data for geometric verification: semantic points and objects.
+
+    ``pose`` is the keyframe's pose in the owner's odometry frame; points and object centroids
+    are in the keyframe's frame. ``found`` is False (with empty arrays) for unknown keyframes.
+    """
+
+    robot: int = robot_id()
+    request_id: int = count()
+    keyframe: int = _f(Int())
+    found: bool = _f(Bool())
+    pose: np.ndarray = arr("float64", 4, 4)
+    points: np.ndarray = arr("float32", "n", 3)
+    labels: np.ndarray = arr("int32", "n", lo=0)
+    object_centroids: np.ndarray = arr("float32", "m", 3)
+    object_classes: np.ndarray = arr("int32", "m", lo=0)
+
+
+@message("LoopClosures", keys.LOOP_CLOSURES)
+class LoopClosures(Message):
+    """Verified inter-robot loop closures, sent until ``peer`` acknowledges ``batch``.
+
+    Closure ``i``: relative pose ``poses[i]`` = T(keys_a[i] -> keys_b[i]) with diagonal
+    noise ``sigmas[i]`` (rotation rad x3, then translation m x3) and ``inliers[i]`` support.
+    """
+
+    robot: int = robot_id()
+    peer: int = robot_id()
+    batch: int = count()
+    keys_a: np.ndarray = arr("int64", "n")
+    keys_b: np.ndarray = arr("int64", "n")
+    poses: np.ndarray = arr("float64", "n", 4, 4)
+    sigmas: np.ndarray = arr("float64", "n", 6, lo=0.0)
+    inliers: np.ndarray = arr("int32", "n", lo=0)
+
+
+@message("LoopClosuresAck", keys.LOOP_CLOSURES_ACK)
+class LoopClosuresAck(Message):
+    """Acknowledges receipt of ``LoopClosures`` batch ``batch`` from ``peer``."""
+
+    robot: int = robot_id()
+    peer: int = robot_id()
+    batch: int = count()
+
+
+@message("MapDelta", keys.MAP_DELTA)
+class MapDelta(Message):
+    """Changed octree cells: Morton keys and int8-quantised log-odds (``h = logodds * scale``).
+
+    Cells are in the world frame of robot ``frame`` at ``depth`` / ``resolution``; ``full`` marks a
+    complete snapshot rather than a delta. ``logodds`` has K+1 columns (column 0 = free).
+    """
+
+    robot: int = robot_id()
+    round: int = count()
+    frame: int = robot_id()
+    resolution: float = _f(Float(lo=1e-9))
+    depth: int = _f(Int(0, 21))
+    full: bool = _f(Bool())
+    keys: np.ndarray = arr("int64", "n", lo=0)
+    logodds: np.ndarray = arr("int8", "n", "c")
+    scale: float = _f(Float(lo=1e-12))
+
+
+@message("ObjectUpdate", keys.OBJECTS)
+class ObjectUpdate(Message):
+    """Object landmarks of ``robot`` (in the world frame of robot ``frame``).
+
+    Per object: id, MAP class, class posterior ``probs`` (n, C), centroid, axis-aligned half
+    extents, and the number of sightings.
+    """
+
+    robot: int = robot_id()
+    frame: int = robot_id()
+    ids: np.ndarray = arr("int64", "n")
+    classes: np.ndarray = arr("int32", "n", lo=0)
+    probs: np.ndarray = arr("float32", "n", "c", lo=0.0, hi=1.0)
+    centroids: np.ndarray = arr("float64", "n", 3)
+    extents: np.ndarray = arr("float64", "n", 3, lo=0.0)
+    sightings: np.ndarray = arr("int32", "n", lo=0)
+
+
+@message("Heartbeat", keys.HEARTBEAT)
+class Heartbeat(Message):
+    """Periodic liveness and progress: keyframes processed and a short status word."""
+
+    robot: int = robot_id()
+    keyframes: int = count()
+    status: str = _f(Str(max_len=64), default="ok")
+
+
+@message("Ping", keys.PING)
+class Ping(Message):
+    """Diagnostics: an opaque payload with a send time (``time.monotonic_ns``) for latency."""
+
+    robot: int = robot_id()
+    nonce: int = count()
+    sent_ns: int = count()
+    echo: bool = _f(Bool(), default=False)
+    payload: np.ndarray = _f(
+        Array("uint8", ("n",)), factory=lambda: np.zeros(0, np.uint8)
+    )
+
+
+def message_type(name: str) -> type[Message]:
+    """The message class registered under ``name``; raise :class:`MessageError` if unknown."""
+    try:
+        return MESSAGE_TYPES[name]
+    except (KeyError, TypeError) as exc:
+        raise MessageError(f"type: unknown message type {name!r}") from exc

@@ -1,0 +1,381 @@
+"""The Bus over real eclipse-zenoh 1.x sessions (one session per bus).
+
+Connection, as in zenoh-python's examples: peer mode with explicit ``listen``/``connect``
+endpoints and multicast scouting off (the defaults here), client mode to a ``zenohd`` router
+(``mode="client", connect=["tcp/host:7447"]``), or any Zenoh JSON5 config file
+(``config_file=``, the ``--zenoh-config FILE`` of every process) — that is where TLS and
+authentication go. Explicit arguments override the file.
+
+Threading: Zenoh calls our callbacks on its own threads. They never block and never call
+Zenoh: they copy the payload and hand it to the event loop with
+``loop.call_soon_threadsafe(...)``. Samples are handed over in batches: a callback appends to
+an inbox and schedules one drain unless one is already pending, so a burst costs one loop
+wake-up instead of one per sample. Decoding, validation, handlers and replies run on the
+asyncio thread. Presence comes from liveliness tokens at ``kmp/{team}/alive/r{robot}``.
+
+Construct inside a running event loop and close it (or use ``async with``)::
+
+    async with ZenohBus("t0", 1, connect=["tcp/127.0.0.1:7447"]) as bus:
+        await bus.announce()
+        ...
+
+``close()`` undeclares every subscriber, queryable, publisher and token, then closes the session.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from collections import deque
+from collections.abc import Callable, Collection, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from kimera_multi_py.comms import keys
+from kimera_multi_py.comms.bus import DEFAULT_QUEUE_SIZE, BusBase, Handler, Stream, Subscription
+from kimera_multi_py.comms.messages import Message
+from kimera_multi_py.errors import ConfigError, MessageError
+
+log = logging.getLogger(__name__)
+
+MODES = ("peer", "client", "router")
+INDIRECT_CALLBACKS = True  # run data callbacks on zenoh-python's callback thread
+
+
+def zenoh_config(
+    mode: str | None = None,
+    listen: Iterable[str] = (),
+    connect: Iterable[str] = (),
+    config_file: str | Path | None = None,
+    multicast_scouting: bool | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> zenoh.Config:
+    """Build a Zenoh config: the file (if any), then our defaults, then explicit arguments.
+
+    Without a file the defaults are peer mode and multicast scouting off. ``extra`` maps config
+    paths to JSON values, e.g. ``{"transport/link/tls": {"root_ca_certificate": "ca.pem"}}``.
+    """
+    try:
+        conf = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
+    except zenoh.ZError as exc:
+        raise ConfigError("zenoh-config", f"cannot load {config_file}: {exc}") from exc
+    if config_file is None:
+        mode = mode or "peer"
+        multicast_scouting = bool(multicast_scouting)
+    if mode is not None and mode not in MODES:
+        raise ConfigError("mode", f"{mode!r} is not one of {MODES}")
+    entries: dict[str, Any] = {}
+    if mode is not None:
+        entries["mode"] = mode
+    if multicast_scouting is not None:
+        entries["scouting/multicast/enabled"] = multicast_scouting
+    if listen := list(listen):
+        entries["listen/endpoints"] = listen
+    if connect := list(connect):
+        entries["connect/endpoints"] = connect
+    entries.update(extra or {})
+    for path, value in entries.items():
+        try:
+            conf.insert_json5(path, json.dumps(value))
+        except zenoh.ZError as exc:
+            raise ConfigError(path, f"rejected by zenoh: {exc}") from exc
+    return conf
+
+
+@dataclass
+class _Served:
+    """A declared queryable; ``close()`` undeclares it."""
+
+    bus: ZenohBus
+    key_expr: str
+    handler: Handler
+    queryable: Any = None
+    closed: bool = False
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self.bus._undeclare(self.queryable)
+        if self in self.bus._served:
+            self.bus._served.remove(self)
+
+
+@dataclass
+class _PendingQuery:
+    replies: list[tuple[str, bytes]] = field(default_factory=list)
+    errors: int = 0
+    done: asyncio.Event = field(default_factory=asyncio.Event)
+
+
+class ZenohBus(BusBase):
+    """One robot's bus on its own Zenoh session. See the module docstring."""
+
+    def __init__(
+        self,
+        team: str,
+        robot: int,
+        *,
+        robots: Collection[int] | None = None,
+        mode: str | None = None,
+        listen: Iterable[str] = (),
+        connect: Iterable[str] = (),
+        config_file: str | Path | None = None,
+        multicast_scouting: bool | None = None,
+        extra_config: Mapping[str, Any] | None = None,
+        block_on_congestion: bool = False,
+        queue_size: int = DEFAULT_QUEUE_SIZE,
+    ) -> None:
+        super().__init__(team, robot, robots, queue_size)
+        try:
+            self._loop = asyncio.get_running_loop()
+        except RuntimeError as exc:
+            raise ConfigError("loop", "ZenohBus must be created inside a running event loop") \
+                from exc
+        conf = zenoh_config(mode, listen, connect, config_file, multicast_scouting, extra_config)
+        try:
+            self.session = zenoh.open(conf)
+        except zenoh.ZError as exc:
+            raise ConfigError("zenoh", f"cannot open a session: {exc}") from exc
+        self._congestion = (
+            zenoh.CongestionControl.BLOCK if block_on_congestion else zenoh.CongestionControl.DROP
+        )
+        self._inbox: deque[tuple[Subscription, str, bytes]] = deque()
+        self._drain_scheduled = False
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._subs: dict[Subscription, Any] = {}
+        self._served: list[_Served] = []
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._token: zenoh.LivelinessToken | None = None
+        self._presence_sub = self.session.liveliness().declare_subscriber(
+            keys.alive_all(self.team),
+            zenoh.handlers.Callback(self._on_presence),
+            history=True,
+        )
+        log.info("robot %d opened a zenoh session %s", robot, self.session.zid())
+
+    # zenoh threads -> event loop ---------------------------------------------------------
+    def _hand_over(self, fn: Callable[..., None], *args: Any) -> None:
+        """Schedule ``fn(*args)`` on the event loop from a Zenoh thread; never blocks or raises."""
+        try:
+            self._loop.call_soon_threadsafe(fn, *args)
+        except RuntimeError:  # the loop is closed: we are shutting down
+            pass
+
+    def _on_presence(self, sample: zenoh.Sample) -> None:
+        alive = sample.kind == zenoh.SampleKind.PUT
+        self._hand_over(self._presence_changed, str(sample.key_expr), alive)
+
+    def _presence_changed(self, key: str, alive: bool) -> None:
+        try:
+            parsed = keys.parse_key(key)
+        except MessageError:
+            self.counters.count_dropped("presence")
+            return
+        if parsed.alive and parsed.team == self.team and parsed.robot is not None:
+            self._set_alive(parsed.robot, alive)
+
+    # publish / subscribe -----------------------------------------------------------------
+    async def publish(self, key: str, msg: Message) -> None:
+        data = self.encode_for(key, msg)
+        pub = self._publisher(key)
+        try:
+            pub.put(data)
+        except zenoh.ZError as exc:
+            raise MessageError(f"key: zenoh refused to publish on {key!r}: {exc}") from exc
+        self.counters.count_sent(key, len(data))
+
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self.session.declare_publisher(key, congestion_control=self._congestion)
+            self._publishers[key] = pub
+        return pub
+
+    def subscribe(self, key_expr: str) -> Subscription:
+        self._check_open()
+        sub = Subscription(self, key_expr, self.queue_size, on_close=self._unsubscribe)
+
+        inbox = self._inbox
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            inbox.append((sub, str(sample.key_expr), sample.payload.to_bytes()))
+            if not self._drain_scheduled:
+                self._drain_scheduled = True
+                self._hand_over(self._drain)
+
+        self._subs[sub] = self.session.declare_subscriber(
+            key_expr, zenoh.handlers.Callback(on_sample, indirect=INDIRECT_CALLBACKS)
+        )
+        return sub
+
+    def _drain(self) -> None:
+        """On the loop: move every sample handed over so far into its subscription."""
+        self._drain_scheduled = False
+        inbox = self._inbox
+        while inbox:
+            sub, key, data = inbox.popleft()
+            sub.push((key, data))
+
+    def _unsubscribe(self, sub: Stream[Message]) -> None:
+        self._undeclare(self._subs.pop(sub, None))  # type: ignore[call-overload]
+
+    async def wait_for_subscribers(self, key: str, timeout: float) -> None:
+        """Wait until some subscriber (remote or local) matches ``key``; else ``TimeoutError``."""
+        self._check_open()
+        pub = self._publisher(key)
+        matched = asyncio.Event()
+
+        def on_status(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                self._hand_over(matched.set)
+
+        listener = pub.declare_matching_listener(zenoh.handlers.Callback(on_status))
+        try:
+            if not pub.matching_status:
+                await asyncio.wait_for(matched.wait(), timeout)
+        except asyncio.TimeoutError:
+            raise TimeoutError(f"no subscriber matched {key!r} within {timeout} s") from None
+        finally:
+            self._undeclare(listener)
+
+    # queries -----------------------------------------------------------------------------
+    async def serve(self, key_expr: str, handler: Handler) -> _Served:
+        self._check_open()
+        served = _Served(self, key_expr, handler)
+
+        def on_query(query: zenoh.Query) -> None:
+            payload = query.payload
+            data = payload.to_bytes() if payload is not None else None
+            self._hand_over(self._start_answer, served, query, data)
+
+        served.queryable = self.session.declare_queryable(
+            key_expr, zenoh.handlers.Callback(on_query)
+        )
+        self._served.append(served)
+        return served
+
+    def _start_answer(self, served: _Served, query: zenoh.Query, data: bytes | None) -> None:
+        task = self._loop.create_task(self._answer(served, query, data))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _answer(self, served: _Served, query: zenoh.Query, data: bytes | None) -> None:
+        try:
+            key = str(query.key_expr)
+            request = None
+            if data:
+                env = self.accept(key, data, from_owner=False)
+                if env is None:
+                    return
+                request = env.msg
+            reply_key = key if keys.is_concrete(key) else served.key_expr
+            if served.closed or self.closed or not keys.is_concrete(reply_key):
+                return
+            try:
+                replies = await self.run_handler(served.handler, reply_key, request)
+            except Exception:
+                self.counters.count_dropped("handler_error")
+                log.exception("robot %d: query handler for %s failed", self.robot, reply_key)
+                return
+            for reply in replies:
+                try:
+                    out = self.encode_for(reply_key, reply)
+                    query.reply(reply_key, out)
+                except (MessageError, zenoh.ZError) as exc:
+                    log.warning("robot %d: cannot reply on %s: %s", self.robot, reply_key, exc)
+                    continue
+                self.counters.count_sent(reply_key, len(out))
+        finally:
+            try:
+                query.drop()
+            except zenoh.ZError as exc:
+                log.debug("query already finalised: %s", exc)
+
+    async def query(
+        self, selector: str, msg: Message | None = None, timeout: float = 1.0
+    ) -> list[Message]:
+        self._check_open()
+        payload = self.codec.encode(msg) if msg is not None else None
+        pending = _PendingQuery()
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            ok = reply.ok
+            if ok is None:
+                self._hand_over(self._query_error, pending)
+            else:
+                self._hand_over(pending.replies.append, (str(ok.key_expr), ok.payload.to_bytes()))
+
+        def on_done() -> None:
+            self._hand_over(pending.done.set)
+
+        self.session.get(
+            selector,
+            zenoh.handlers.Callback(on_reply, on_done),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            payload=payload,
+            timeout=timeout,
+        )
+        if payload is not None:
+            self.counters.count_sent(selector, len(payload))
+        try:
+            # zenoh finishes the query by its own timeout; the margin covers the hand-over
+            await asyncio.wait_for(pending.done.wait(), timeout + 1.0)
+        except asyncio.TimeoutError:
+            log.warning("robot %d: query %s did not finish", self.robot, selector)
+        out = []
+        for key, data in pending.replies:
+            env = self.accept(key, data)
+            if env is not None:
+                out.append(env.msg)
+        return out
+
+    def _query_error(self, pending: _PendingQuery) -> None:
+        pending.errors += 1
+        self.counters.count_dropped("reply_error")
+
+    # presence ----------------------------------------------------------------------------
+    async def announce(self) -> None:
+        self._check_open()
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(
+                keys.alive_key(self.team, self.robot)
+            )
+
+    # shutdown ----------------------------------------------------------------------------
+    @staticmethod
+    def _undeclare(entity: Any) -> None:
+        if entity is None:
+            return
+        try:
+            entity.undeclare()
+        except zenoh.ZError as exc:
+            log.debug("undeclare failed: %s", exc)
+
+    async def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        for sub in list(self._subs):
+            sub.close()
+        for served in list(self._served):
+            served.close()
+        for task in list(self._tasks):
+            task.cancel()
+        if self._tasks:
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+        for pub in self._publishers.values():
+            self._undeclare(pub)
+        self._publishers.clear()
+        self._undeclare(self._token)
+        self._token = None
+        self._undeclare(self._presence_sub)
+        self._close_streams()
+        self._peers.clear()
+        self.session.close()
+        log.info("robot %d closed its zenoh session", self.robot)
