@@ -91,6 +91,15 @@ def sim(
                   f"(x{res['realtime_factor']:.1f} real time); wrote {out / 'results.json'}")
 
 
+def _register_commands() -> None:
+    from kimera_multi_py.consensus.cli_pgo import register
+
+    register(app)
+
+
+_register_commands()
+
+
 def main() -> None:
     app()
 

@@ -1,0 +1,76 @@
+"""Distributed PGO vs the centralised gtsam reference on every 3-D graph in shared/datasets/pgo.
+
+    python benchmarks/pgo.py --json            # six datasets, 5 robots, plus the robust run
+    python benchmarks/pgo.py --only sphere2500 --robots 5
+
+Prints one JSON object per run (with ``--json``) and a table; the centralised reference
+(chordal + LM, or GNC with ``--robust``) is measured in the same process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from kimera_multi_py.consensus.pgo import PgoParams  # noqa: E402
+from kimera_multi_py.consensus.workflow import run_pgo  # noqa: E402
+
+DATASETS = ("tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "torus3D", "cubicle")
+ROBUST = ("smallGrid3D", 0.5)
+DEFAULT_DIR = Path(os.environ.get("KMP_DATASETS", REPO.parent / "shared" / "datasets")) / "pgo"
+
+
+def _params(args: argparse.Namespace) -> PgoParams:
+    params = PgoParams(acceleration=not args.no_acceleration)
+    if args.rel_tol is not None:
+        params.rel_tol = args.rel_tol
+    return params
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true", help="print one JSON object per run")
+    ap.add_argument("--robots", type=int, default=5)
+    ap.add_argument("--max-rounds", type=int, default=1000)
+    ap.add_argument("--only", nargs="*", default=None, help="dataset names to run")
+    ap.add_argument("--no-robust", action="store_true")
+    ap.add_argument("--robust-dataset", default=ROBUST[0])
+    ap.add_argument("--outliers", type=float, default=ROBUST[1])
+    ap.add_argument("--data", type=Path, default=DEFAULT_DIR)
+    ap.add_argument("--rel-tol", type=float, default=None, help="ready tolerance override")
+    ap.add_argument("--no-acceleration", action="store_true")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.ERROR)
+
+    runs = [(name, False) for name in (args.only or DATASETS)]
+    if not args.no_robust:
+        runs.append((args.robust_dataset, True))
+    rows = []
+    for name, robust in runs:
+        res = run_pgo([args.data / f"{name}.g2o"], robots=args.robots, robust=robust,
+                      outliers=args.outliers if robust else 0.0, seed=0,
+                      max_rounds=args.max_rounds, params=_params(args))
+        fig = res.to_json()
+        rows.append(fig)
+        if args.json:
+            print(json.dumps(fig), flush=True)
+    print(f"{'dataset':16s} {'robust':6s} {'central':>12s} {'distrib':>12s} {'gap':>9s} "
+          f"{'rounds':>6s} {'r1e-2':>5s} {'r1e-3':>5s} {'MB':>7s} {'wall_s':>7s} {'cwall_s':>7s}",
+          file=sys.stderr)
+    for f in rows:
+        print(f"{f['dataset']:16s} {str(f['robust']):6s} {f['centralized_cost']:12.6g} "
+              f"{f['distributed_cost']:12.6g} {f['relative_gap']:9.2e} {f['rounds']:6d} "
+              f"{str(f['rounds_to_1e-2']):>5s} {str(f['rounds_to_1e-3']):>5s} "
+              f"{f['bytes_sent'] / 1e6:7.2f} {f['wall_s']:7.1f} {f['centralized_wall_s']:7.1f}",
+              file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,57 @@
+"""The ``kimera-multi pgo`` command. The lead's ``cli.py`` calls :func:`register`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from kimera_multi_py.errors import KimeraMultiError
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``pgo`` command to ``app``."""
+
+    @app.command("pgo")
+    def pgo(
+        inputs: Annotated[list[Path], typer.Argument(
+            help="a g2o file (split among robots), several multi-robot g2o files, "
+                 "or a DPGO robotK/measurements.csv folder")],
+        robots: Annotated[int, typer.Option(help="robots for a single-robot g2o")] = 5,
+        transport: Annotated[str, typer.Option(help="loopback | zenoh")] = "loopback",
+        robust: Annotated[bool, typer.Option("--robust", help="GNC-TLS on closures")] = False,
+        outliers: Annotated[float, typer.Option(
+            help="add this fraction of wrong inter-robot closures")] = 0.0,
+        seed: Annotated[int, typer.Option(help="seed of outliers and message faults")] = 0,
+        max_rounds: Annotated[int, typer.Option(help="round cap")] = 500,
+        json_out: Annotated[Path | None, typer.Option("--json", help="write figures here")] = None,
+        out: Annotated[Path | None, typer.Option(help="write g2o, TUM and results.json here")]
+        = None,
+    ) -> None:
+        """Distributed PGO against the centralised reference on the same graph."""
+        from rich.console import Console
+        from rich.table import Table
+
+        from kimera_multi_py.consensus.workflow import run_pgo
+
+        console = Console()
+        try:
+            result = run_pgo(inputs, robots=robots, transport=transport, robust=robust,
+                             outliers=outliers, seed=seed, max_rounds=max_rounds, out_dir=out)
+        except KimeraMultiError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(1) from None
+        figures = result.to_json()
+        if json_out is not None:
+            json_out.parent.mkdir(parents=True, exist_ok=True)
+            json_out.write_text(json.dumps(figures, indent=2))
+        table = Table(title=f"PGO {figures['dataset']} ({figures['robots']} robots)")
+        table.add_column("figure")
+        table.add_column("value", justify="right")
+        for key, value in figures.items():
+            if isinstance(value, dict):
+                continue
+            table.add_row(key, f"{value:.6g}" if isinstance(value, float) else str(value))
+        console.print(table)

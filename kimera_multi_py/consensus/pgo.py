@@ -1,0 +1,509 @@
+"""Distributed pose-graph optimisation: one robot's pure per-round step (DESIGN §4.4).
+
+A :class:`PgoAgent` owns its poses. Its *public* poses are those touching inter-robot edges.
+It never touches the network: :meth:`PgoAgent.handle` takes incoming messages and
+:meth:`PgoAgent.step` returns the messages to publish (see :mod:`.runner` for the runtime).
+
+A round ``r``:
+
+1. neighbours' latest public poses are held fixed;
+2. robots of colour ``r mod C`` (a greedy colouring of the robot graph, so adjacent robots
+   never update together) solve their local block: warm-started gtsam LM on their own poses,
+   each inter-robot edge turned into the exactly equivalent unary factor;
+3. the updated robots publish their public poses, extrapolated with Nesterov momentum
+   (restarted when the team cost rises, RBCD++-style).
+
+Initialisation: a robot starts from its own odometry (or its local chordal solution) in its own
+frame; the lowest id of each connected robot graph is the team frame; the others align to an
+aligned neighbour by GNC rotation + translation averaging over the inter-robot edges
+(:mod:`.alignment`). A robot publishes public poses only once aligned, so late joiners and
+robots without inter-robot edges simply wait (their edges are ignored by the others meanwhile).
+
+Robust mode: GNC-TLS weights (:mod:`.robust`) on loop closures and inter-robot edges (odometry
+is trusted). The lowest robot id is the leader: it sends ``update_weights`` when every robot is
+ready (or after a round cap) and ``stop`` when the team is done. An inter-robot edge's weight is
+computed by its lower-id robot and shared in :class:`GncWeights`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import gtsam
+import networkx as nx
+import numpy as np
+
+from kimera_multi_py.comms.messages import GncWeights, Message, PgoCommand, PgoStatus, PublicPoses
+from kimera_multi_py.consensus.alignment import align_frames
+from kimera_multi_py.consensus.factors import between, fixed_neighbour, residuals_sq, to_values
+from kimera_multi_py.consensus.robust import GncSchedule, tls_threshold
+from kimera_multi_py.consensus.server import chordal_initialization
+from kimera_multi_py.geometry import inverse, so3_exp, so3_log, to_gtsam
+from kimera_multi_py.io.pose_graph import INTER_ROBOT, ODOMETRY, PoseGraph, robot_key
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PgoParams:
+    """Knobs of the distributed solver (defaults tuned on the DPGO benchmark graphs)."""
+
+    max_rounds: int = 500
+    rel_tol: float = 1e-6  # ready when the relative pose change of an update is below this
+    lm_iterations: int = 20  # per local solve (warm-started; usually 1-3 are used)
+    lm_rel_tol: float = 1e-10
+    chordal_init: bool = True  # local chordal initialisation (else the robot's odometry)
+    acceleration: bool = True
+    restart_interval: int = 50  # momentum restart every this many updates (besides on cost rise)
+    resend_interval: int = 5  # re-publish unchanged public poses this often (message loss)
+    robust: bool = False
+    inlier_probability: float = 0.999  # χ²₆ quantile of the TLS threshold c̄² (22.5)
+    gnc_round_cap: int = 10  # rounds between weight updates at most
+    gnc_max_steps: int = 40
+    align_patience: int = 20  # rounds with < 3 alignment inliers before a plain alignment
+
+
+@dataclass
+class LocalGraph:
+    """What robot ``robot`` knows: its poses, its own edges, and its inter-robot edges."""
+
+    robot: int
+    keys: np.ndarray  # (n,) own Symbol keys, local order
+    poses: np.ndarray  # (n, 4, 4) initial values in the robot's own frame
+    intra_i: np.ndarray
+    intra_j: np.ndarray
+    intra_meas: np.ndarray
+    intra_info: np.ndarray
+    intra_odometry: np.ndarray  # (m,) bool
+    intra_edge: np.ndarray  # (m,) global edge index (for bookkeeping only)
+    inter_own: np.ndarray  # (k,) own local index
+    inter_own_is_i: np.ndarray  # (k,) bool
+    inter_peer: np.ndarray  # (k,) neighbour robot id
+    inter_peer_key: np.ndarray  # (k,) int64 neighbour Symbol key
+    inter_meas: np.ndarray
+    inter_info: np.ndarray
+    inter_edge: np.ndarray  # (k,) global edge index
+    robot_graph: list[tuple[int, int]] = field(default_factory=list)  # team topology
+    team: tuple[int, ...] = ()
+
+    @property
+    def neighbours(self) -> list[int]:
+        return sorted(set(self.inter_peer.tolist()))
+
+    @property
+    def public(self) -> np.ndarray:
+        """Own local indices touching inter-robot edges."""
+        return np.unique(self.inter_own)
+
+    def subgraph(self) -> PoseGraph:
+        """The intra-robot part as a :class:`PoseGraph` (for chordal initialisation)."""
+        n = len(self.keys)
+        return PoseGraph(poses=self.poses, robot=np.full(n, self.robot), local=np.arange(n),
+                         ids=np.asarray(self.keys, dtype=np.int64), edge_i=self.intra_i,
+                         edge_j=self.intra_j, measurement=self.intra_meas,
+                         information=self.intra_info)
+
+
+def split_local(graph: PoseGraph, frames: str = "own") -> list[LocalGraph]:
+    """Each robot's :class:`LocalGraph`; ``frames="own"`` re-expresses a robot's initial values
+    relative to its first pose (robots do not share a frame), ``"given"`` keeps them."""
+    kind = graph.edge_kind()
+    inter_edges = kind == INTER_ROBOT
+    ra, rb = graph.robot[graph.edge_i[inter_edges]], graph.robot[graph.edge_j[inter_edges]]
+    pairs = sorted({(int(min(a, b)), int(max(a, b))) for a, b in zip(ra, rb, strict=True)})
+    team = tuple(range(graph.num_robots))
+    out = []
+    for r in team:
+        own = graph.robot_indices(r)
+        pos = np.full(graph.num_poses, -1)
+        pos[own] = np.arange(len(own))
+        poses = graph.poses[own]
+        if frames == "own" and len(own):
+            poses = inverse(poses[0]) @ poses
+        ei, ej = graph.edge_i, graph.edge_j
+        intra = np.flatnonzero((pos[ei] >= 0) & (pos[ej] >= 0))
+        inter = np.flatnonzero((pos[ei] >= 0) ^ (pos[ej] >= 0))
+        own_is_i = pos[ei[inter]] >= 0
+        peer_idx = np.where(own_is_i, ej[inter], ei[inter])
+        out.append(LocalGraph(
+            robot=r,
+            keys=np.array([robot_key(r, k) for k in range(len(own))], dtype=np.int64),
+            poses=poses,
+            intra_i=pos[ei[intra]], intra_j=pos[ej[intra]],
+            intra_meas=graph.measurement[intra], intra_info=graph.information[intra],
+            intra_odometry=kind[intra] == ODOMETRY, intra_edge=intra,
+            inter_own=np.where(own_is_i, pos[ei[inter]], pos[ej[inter]]),
+            inter_own_is_i=own_is_i,
+            inter_peer=graph.robot[peer_idx],
+            inter_peer_key=np.array([robot_key(int(graph.robot[p]), int(graph.local[p]))
+                                     for p in peer_idx], dtype=np.int64),
+            inter_meas=graph.measurement[inter], inter_info=graph.information[inter],
+            inter_edge=inter, robot_graph=pairs, team=team,
+        ))
+    return out
+
+
+def colour_robots(robots: tuple[int, ...], pairs: list[tuple[int, int]]) -> dict[int, int]:
+    """Deterministic greedy colouring: adjacent robots get different colours."""
+    g = nx.Graph()
+    g.add_nodes_from(robots)
+    g.add_edges_from(pairs)
+    colour: dict[int, int] = {}
+    for r in sorted(robots, key=lambda r: (-g.degree[r], r)):
+        used = {colour[n] for n in g.neighbors(r) if n in colour}
+        colour[r] = next(c for c in range(len(robots) + 1) if c not in used)
+    return colour
+
+
+def frame_root(robot: int, robots: tuple[int, ...], pairs: list[tuple[int, int]]) -> bool:
+    """True when ``robot`` is the lowest id of its connected component of the robot graph."""
+    g = nx.Graph()
+    g.add_nodes_from(robots)
+    g.add_edges_from(pairs)
+    return robot == min(nx.node_connected_component(g, robot))
+
+
+class PgoAgent:
+    """One robot's distributed-PGO state and its pure round step."""
+
+    def __init__(self, local: LocalGraph, params: PgoParams | None = None) -> None:
+        self.local = local
+        self.params = params or PgoParams()
+        self.robot = local.robot
+        p = self.params
+        team = local.team or (local.robot,)
+        self.team = team
+        self.leader = min(team)
+        colours = colour_robots(team, local.robot_graph)
+        self.colour = colours[self.robot]
+        self.num_colours = max(colours.values()) + 1
+        self.root = frame_root(self.robot, team, local.robot_graph)
+        # state
+        self.poses = self._initial_poses()
+        self.prev_poses = self.poses.copy()  # previous iterate (momentum)
+        self.published = self.poses.copy()  # what neighbours see (extrapolated)
+        self.aligned = self.root
+        self.neighbour_poses: dict[int, np.ndarray] = {}
+        self.inter_weights = np.ones(len(local.inter_edge))
+        self.intra_weights = np.ones(len(local.intra_edge))
+        self.gnc = GncSchedule(tls_threshold(p.inlier_probability))
+        self.gnc_pending: int | None = None  # round of a pending weight update
+        self.gnc_last_round = 0
+        self.updates = 0
+        self.updates_since_weights = 0
+        self.ready = False
+        self.rel_change = np.inf
+        self.cost = 0.0
+        self.done = False
+        self.wait_rounds = 0
+        self.gamma = 1.0
+        self.last_team_cost = np.inf
+        self.statuses: dict[int, PgoStatus] = {}
+        self.last_sent_round = -10**9
+        self.alignment_inliers: np.ndarray | None = None
+        self.screened = False  # robust mode: inter-robot edges checked for consistency
+        self._base: gtsam.NonlinearFactorGraph | None = None
+        self._values = to_values(local.keys, self.poses)
+
+    # ---------------------------------------------------------------- initialisation
+    def _initial_poses(self) -> np.ndarray:
+        poses = self.local.poses.copy()
+        if self.params.chordal_init and len(self.local.intra_i):
+            poses, _ = chordal_initialization(self.local.subgraph(), poses)
+        return poses
+
+    def _try_align(self) -> None:
+        """Align to the team frame from inter-robot edges whose other end is known."""
+        lg = self.local
+        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        if not known.any():
+            return
+        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+                           lg.inter_own_is_i[known])
+        self.wait_rounds += 1
+        everything = bool(known.all())  # no further edge can arrive
+        if not res.ok and not everything and self.wait_rounds < self.params.align_patience:
+            return
+        if not res.ok:
+            log.warning("robot %d: aligning with only %d consistent inter-robot edges",
+                        self.robot, int(res.inliers.sum()))
+        T = res.T
+        self.poses = T @ self.poses
+        self.prev_poses = self.poses.copy()
+        self.published = self.poses.copy()
+        self._values = to_values(lg.keys, self.poses)
+        inliers = np.zeros(len(lg.inter_edge), dtype=bool)
+        inliers[np.flatnonzero(known)[res.inliers]] = True
+        self.alignment_inliers = inliers
+        if self.params.robust:
+            # edges the alignment rejected start as outliers; GNC revisits them
+            self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
+        self.aligned = True
+        self.screened = bool(known.all())
+        log.info("robot %d aligned with %d/%d inter-robot edges", self.robot,
+                 int(inliers.sum()), int(known.sum()))
+
+    def _screen(self) -> None:
+        """Robust mode, aligned robot: start inconsistent inter-robot edges at weight 0.
+
+        The same GNC rotation/translation consensus as the alignment (whose transform should
+        now be the identity) flags the edges that disagree with the majority; GNC revisits them.
+        """
+        lg = self.local
+        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        self.wait_rounds += 1
+        if not known.any() or (not known.all() and self.wait_rounds < self.params.align_patience):
+            return
+        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+                           lg.inter_own_is_i[known])
+        if res.ok:
+            inliers = np.zeros(len(lg.inter_edge), dtype=bool)
+            inliers[np.flatnonzero(known)[res.inliers]] = True
+            self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
+            self.alignment_inliers = inliers
+        self.screened = True
+
+    # ---------------------------------------------------------------- messages in
+    def handle(self, msg: Message) -> None:
+        """Absorb one message from another robot (or an own command)."""
+        if isinstance(msg, PublicPoses):
+            if msg.robot == self.robot:
+                return
+            for k, T in zip(msg.keys.tolist(), msg.poses, strict=False):
+                self.neighbour_poses[int(k)] = np.array(T)
+        elif isinstance(msg, PgoStatus):
+            old = self.statuses.get(msg.robot)
+            if old is None or msg.round >= old.round:
+                self.statuses[msg.robot] = msg
+        elif isinstance(msg, PgoCommand):
+            if msg.command == "stop":
+                self.done = True
+            elif msg.command == "update_weights" and msg.round > self.gnc_last_round:
+                self.gnc_pending = msg.round
+        elif isinstance(msg, GncWeights):
+            if msg.peer != self.robot:
+                return
+            own_keys = self.local.keys[self.local.inter_own]
+            lookup = {(int(a), int(b)): w
+                      for a, b, w in zip(msg.keys_b, msg.keys_a, msg.weights, strict=True)}
+            for e, (a, b) in enumerate(zip(own_keys, self.local.inter_peer_key, strict=False)):
+                w = lookup.get((int(a), int(b)))
+                if w is not None:
+                    self.inter_weights[e] = float(w)
+
+    # ---------------------------------------------------------------- the step
+    def active(self, rnd: int) -> bool:
+        return rnd % self.num_colours == self.colour
+
+    def step(self, rnd: int) -> list[Message]:
+        """Run round ``rnd``; return the messages to publish."""
+        out: list[Message] = []
+        if self.done:
+            return out
+        if not self.aligned:
+            self._try_align()
+            if not self.aligned:
+                out.append(self._status(rnd))
+                return out
+            out.append(self._public(rnd, self.poses))
+        if self.params.robust and not self.screened:
+            self._screen()
+        if self.params.robust and self.gnc_pending is not None and rnd >= self.gnc_pending:
+            out.extend(self._update_weights(rnd))
+        updated = False
+        if self.active(rnd):
+            self._update(rnd)
+            updated = True
+        if updated or rnd - self.last_sent_round >= self.params.resend_interval:
+            out.append(self._public(rnd, self.published))
+        out.append(self._status(rnd))
+        if self.robot == self.leader:
+            out.extend(self._lead(rnd))
+        return out
+
+    def _status(self, rnd: int) -> PgoStatus:
+        rel = float(self.rel_change) if np.isfinite(self.rel_change) else 1e300
+        return PgoStatus(robot=self.robot, round=rnd, ready=bool(self.ready and self.aligned),
+                         cost=float(self.cost), rel_change=rel)
+
+    def _public(self, rnd: int, poses: np.ndarray) -> PublicPoses:
+        self.last_sent_round = rnd
+        pub = self.local.public
+        return PublicPoses(robot=self.robot, round=rnd, keys=self.local.keys[pub],
+                           poses=poses[pub])
+
+    # ---------------------------------------------------------------- local solve
+    def _base_graph(self) -> gtsam.NonlinearFactorGraph:
+        if self._base is None:
+            lg = self.local
+            fg = gtsam.NonlinearFactorGraph()
+            for e in range(len(lg.intra_i)):
+                w = self.intra_weights[e]
+                if w > 0:
+                    fg.add(between(lg.keys[lg.intra_i[e]], lg.keys[lg.intra_j[e]],
+                                   lg.intra_meas[e], lg.intra_info[e], w))
+            self._base = fg
+        return self._base
+
+    def _inter_graph(self) -> gtsam.NonlinearFactorGraph:
+        lg = self.local
+        fg = gtsam.NonlinearFactorGraph()
+        for e in range(len(lg.inter_edge)):
+            w = self.inter_weights[e]
+            nb = self.neighbour_poses.get(int(lg.inter_peer_key[e]))
+            if w <= 0 or nb is None:
+                continue
+            fg.add(fixed_neighbour(lg.keys[lg.inter_own[e]], bool(lg.inter_own_is_i[e]), nb,
+                                   lg.inter_meas[e], lg.inter_info[e], w))
+        return fg
+
+    def _update(self, rnd: int) -> None:
+        lg = self.local
+        inter = self._inter_graph()
+        fg = gtsam.NonlinearFactorGraph(self._base_graph())
+        fg.push_back(inter)
+        if inter.size() == 0:
+            fg.add(gtsam.PriorFactorPose3(int(lg.keys[0]), to_gtsam(self.poses[0]),
+                                          gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(self.params.lm_iterations)
+        lm.setRelativeErrorTol(self.params.lm_rel_tol)
+        lm.setAbsoluteErrorTol(0.0)
+        values = gtsam.LevenbergMarquardtOptimizer(fg, self._values, lm).optimize()
+        new = _poses_of(values)
+        change = np.sqrt(np.sum((new - self.poses) ** 2) / max(np.sum(self.poses**2), 1e-300))
+        self.rel_change = float(change)
+        self.ready = self.rel_change < self.params.rel_tol and self.updates_since_weights > 0
+        self.cost = float(self._base_graph().error(values) + 0.5 * inter.error(values))
+        # Nesterov momentum on what neighbours see; restart on a team cost rise or interval
+        self.updates += 1
+        self.updates_since_weights += 1
+        if self.params.acceleration and self._should_restart():
+            self.gamma = 1.0
+        if self.params.acceleration:
+            gamma_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * self.gamma**2))
+            beta = (self.gamma - 1.0) / gamma_next
+            self.gamma = gamma_next
+            self.published = _extrapolate(new, self.poses, beta)
+        else:
+            self.published = new
+        self.prev_poses = self.poses
+        self.poses = new
+        self._values = values
+
+    def _should_restart(self) -> bool:
+        if self.updates % self.params.restart_interval == 0:
+            return True
+        if len(self.statuses) < len(self.team) - 1:
+            return False
+        team_cost = self.cost + sum(s.cost for r, s in self.statuses.items() if r != self.robot)
+        rise = team_cost > self.last_team_cost
+        self.last_team_cost = team_cost
+        return bool(rise)
+
+    def final_poses(self) -> np.ndarray:
+        return self.poses
+
+    # ---------------------------------------------------------------- robust weights
+    def _update_weights(self, rnd: int) -> list[Message]:
+        lg = self.local
+        self.gnc_last_round = self.gnc_pending or rnd
+        self.gnc_pending = None
+        loop = ~lg.intra_odometry
+        r2_loop = self._intra_r2(np.flatnonzero(loop))
+        owned = lg.inter_peer > self.robot
+        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        r2_inter = self._inter_r2(np.flatnonzero(owned & known))
+        trusted = np.concatenate([self.intra_weights[loop] > 0.5,
+                                  self.inter_weights[np.flatnonzero(owned & known)] > 0.5])
+        w = self.gnc.update(np.concatenate([r2_loop, r2_inter]), trusted)
+        self.intra_weights[loop] = w[: len(r2_loop)]
+        self.inter_weights[np.flatnonzero(owned & known)] = w[len(r2_loop):]
+        self._base = None
+        self.updates_since_weights = 0
+        self.ready = False
+        self.gamma = 1.0
+        out: list[Message] = []
+        for peer in lg.neighbours:
+            sel = np.flatnonzero((lg.inter_peer == peer) & owned & known)
+            if len(sel) == 0:
+                continue
+            out.append(GncWeights(robot=self.robot, peer=int(peer), round=rnd,
+                                  keys_a=lg.keys[lg.inter_own[sel]],
+                                  keys_b=lg.inter_peer_key[sel],
+                                  weights=self.inter_weights[sel], mu=self.gnc.mu))
+        return out
+
+    def _intra_r2(self, edges: np.ndarray) -> np.ndarray:
+        lg = self.local
+        sub = PoseGraph(poses=self.poses, robot=np.zeros(len(self.poses), dtype=int),
+                        local=np.arange(len(self.poses)), ids=np.arange(len(self.poses)),
+                        edge_i=lg.intra_i[edges], edge_j=lg.intra_j[edges],
+                        measurement=lg.intra_meas[edges], information=lg.intra_info[edges])
+        return residuals_sq(sub, self.poses)
+
+    def _inter_r2(self, edges: np.ndarray) -> np.ndarray:
+        lg = self.local
+        out = np.zeros(len(edges))
+        for n, e in enumerate(edges):
+            own = self.poses[lg.inter_own[e]]
+            nb = self.neighbour_poses[int(lg.inter_peer_key[e])]
+            Xi, Xj = (own, nb) if lg.inter_own_is_i[e] else (nb, own)
+            err = gtsam.Pose3.Logmap(to_gtsam(lg.inter_meas[e]).inverse()
+                                     * to_gtsam(Xi).inverse() * to_gtsam(Xj))
+            out[n] = err @ lg.inter_info[e] @ err
+        return out
+
+    def weights_binary(self) -> bool:
+        return GncSchedule.binary(self.inter_weights) and GncSchedule.binary(self.intra_weights)
+
+    # ---------------------------------------------------------------- leader
+    def _lead(self, rnd: int) -> list[Message]:
+        p = self.params
+        statuses = [self.statuses.get(r) for r in self.team if r != self.robot]
+        known = all(s is not None for s in statuses)
+        all_ready = known and self.ready and all(s.ready for s in statuses if s is not None)
+        if p.robust:
+            since = rnd - self.gnc_last_round
+            if self.gnc.steps >= p.gnc_max_steps:
+                return self._stop(rnd) if all_ready else []
+            if (all_ready or since >= p.gnc_round_cap) and self.gnc_pending is None:
+                cmd = PgoCommand(robot=self.robot, round=rnd + 1, command="update_weights",
+                                 active=np.array(self.team, dtype=np.int64))
+                self.handle(cmd)
+                return [cmd]
+            return []
+        return self._stop(rnd) if all_ready else []
+
+    def _stop(self, rnd: int) -> list[Message]:
+        cmd = PgoCommand(robot=self.robot, round=rnd, command="stop",
+                         active=np.zeros(0, dtype=np.int64))
+        self.handle(cmd)
+        return [cmd]
+
+
+def _poses_of(values: gtsam.Values) -> np.ndarray:
+    """Poses of a Values in key order as ``(n, 4, 4)`` (keys are one robot's, so in order)."""
+    flat = gtsam.utilities.extractPose3(values)
+    T = np.zeros((len(flat), 4, 4))
+    T[:, :3, :3] = flat[:, :9].reshape(-1, 3, 3)
+    T[:, :3, 3] = flat[:, 9:]
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _extrapolate(new: np.ndarray, old: np.ndarray, beta: float) -> np.ndarray:
+    """``new ⊕ β·(new ⊖ old)`` per pose (rotation on the right, translation added):
+    Nesterov extrapolation on SE(3) with the decoupled retraction."""
+    if beta <= 0:
+        return new
+    rot = so3_log(np.swapaxes(old[:, :3, :3], 1, 2) @ new[:, :3, :3])
+    out = new.copy()
+    out[:, :3, :3] = new[:, :3, :3] @ so3_exp(beta * rot)
+    out[:, :3, 3] = new[:, :3, 3] + beta * (new[:, :3, 3] - old[:, :3, 3])
+    return out
+
+

@@ -1,0 +1,144 @@
+"""Centralised mode, solver half: the joint graph optimised in one place (the PGO reference).
+
+Chordal initialisation (``gtsam.InitializePose3``) per connected component, falling back to
+the given values where it fails (it does on cubicle), then Levenberg–Marquardt, or gtsam's
+GNC-TLS when ``robust`` (odometry is a known inlier).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import gtsam
+import networkx as nx
+import numpy as np
+from scipy.stats import chi2
+
+from kimera_multi_py.consensus.factors import (
+    CostEvaluator,
+    build_graph,
+    from_values,
+    residuals_sq,
+    to_values,
+)
+from kimera_multi_py.errors import GraphError
+from kimera_multi_py.geometry import to_gtsam
+from kimera_multi_py.io.pose_graph import ODOMETRY, PoseGraph
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CentralizedResult:
+    """Optimised poses, cost over the inlier edges (unweighted), and how it was obtained."""
+
+    poses: np.ndarray
+    cost: float
+    initial_cost: float
+    init: str
+    wall_s: float
+    weights: np.ndarray | None = None  # GNC weights per edge (robust only)
+
+
+def components(graph: PoseGraph) -> list[np.ndarray]:
+    """Pose indices of each connected component, ordered by their smallest index."""
+    g = nx.Graph()
+    g.add_nodes_from(range(graph.num_poses))
+    g.add_edges_from(zip(graph.edge_i.tolist(), graph.edge_j.tolist(), strict=False))
+    comps = [np.array(sorted(c)) for c in nx.connected_components(g)]
+    return sorted(comps, key=lambda c: int(c[0]))
+
+
+def chordal_initialization(graph: PoseGraph, poses: np.ndarray | None = None,
+                           mask: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
+    """Chordal relaxation per component, expressed in the frame of each component's first pose.
+
+    Returns ``(poses, ok)``; where gtsam cannot initialise a component its ``poses`` are kept.
+    """
+    poses = (graph.poses if poses is None else poses).copy()
+    sub = graph if mask is None else graph.subset_edges(mask)
+    keys = graph.keys
+    ok = True
+    for comp in components(sub):
+        if len(comp) < 2:
+            continue
+        in_comp = np.zeros(graph.num_poses, dtype=bool)
+        in_comp[comp] = True
+        fg = build_graph(sub, mask=in_comp[sub.edge_i])
+        anchor = int(comp[0])
+        fg.add(gtsam.PriorFactorPose3(int(keys[anchor]), to_gtsam(poses[anchor]),
+                                      gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+        try:
+            values = gtsam.InitializePose3.initialize(fg)
+        except RuntimeError as exc:
+            log.info("chordal initialisation failed (%s); keeping given values",
+                     str(exc).strip().splitlines()[0])
+            ok = False
+            continue
+        est = from_values(values, keys[comp])
+        # re-anchor: the component's first pose keeps its given value
+        T = poses[anchor] @ np.linalg.inv(est[0])
+        poses[comp] = T @ est
+    return poses, ok
+
+
+def _gnc(graph: PoseGraph, fg: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+         lm: gtsam.LevenbergMarquardtParams, barc2: float) -> tuple[gtsam.Values, np.ndarray]:
+    """gtsam GNC-TLS with odometry and priors as known inliers."""
+    params = gtsam.GncLMParams(lm)
+    params.setLossType(gtsam.GncLossType.TLS)
+    known = [int(e) for e in np.flatnonzero(graph.edge_kind() == ODOMETRY)]
+    known += list(range(graph.num_edges, fg.size()))  # priors
+    params.setKnownInliers(known)
+    opt = gtsam.GncLMOptimizer(fg, values, params)
+    opt.setInlierCostThresholds(0.5 * barc2)
+    result = opt.optimize()
+    return result, np.asarray(opt.getWeights())[: graph.num_edges]
+
+
+def solve_centralized(graph: PoseGraph, robust: bool = False, chordal: bool = True,
+                      inlier_probability: float = 0.999, relative_tol: float = 1e-8,
+                      max_iterations: int = 500) -> CentralizedResult:
+    """Optimise the joint graph. The cost reported is over the non-outlier edges, unweighted."""
+    if graph.num_poses == 0:
+        raise GraphError("empty graph")
+    t0 = time.perf_counter()
+    keys = graph.keys
+    init_poses, ok = chordal_initialization(graph) if chordal else (graph.poses, False)
+    init = "chordal" if chordal and ok else ("chordal+given" if chordal else "given")
+    fg = build_graph(graph)
+    for comp in components(graph):
+        a = int(comp[0])
+        fg.add(gtsam.PriorFactorPose3(int(keys[a]), to_gtsam(init_poses[a]),
+                                      gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    values = to_values(keys, init_poses)
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setRelativeErrorTol(relative_tol)
+    lm.setAbsoluteErrorTol(0.0)
+    lm.setMaxIterations(max_iterations)
+    weights = None
+    if robust:
+        # chordal relaxation sees the outliers too: run GNC from it and from the given values,
+        # keep the lower truncated (TLS) cost
+        barc2 = float(chi2.ppf(inlier_probability, 6))
+        best = None
+        starts = [(init, values)]
+        if chordal:
+            starts.append(("given", to_values(keys, graph.poses)))
+        for name, start in starts:
+            res, w = _gnc(graph, fg, start, lm, barc2)
+            r2 = residuals_sq(graph, from_values(res, keys))
+            tls = float(0.5 * np.minimum(r2, barc2).sum())
+            if best is None or tls < best[0]:
+                best = (tls, res, w, name)
+        assert best is not None
+        _, result, weights, init = best
+    else:
+        result = gtsam.LevenbergMarquardtOptimizer(fg, values, lm).optimize()
+    poses = from_values(result, keys)
+    wall = time.perf_counter() - t0
+    evaluate = CostEvaluator(graph, mask=~graph.outlier)
+    return CentralizedResult(poses=poses, cost=evaluate(poses), initial_cost=evaluate(init_poses),
+                             init=init, wall_s=wall, weights=weights)
