@@ -63,7 +63,9 @@ def sim(
     scenario: Annotated[Path, typer.Argument(help="Scenario TOML file.")] = DEFAULT_SCENARIO,
     robots: Annotated[int | None, typer.Option("--robots", "-n", help="Team size (overrides the file).")] = None,
     seed: Annotated[int | None, typer.Option(help="Random seed (overrides the file).")] = None,
-    mode: Annotated[str, typer.Option(help="odometry (dead reckoning).")] = "odometry",
+    mode: Annotated[str, typer.Option(help="odometry (dead reckoning) or distributed.")] = "odometry",
+    transport: Annotated[str, typer.Option(help="loopback (in-process) or zenoh (one session per robot).")]
+    = "loopback",
     out: Annotated[Path, typer.Option(help="Run folder for results.json and trajectories.")] = Path("runs/sim"),
     rerun: Annotated[bool, typer.Option("--rerun/--no-rerun", help="Write OUT/recording.rrd.")] = True,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
@@ -80,7 +82,7 @@ def sim(
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                       TimeElapsedColumn(), console=err_console, transient=False) as progress:
             task = progress.add_task(f"{cfg.name} x{len(cfg.robots)}", total=None)
-            runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz,
+            runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz, transport=transport,
                                on_progress=lambda done, total: progress.update(task, completed=done, total=total))
             results = runner.run()
     except KimeraMultiError as exc:

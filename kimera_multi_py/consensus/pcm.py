@@ -49,11 +49,23 @@ def consistency_errors(
     E = np.einsum("klab,klbc->klac", E, inverse(B_rel))
     xi = se3_log(E)  # (c, c, 6)
     span = np.abs(path_a[:, None] - path_a[None]) + np.abs(path_b[:, None] - path_b[None])
-    var_rot = 2 * noise.closure_rot**2 + (noise.odom_rot_per_m**2) * span
+    return _drift_r2(xi, span, 2, noise)
+
+
+def _drift_r2(xi: np.ndarray, span: np.ndarray, closures: int, noise: PcmNoise) -> np.ndarray:
+    """Squared Mahalanobis norm of cycle errors ``xi (..., 6)`` spanning ``span`` metres of odometry."""
+    var_rot = closures * noise.closure_rot**2 + (noise.odom_rot_per_m**2) * span
     # translation also drifts through integrated heading error: a lever arm of ~span^3 / 3
-    var_trans = (2 * noise.closure_trans**2 + (noise.odom_trans_per_m**2) * span
+    var_trans = (closures * noise.closure_trans**2 + (noise.odom_trans_per_m**2) * span
                  + (noise.odom_rot_per_m**2) * span**3 / 3)
     return (xi[..., :3] ** 2).sum(-1) / var_rot + (xi[..., 3:] ** 2).sum(-1) / var_trans
+
+
+def odometry_consistent(Z: np.ndarray, A_i: np.ndarray, A_j: np.ndarray, path_i: np.ndarray, path_j: np.ndarray,
+                        noise: PcmNoise) -> np.ndarray:
+    """Intra-robot closures ``Z ≈ A_i^{-1} A_j`` that agree with the robot's own odometry (mask)."""
+    xi = se3_log(inverse(Z) @ inverse(A_i) @ A_j)
+    return _drift_r2(xi, np.abs(np.asarray(path_i) - np.asarray(path_j)), 1, noise) <= chi2.ppf(noise.probability, 6)
 
 
 def max_consistent_set(r2: np.ndarray, threshold: float) -> np.ndarray:

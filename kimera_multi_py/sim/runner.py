@@ -7,10 +7,16 @@ them, evaluate against ground truth, write the outputs. Modes:
   For the team figure each robot's odometry frame is anchored at its true start pose (the
   frames are otherwise unknown without inter-robot loop closures), then one SE(3) alignment
   over all robots is applied.
+* ``distributed`` -- one :class:`Agent` per robot, each wrapped in an :class:`AgentNode` on its
+  own bus (in-process loopback, or one Zenoh session per robot): maps, objects, inter-robot
+  loop closures (descriptors, queries, verification, PCM) and distributed PGO every
+  ``pgo_period`` seconds of simulated time and at the end. Estimates end in the team frame
+  (robot 0's), which one SE(3) alignment places in the world for evaluation.
 """
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -18,15 +24,24 @@ from pathlib import Path
 
 import numpy as np
 
+from kimera_multi_py.agent.agent import Agent, AgentParams, KeyframeInput
+from kimera_multi_py.agent.node import AgentNode
+from kimera_multi_py.comms.bus import Bus
+from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams
+from kimera_multi_py.consensus.runner import run_team
+from kimera_multi_py.consensus.workflow import open_buses
 from kimera_multi_py.errors import ConfigError
-from kimera_multi_py.eval.metrics import ate_rmse
+from kimera_multi_py.eval.metrics import align_se3, ate_rmse
 from kimera_multi_py.eval.results import Results, RobotResult
+from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures
+from kimera_multi_py.geometry import transform_points
 from kimera_multi_py.io.tum import write_tum
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
 from kimera_multi_py.viz.rerun_viz import NullViz, Viz
 
-MODES = ("odometry",)
+MODES = ("odometry", "distributed")
+TRANSPORTS = ("loopback", "zenoh")
 Progress = Callable[[int, int], None]
 
 
@@ -46,21 +61,40 @@ class _Track:
         return pose
 
 
+def keyframe_input(kf: Keyframe) -> KeyframeInput:
+    """What the agent may see of a simulated keyframe (no ground truth)."""
+    return KeyframeInput(kf.index, kf.stamp, kf.odometry, kf.scan.points(), kf.scan.labels, kf.scan.hit,
+                         kf.scan.max_range)
+
+
 class SimRunner:
     """Runs one scenario for one seed and mode; returns :class:`Results`."""
 
     def __init__(self, cfg: ScenarioConfig, seed: int | None = None, mode: str = "odometry",
                  out_dir: str | Path | None = None, viz: Viz | None = None,
-                 on_progress: Progress | None = None) -> None:
+                 on_progress: Progress | None = None, transport: str = "loopback",
+                 pgo_period: float = 60.0, params: AgentParams | None = None,
+                 pgo_params: PgoParams | None = None) -> None:
         if mode not in MODES:
             raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
+        if transport not in TRANSPORTS:
+            raise ConfigError("transport", f"unknown transport {transport!r} (available: {', '.join(TRANSPORTS)})")
         self.cfg = cfg
         self.mode = mode
+        self.transport = transport
+        self.pgo_period = pgo_period
         self.sim = Simulation(cfg, seed)
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.viz: Viz = viz or NullViz()
         self.on_progress = on_progress
+        o = cfg.odometry
+        odom_sigmas = (max(np.deg2rad(o.rot_sigma_deg), 1e-4), max(o.trans_sigma, 1e-3))
+        self.params = params or AgentParams(odom_sigmas=odom_sigmas, keyframe_distance=cfg.keyframes.distance)
+        self.pgo_params = pgo_params or PgoParams(robust=True, max_rounds=300)
         self.tracks: list[_Track] = []
+        self.agents: list[Agent] = []
+        self.bytes: dict[str, object] = {}
+        self.pgo_runs = 0
         self.rays = 0
 
     @property
@@ -70,51 +104,155 @@ class SimRunner:
     def run(self) -> Results:
         t0 = time.perf_counter()
         self._spawn_agents()
-        self._run()
+        if self.mode == "odometry":
+            self._run_odometry()
+        else:
+            asyncio.run(self._run_team())
         results = self._evaluate(time.perf_counter() - t0)
         self._write_results(results)
         return results
 
     def _spawn_agents(self) -> None:
         self.tracks = [_Track() for _ in range(self.sim.num_robots)]
+        team = tuple(range(self.sim.num_robots))
+        if self.mode != "odometry":
+            self.agents = [Agent(r, team, self.params) for r in team]
         self.viz.log_world(self.sim.world)
 
-    def _run(self) -> None:
-        total = self.total_keyframes
+    def _step(self, done: int, kf: Keyframe, est: np.ndarray) -> None:
+        self.rays += len(kf.scan)
+        self.viz.log_keyframe(kf.robot, kf.stamp, est, kf.true_pose, kf.scan.points(), kf.scan.labels)
+        if self.on_progress is not None:
+            self.on_progress(done, self.total_keyframes)
+
+    def _run_odometry(self) -> None:
         for done, kf in enumerate(self.sim.stream(), 1):
-            est = self.tracks[kf.robot].add(kf)
-            self.rays += len(kf.scan)
-            self.viz.log_keyframe(kf.robot, kf.stamp, est, kf.true_pose, kf.scan.points(), kf.scan.labels)
-            if self.on_progress is not None:
-                self.on_progress(done, total)
+            self._step(done, kf, self.tracks[kf.robot].add(kf))
         self.viz.close()
+
+    async def _run_team(self) -> None:
+        robots = list(range(self.sim.num_robots))
+        async with open_buses(robots, self.transport, team="sim", seed=self.sim.seed) as buses:
+            nodes = [AgentNode(a, b) for a, b in zip(self.agents, buses, strict=True)]
+            for node in nodes:
+                await node.start()
+            next_pgo = self.pgo_period
+            for done, kf in enumerate(self.sim.stream(), 1):
+                node = nodes[kf.robot]
+                await node.process_keyframe(keyframe_input(kf))
+                await _drain(nodes)
+                self.tracks[kf.robot].add(kf)
+                self._step(done, kf, node.agent.poses[-1])
+                if kf.stamp >= next_pgo:
+                    await self._optimise(buses)
+                    next_pgo += self.pgo_period
+            await self._optimise(buses)
+            await _drain(nodes)
+            self.bytes = {"per_robot": {}, "per_topic": {}}
+            for b in buses:
+                snap = b.counters.snapshot()["sent"]
+                self.bytes["per_robot"][str(b.robot)] = int(sum(v["bytes"] for v in snap.values()))  # type: ignore[index]
+                for topic, v in snap.items():
+                    per_topic = self.bytes["per_topic"]  # type: ignore[assignment]
+                    per_topic[topic] = per_topic.get(topic, 0) + int(v["bytes"])  # type: ignore[union-attr]
+            self.refused = {n.robot: dict(n.errors) for n in nodes}
+            for node in nodes:
+                await node.close()
+        self.viz.close()
+
+    async def _optimise(self, buses: list[Bus]) -> None:
+        """Distributed PGO over the agents' current graphs; the agents adopt the result."""
+        pgo = [PgoAgent(a.local_graph(), self.pgo_params) for a in self.agents]
+        await run_team(pgo, buses, self.pgo_params.max_rounds)
+        for agent, p in zip(self.agents, pgo, strict=True):
+            agent.apply_poses(p.final_poses())
+        self.pgo_runs += 1
 
     def _evaluate(self, wall_s: float) -> Results:
         robots, team_est, team_true = [], [], []
         for i, tr in enumerate(self.tracks):
-            est, true = np.array(tr.est), np.array(tr.true)
+            true = np.array(tr.true)
+            est = np.array(self.agents[i].poses) if self.agents else np.array(tr.est)
             length = float(np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1).sum())
-            robots.append(RobotResult(i, len(tr.est), length, ate_rmse(est[:, :3, 3], true[:, :3, 3])))
-            anchored = true[0] @ est  # odometry frame placed at the true start pose
-            team_est.append(anchored[:, :3, 3])
+            robots.append(RobotResult(i, len(true), length, ate_rmse(est[:, :3, 3], true[:, :3, 3])))
+            # odometry: each robot's own frame anchored at its true start; otherwise the team frame
+            team_est.append((true[0] @ est if not self.agents else est)[:, :3, 3])
             team_true.append(true[:, :3, 3])
+        est_all, true_all = np.concatenate(team_est), np.concatenate(team_true)
         team = {
-            "ate_rmse_m": ate_rmse(np.concatenate(team_est), np.concatenate(team_true)),
+            "ate_rmse_m": ate_rmse(est_all, true_all),
             "keyframes": int(sum(r.keyframes for r in robots)),
             "trajectory_length_m": float(sum(r.trajectory_length_m for r in robots)),
-            "frames": "each robot's odometry anchored at its true start pose",
+            "frames": ("each robot's odometry anchored at its true start pose" if not self.agents
+                       else "the team frame (robot 0's), one SE(3) alignment to the world"),
         }
-        return Results(
-            scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
-            sim_seconds=self.sim.duration, wall_s=wall_s,
-            extra={"rays": self.rays, "rays_per_s": self.rays / wall_s if wall_s > 0 else 0.0},
-        )
+        extra: dict[str, object] = {"rays": self.rays, "rays_per_s": self.rays / wall_s if wall_s > 0 else 0.0}
+        if self.agents:
+            extra.update(self._evaluate_team(align_se3(est_all, true_all)))
+        return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
+                       sim_seconds=self.sim.duration, wall_s=wall_s, extra=extra)
+
+    def _evaluate_team(self, T_world_team: np.ndarray) -> dict[str, object]:
+        """Maps, objects, loop closures and traffic of a team run (agents' estimates in the team frame)."""
+        world = self.sim.world
+        grid = world.gt_voxel_grid(self.agents[0].map.resolution)
+        centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
+        maps = {str(a.robot): map_quality(a.map.octree, T_world_team, centers, gt) for a in self.agents}
+        lms = [lm for a in self.agents for lm in a.objects.confirmed()]
+        pos = transform_points(T_world_team, np.array([lm.position for lm in lms]).reshape(-1, 3))
+        cls, cen = merge_objects(np.array([lm.label for lm in lms], dtype=int), pos)
+        objects = object_quality(cls, cen, np.array([o.label for o in world.objects]),
+                                 np.array([o.centroid for o in world.objects]))
+        objects["landmarks"] = len(lms)
+        # loop closures: what each verifier accepted, scored against the true poses
+        truth = [np.array(tr.true) for tr in self.tracks]
+        Z, Ta, Tb, inter = [], [], [], []
+        for a in self.agents:
+            for peer, group in a.closures.items():
+                for c in group:
+                    if c.accepted:
+                        Z.append(c.Z)
+                        Ta.append(truth[a.robot][c.own_kf])
+                        Tb.append(truth[peer][c.peer_kf])
+                        inter.append(peer != a.robot)
+        ok = score_closures(np.array(Z).reshape(-1, 4, 4), np.array(Ta).reshape(-1, 4, 4),
+                            np.array(Tb).reshape(-1, 4, 4))
+        inter_arr = np.array(inter, dtype=bool)
+        stats = [a.stats for a in self.agents]
+        closures = {
+            "candidates": sum(s.candidates for s in stats),
+            "verified": sum(s.verified for s in stats),
+            "rejected_verification": sum(s.rejected_verification for s in stats),
+            "rejected_pcm": sum(sum(not c.accepted for c in g) for a in self.agents for g in a.closures.values()),
+            "accepted_inter": int(inter_arr.sum()),
+            "accepted_intra": int((~inter_arr).sum()),
+            "true_accepted_inter": int((ok & inter_arr).sum()),
+            "false_accepted_inter": int((~ok & inter_arr).sum()),
+            "true_accepted_intra": int((ok & ~inter_arr).sum()),
+            "false_accepted_intra": int((~ok & ~inter_arr).sum()),
+        }
+        return {"map": maps, "objects": objects, "loop_closures": closures, "bytes_sent": self.bytes,
+                "pgo_runs": self.pgo_runs, "refused_messages": getattr(self, "refused", {}),
+                "transport": self.transport}
 
     def _write_results(self, results: Results) -> None:
         if self.out_dir is None:
             return
         self.out_dir.mkdir(parents=True, exist_ok=True)
         for i, tr in enumerate(self.tracks):
-            write_tum(self.out_dir / f"robot{i}_est.tum", np.array(tr.stamps), np.array(tr.est))
+            est = np.array(self.agents[i].poses) if self.agents else np.array(tr.est)
+            write_tum(self.out_dir / f"robot{i}_est.tum", np.array(tr.stamps), est)
             write_tum(self.out_dir / f"robot{i}_gt.tum", np.array(tr.stamps), np.array(tr.true))
         results.write_json(self.out_dir / "results.json")
+
+
+async def _drain(nodes: list[AgentNode]) -> None:
+    """Let every node handle its queued messages until the team is quiet."""
+    while True:
+        handled = 0
+        for node in nodes:
+            handled += await node.drain()
+        if not handled:
+            await asyncio.sleep(0)
+            if not any(n._sub is not None and n._sub.pending() for n in nodes):
+                return

@@ -1,0 +1,412 @@
+"""The per-robot Agent: pure logic, no I/O (DESIGN §1, §6).
+
+``Agent.process_keyframe(kf)`` and ``Agent.handle(msg)`` return the messages to send; a
+runtime (:mod:`.node`, :class:`~kimera_multi_py.sim.runner.SimRunner`) moves them. The agent
+owns:
+
+* its pose graph: dead-reckoned poses in its own odometry frame (never changed, used by PCM),
+  the current estimate (moved by PGO, in the team frame once aligned), odometry edges and
+  intra-robot loop closures;
+* submaps feeding a semantic octree (:class:`SubmapMap`) and an object map, both re-anchored
+  exactly when PGO moves the submaps;
+* its loop-closure front end. Every ``descriptor_every`` keyframes the objects seen over the
+  last ``descriptor_window`` keyframes form a constellation in the keyframe's frame; its
+  descriptor is published (only the descriptor). A robot compares other robots' descriptors
+  with its own; for a pair of robots the lower id verifies (within a budget of candidates per
+  period), fetching the full constellation with a query, verifying it geometrically (max
+  clique + Umeyama) and passing every verified closure of the pair through PCM. The accepted
+  set is published as ``LoopClosures``; both robots then hold the edges for PGO.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kimera_multi_py.agent.loop_closure import DescriptorSpec, constellation_descriptor, similarity, verify
+from kimera_multi_py.comms.messages import (
+    KeyframeDescriptor,
+    LoopClosureReply,
+    LoopClosureRequest,
+    LoopClosures,
+    LoopClosuresAck,
+    Message,
+)
+from kimera_multi_py.consensus.pcm import PcmNoise, odometry_consistent, pcm
+from kimera_multi_py.consensus.pgo import LocalGraph
+from kimera_multi_py.geometry import inverse, transform_points
+from kimera_multi_py.io.pose_graph import robot_key
+from kimera_multi_py.mapping.config import MappingConfig, get_object_map, get_submap_map
+from kimera_multi_py.semantics import NUM_CLASSES, OBJECT_CLASSES, class_id
+
+log = logging.getLogger(__name__)
+
+_OBJECT_IDS = np.array([class_id(c) for c in OBJECT_CLASSES])
+_CLASS_TO_SLOT = np.full(NUM_CLASSES + 1, -1)
+_CLASS_TO_SLOT[_OBJECT_IDS] = np.arange(len(_OBJECT_IDS))
+
+
+@dataclass
+class AgentParams:
+    """Knobs of the per-robot front end (defaults tuned on ``sims/office.toml``)."""
+
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    odom_sigmas: tuple[float, float] = (np.deg2rad(0.5), 0.03)  # rot (rad), trans (m) per keyframe
+    closure_sigmas: tuple[float, float] = (0.05, 0.15)
+    keyframe_distance: float = 0.5  # nominal, for PCM's drift model
+    descriptor_every: int = 2
+    descriptor_window: int = 8
+    min_objects: int = 5
+    min_similarity: float = 0.75
+    budget: int = 6  # verification requests per peer per budget period
+    budget_period: float = 20.0  # s
+    verify_eps: float = 0.25
+    min_inliers: int = 5
+    pcm_min_size: int = 2
+    intra_min_gap: int = 40  # keyframes between an intra-robot closure's ends
+    pcm: PcmNoise | None = None  # default: drift from odom_sigmas, closure noise from closure_sigmas
+
+    def pcm_noise(self) -> PcmNoise:
+        """PCM's drift model: the per-keyframe odometry noise as a random walk per metre."""
+        if self.pcm is not None:
+            return self.pcm
+        per_m = 1.0 / np.sqrt(self.keyframe_distance)
+        return PcmNoise(closure_rot=self.closure_sigmas[0], closure_trans=self.closure_sigmas[1],
+                        odom_rot_per_m=self.odom_sigmas[0] * per_m, odom_trans_per_m=self.odom_sigmas[1] * per_m)
+
+
+@dataclass
+class KeyframeInput:
+    """What a robot's sensors give the agent at a keyframe (sensor frame)."""
+
+    index: int
+    stamp: float
+    odometry: np.ndarray  # T_{k-1,k}, identity at k = 0
+    points: np.ndarray  # (n, 3) end points, misses at max range
+    labels: np.ndarray  # (n,) int, 0 for misses
+    hit: np.ndarray  # (n,) bool
+    max_range: float
+
+
+@dataclass
+class Constellation:
+    """Objects seen around a keyframe, in that keyframe's frame."""
+
+    keyframe: int
+    stamp: float
+    xyz: np.ndarray  # (m, 3)
+    classes: np.ndarray  # (m,) class ids
+    descriptor: np.ndarray
+
+
+@dataclass
+class Closure:
+    """A verified loop closure: ``Z = T_a^{-1} T_b`` between own keyframe a and peer keyframe b."""
+
+    own_kf: int
+    peer: int
+    peer_kf: int
+    Z: np.ndarray
+    inliers: int
+    own_pose: np.ndarray  # dead-reckoned poses used by PCM
+    peer_pose: np.ndarray
+    accepted: bool = False
+
+
+@dataclass
+class LoopClosureStats:
+    candidates: int = 0  # verification requests sent (inter) or attempted (intra)
+    verified: int = 0  # passed geometric verification
+    rejected_verification: int = 0
+    rejected_pcm: int = 0
+    accepted: int = 0
+
+
+class Agent:
+    """One robot's SLAM front end and map (see the module docstring)."""
+
+    def __init__(self, robot: int, team: tuple[int, ...], params: AgentParams | None = None) -> None:
+        self.robot = robot
+        self.team = tuple(team)
+        self.params = params or AgentParams()
+        p = self.params
+        self.spec = DescriptorSpec(num_classes=len(_OBJECT_IDS))
+        self.map = get_submap_map(p.mapping)
+        self.objects = get_object_map(p.mapping)
+        self.stamps: list[float] = []
+        self.odometry: list[np.ndarray] = []
+        self.dead_reckoning: list[np.ndarray] = []  # own frame, fixed
+        self.poses: list[np.ndarray] = []  # current estimate (team frame once aligned)
+        self.submap_of: list[int] = []
+        self.kf_landmarks: list[list[int]] = []
+        self.constellations: dict[int, Constellation] = {}
+        self.peer_descriptors: dict[int, list[tuple[int, np.ndarray]]] = {}
+        self.closures: dict[int, list[Closure]] = {}  # verified by me, per peer (self for intra)
+        self.inter_edges: dict[tuple[int, int, int], tuple[np.ndarray, int]] = {}
+        # (own_kf, peer, peer_kf) -> (Z own<-peer, inliers): every accepted inter-robot edge
+        self.robot_graph: set[tuple[int, int]] = set()
+        self.stats = LoopClosureStats()
+        self._pending: dict[int, tuple[int, int, int]] = {}  # request id -> (peer, peer_kf, own_kf)
+        self._request_id = 0
+        self._budget: dict[int, list[float]] = {}
+        self._batch: dict[int, int] = {}
+
+    # ---- keyframes ------------------------------------------------------------------------
+    @property
+    def num_keyframes(self) -> int:
+        return len(self.poses)
+
+    def process_keyframe(self, kf: KeyframeInput) -> list[Message]:
+        """Integrate one keyframe; return the messages to publish."""
+        if kf.index != self.num_keyframes:
+            raise ValueError(f"robot {self.robot}: keyframe {kf.index} out of order "
+                             f"(expected {self.num_keyframes})")
+        odom = np.eye(4) if kf.index == 0 else np.asarray(kf.odometry, dtype=float)
+        if not np.all(np.isfinite(odom)):
+            raise ValueError(f"robot {self.robot}: non-finite odometry at keyframe {kf.index}")
+        dr = odom.copy() if kf.index == 0 else self.dead_reckoning[-1] @ odom
+        pose = odom.copy() if kf.index == 0 else self.poses[-1] @ odom
+        self.stamps.append(kf.stamp)
+        self.odometry.append(odom)
+        self.dead_reckoning.append(dr)
+        self.poses.append(pose)
+        # mapping: a new submap every keyframes_per_submap keyframes, anchored at its first pose
+        sid = kf.index // self.params.mapping.keyframes_per_submap
+        if sid not in self.map.submaps:
+            self.map.new_submap(sid, pose)
+            self.objects.set_submap_pose(sid, pose)
+        self.submap_of.append(sid)
+        T_sub = inverse(self.map.submaps[sid].T) @ pose
+        self.map.integrate(sid, T_sub, kf.points, kf.labels, kf.max_range)
+        hits = np.asarray(kf.hit, dtype=bool)
+        seen = self.objects.update(transform_points(pose, kf.points[hits]), kf.labels[hits], sid, kf.index)
+        self.kf_landmarks.append(seen)
+        out: list[Message] = []
+        if kf.index % self.params.descriptor_every == 0:
+            c = self._constellation(kf.index)
+            if c is not None:
+                self.constellations[kf.index] = c
+                out.append(KeyframeDescriptor(robot=self.robot, keyframe=kf.index, stamp=kf.stamp,
+                                              kind="objects", descriptor=c.descriptor))
+                out += self._intra_closures(c)
+                for peer, descs in sorted(self.peer_descriptors.items()):
+                    for peer_kf, d in descs:
+                        out += self._maybe_request(peer, peer_kf, d, kf.stamp, own=[c])
+        return out
+
+    def _constellation(self, k: int) -> Constellation | None:
+        window = self.kf_landmarks[max(0, k - self.params.descriptor_window + 1): k + 1]
+        ids = sorted({i for ids in window for i in ids if i in self.objects.landmarks})
+        lms = [self.objects.landmarks[i] for i in ids]
+        lms = [lm for lm in lms if lm.num_observations >= 2]
+        if len(lms) < self.params.min_objects:
+            return None
+        xyz_world = np.array([lm.position for lm in lms])
+        xyz = transform_points(inverse(self.poses[k]), xyz_world)
+        classes = np.array([lm.label for lm in lms])
+        desc = constellation_descriptor(xyz, _CLASS_TO_SLOT[classes], self.spec)
+        return Constellation(k, self.stamps[k], xyz, classes, desc)
+
+    # ---- loop closures --------------------------------------------------------------------
+    def _verifier(self, peer: int) -> bool:
+        return self.robot < peer
+
+    def _spend(self, peer: int, stamp: float) -> bool:
+        recent = [t for t in self._budget.get(peer, []) if stamp - t < self.params.budget_period]
+        if len(recent) >= self.params.budget:
+            self._budget[peer] = recent
+            return False
+        self._budget[peer] = recent + [stamp]
+        return True
+
+    def _maybe_request(self, peer: int, peer_kf: int, desc: np.ndarray, stamp: float,
+                       own: list[Constellation] | None = None) -> list[Message]:
+        """Request the peer keyframe's constellation if it resembles one of ours."""
+        if not self._verifier(peer):
+            return []
+        cands = own if own is not None else list(self.constellations.values())
+        if not cands:
+            return []
+        sims = similarity(desc, np.stack([c.descriptor for c in cands]))
+        best = int(np.argmax(sims))
+        if sims[best] < self.params.min_similarity:
+            return []
+        done = {(c.own_kf, c.peer_kf) for c in self.closures.get(peer, [])}
+        if (cands[best].keyframe, peer_kf) in done or not self._spend(peer, stamp):
+            return []
+        self._request_id += 1
+        self._pending[self._request_id] = (peer, peer_kf, cands[best].keyframe)
+        self.stats.candidates += 1
+        return [LoopClosureRequest(robot=self.robot, target=peer, request_id=self._request_id,
+                                   keyframe=peer_kf, query_keyframe=cands[best].keyframe)]
+
+    def serve_keyframe(self, keyframe: int, request_id: int = 0) -> LoopClosureReply:
+        """The constellation of one of our keyframes, for a peer's verification."""
+        c = self.constellations.get(keyframe)
+        empty3 = np.zeros((0, 3), dtype=np.float32)
+        empty = np.zeros(0, dtype=np.int32)
+        if c is None:
+            return LoopClosureReply(robot=self.robot, request_id=request_id, keyframe=keyframe, found=False,
+                                    pose=np.eye(4), points=empty3, labels=empty, object_centroids=empty3,
+                                    object_classes=empty)
+        return LoopClosureReply(robot=self.robot, request_id=request_id, keyframe=keyframe, found=True,
+                                pose=self.dead_reckoning[keyframe], points=empty3, labels=empty,
+                                object_centroids=c.xyz.astype(np.float32),
+                                object_classes=c.classes.astype(np.int32))
+
+    def _verify(self, own: Constellation, xyz: np.ndarray, classes: np.ndarray) -> tuple[np.ndarray, int] | None:
+        v = verify(own.xyz, own.classes, np.asarray(xyz, float), np.asarray(classes), eps=self.params.verify_eps,
+                   min_inliers=self.params.min_inliers)
+        if not v.accepted:
+            self.stats.rejected_verification += 1
+            return None
+        self.stats.verified += 1
+        return v.T, v.num_inliers
+
+    def _intra_closures(self, c: Constellation) -> list[Message]:
+        """Intra-robot candidates against our own older keyframes (same machinery, no query)."""
+        old = [o for k, o in self.constellations.items() if k <= c.keyframe - self.params.intra_min_gap]
+        if not old:
+            return []
+        sims = similarity(c.descriptor, np.stack([o.descriptor for o in old]))
+        best = int(np.argmax(sims))
+        if sims[best] < self.params.min_similarity or not self._spend(self.robot, c.stamp):
+            return []
+        self.stats.candidates += 1
+        o = old[best]
+        res = self._verify(o, c.xyz, c.classes)
+        if res is not None:
+            self._add_closure(self.robot, Closure(o.keyframe, self.robot, c.keyframe, res[0], res[1],
+                                                  self.dead_reckoning[o.keyframe], self.dead_reckoning[c.keyframe]))
+        return []
+
+    def _add_closure(self, peer: int, closure: Closure) -> list[Message]:
+        """Record a verified closure and re-run PCM over the pair; publish the accepted set."""
+        group = self.closures.setdefault(peer, [])
+        group.append(closure)
+        before = [c.accepted for c in group]
+        Z = np.stack([c.Z for c in group])
+        A = np.stack([c.own_pose for c in group])
+        B = np.stack([c.peer_pose for c in group])
+        d = self.params.keyframe_distance
+        pa = np.array([c.own_kf for c in group]) * d
+        pb = np.array([c.peer_kf for c in group]) * d
+        noise = self.params.pcm_noise()
+        keep = pcm(Z, A, B, pa, pb, noise, min_size=self.params.pcm_min_size)
+        if peer == self.robot:  # intra-robot: each closure must also agree with odometry alone
+            keep &= odometry_consistent(Z, A, B, pa, pb, noise)
+        for c, k in zip(group, keep, strict=True):
+            c.accepted = bool(k)
+        if [c.accepted for c in group] == before and not closure.accepted:
+            return []
+        if peer == self.robot:
+            return []
+        accepted = [c for c in group if c.accepted]
+        self.inter_edges = {k: v for k, v in self.inter_edges.items() if k[1] != peer or not self._verifier(peer)}
+        for c in accepted:
+            self.inter_edges[(c.own_kf, peer, c.peer_kf)] = (c.Z, c.inliers)
+        if accepted:
+            self.robot_graph.add((min(self.robot, peer), max(self.robot, peer)))
+        self._batch[peer] = self._batch.get(peer, 0) + 1
+        n = len(accepted)
+        return [LoopClosures(
+            robot=self.robot, peer=peer, batch=self._batch[peer],
+            keys_a=np.array([robot_key(self.robot, c.own_kf) for c in accepted], dtype=np.int64),
+            keys_b=np.array([robot_key(peer, c.peer_kf) for c in accepted], dtype=np.int64),
+            poses=np.stack([c.Z for c in accepted]) if n else np.zeros((0, 4, 4)),
+            sigmas=np.tile(np.repeat(self.params.closure_sigmas, 3), (n, 1)),
+            inliers=np.array([c.inliers for c in accepted], dtype=np.int32),
+        )]
+
+    def handle(self, msg: Message) -> list[Message]:
+        """React to a message from another robot; return the messages to send."""
+        if msg.robot == self.robot:
+            return []
+        if msg.robot not in self.team:
+            raise ValueError(f"robot {self.robot}: message from unknown robot {msg.robot}")
+        if isinstance(msg, KeyframeDescriptor):
+            self.peer_descriptors.setdefault(msg.robot, []).append((msg.keyframe, np.array(msg.descriptor)))
+            return self._maybe_request(msg.robot, msg.keyframe, msg.descriptor, msg.stamp)
+        if isinstance(msg, LoopClosureReply):
+            pending = self._pending.pop(msg.request_id, None)
+            if pending is None or not msg.found or pending[:2] != (msg.robot, msg.keyframe):
+                return []
+            peer, peer_kf, own_kf = pending
+            res = self._verify(self.constellations[own_kf], msg.object_centroids, msg.object_classes)
+            if res is None:
+                return []
+            return self._add_closure(peer, Closure(own_kf, peer, peer_kf, res[0], res[1],
+                                                   self.dead_reckoning[own_kf], np.array(msg.pose)))
+        if isinstance(msg, LoopClosures):
+            pair = (min(msg.robot, msg.peer), max(msg.robot, msg.peer))
+            if len(msg.keys_a):
+                self.robot_graph.add(pair)
+            if msg.peer != self.robot:
+                return []
+            self.inter_edges = {k: v for k, v in self.inter_edges.items() if k[1] != msg.robot}
+            for ka, kb, Z, n in zip(msg.keys_a, msg.keys_b, msg.poses, msg.inliers, strict=True):
+                own_kf = int(kb) & ((1 << 56) - 1)
+                peer_kf = int(ka) & ((1 << 56) - 1)
+                if own_kf < self.num_keyframes:
+                    self.inter_edges[(own_kf, msg.robot, peer_kf)] = (inverse(np.array(Z)), int(n))
+            return [LoopClosuresAck(robot=self.robot, peer=msg.robot, batch=msg.batch)]
+        return []
+
+    # ---- back end -------------------------------------------------------------------------
+    def _info(self, sigmas: tuple[float, float]) -> np.ndarray:
+        return np.diag(np.repeat(1.0 / np.square(sigmas), 3))
+
+    def intra_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Odometry and accepted intra-robot closures: ``(i, j, Z, info, is_odometry)``."""
+        n = self.num_keyframes
+        i = list(range(n - 1))
+        j = list(range(1, n))
+        Z = list(self.odometry[1:])
+        info = [self._info(self.params.odom_sigmas)] * (n - 1)
+        odo = [True] * (n - 1)
+        for c in self.closures.get(self.robot, []):
+            if c.accepted:
+                i.append(c.own_kf)
+                j.append(c.peer_kf)
+                Z.append(c.Z)
+                info.append(self._info(self.params.closure_sigmas))
+                odo.append(False)
+        return (np.array(i, dtype=int), np.array(j, dtype=int), np.array(Z).reshape(-1, 4, 4),
+                np.array(info).reshape(-1, 6, 6), np.array(odo, dtype=bool))
+
+    def local_graph(self) -> LocalGraph:
+        """What this robot contributes to distributed PGO, from its current estimate."""
+        i, j, Z, info, odo = self.intra_edges()
+        edges = sorted(self.inter_edges.items())
+        cinfo = self._info(self.params.closure_sigmas)
+        return LocalGraph(
+            robot=self.robot,
+            keys=np.array([robot_key(self.robot, k) for k in range(self.num_keyframes)], dtype=np.int64),
+            poses=np.array(self.poses),
+            intra_i=i, intra_j=j, intra_meas=Z, intra_info=info, intra_odometry=odo,
+            intra_edge=np.arange(len(i)),
+            inter_own=np.array([k[0] for k, _ in edges], dtype=int),
+            inter_own_is_i=np.ones(len(edges), dtype=bool),
+            inter_peer=np.array([k[1] for k, _ in edges], dtype=int),
+            inter_peer_key=np.array([robot_key(k[1], k[2]) for k, _ in edges], dtype=np.int64),
+            inter_meas=np.array([v[0] for _, v in edges]).reshape(-1, 4, 4),
+            inter_info=np.tile(cinfo, (len(edges), 1, 1)),
+            inter_edge=np.arange(len(edges)),
+            robot_graph=sorted(self.robot_graph), team=self.team,
+        )
+
+    def apply_poses(self, poses: np.ndarray) -> int:
+        """Adopt optimised keyframe poses; re-anchor the submaps and objects that moved."""
+        poses = np.asarray(poses, dtype=float)
+        if poses.shape != (self.num_keyframes, 4, 4) or not np.all(np.isfinite(poses)):
+            raise ValueError(f"robot {self.robot}: bad optimised poses of shape {poses.shape}")
+        self.poses = list(poses)
+        moved = 0
+        per = self.params.mapping.keyframes_per_submap
+        for sid in self.map.submap_ids():
+            new = poses[sid * per]
+            moved += bool(self.map.move_submap(sid, new))
+            self.objects.set_submap_pose(sid, new)
+        return moved
