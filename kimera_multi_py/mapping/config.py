@@ -1,0 +1,109 @@
+"""Mapping configuration (pydantic) and the small factories that build maps from it.
+
+The classes themselves take primitives; only these factories read a config.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from pydantic import Field, field_validator, model_validator
+
+from kimera_multi_py.config import StrictModel, validate
+from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.mapping.objects import ObjectMap
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
+from kimera_multi_py.mapping.submaps import SubmapMap
+from kimera_multi_py.semantics import CLASS_IDS, DYNAMIC_CLASSES, NUM_CLASSES, OBJECT_CLASSES
+
+PosFloat = Annotated[float, Field(gt=0)]
+
+
+def _class_names(v: list[str]) -> list[str]:
+    for name in v:
+        if name not in CLASS_IDS or name == "free":
+            raise ValueError(f"unknown class {name!r}")
+    return v
+
+
+class OctreeConfig(StrictModel):
+    resolution: PosFloat = 0.1
+    hit: PosFloat = 0.85
+    """Occupancy log-odds a hit adds to a cell at the uniform prior."""
+    miss: Annotated[float, Field(lt=0)] = -0.4
+    psi: float | None = None
+    """Label log-likelihood ratio; default from ``label_accuracy``."""
+    label_accuracy: Annotated[float, Field(gt=0, lt=1)] = 0.9
+    h_min: float = -5.0
+    h_max: float = 5.0
+    top_k: Annotated[int, Field(ge=1)] | None = None
+    dynamic_classes: list[str] = list(DYNAMIC_CLASSES)
+    max_range: float = -1.0
+
+    @field_validator("dynamic_classes")
+    @classmethod
+    def _known(cls, v: list[str]) -> list[str]:
+        return _class_names(v)
+
+    @model_validator(mode="after")
+    def _check_clamp(self) -> OctreeConfig:
+        if not self.h_min < 0 < self.h_max:
+            raise ValueError(f"need h_min < 0 < h_max, got [{self.h_min}, {self.h_max}]")
+        return self
+
+
+class ObjectMapConfig(StrictModel):
+    cluster_radius: PosFloat | None = None
+    min_points: Annotated[int, Field(ge=1)] = 8
+    gate_distance: PosFloat = 0.5
+    confirm_after: Annotated[int, Field(ge=1)] = 3
+    classes: list[str] = list(OBJECT_CLASSES)
+
+    @field_validator("classes")
+    @classmethod
+    def _known(cls, v: list[str]) -> list[str]:
+        return _class_names(v)
+
+
+class MappingConfig(StrictModel):
+    octree: OctreeConfig = OctreeConfig()
+    objects: ObjectMapConfig = ObjectMapConfig()
+    keyframes_per_submap: Annotated[int, Field(ge=1)] = 10
+    move_threshold: PosFloat | None = None
+
+
+def mapping_config(data: dict[str, Any] | None = None) -> MappingConfig:
+    """Validate a ``[mapping]`` table; problems raise ConfigError naming the field."""
+    return validate(MappingConfig, data or {}, source="mapping")
+
+
+def _octree_kwargs(cfg: OctreeConfig) -> dict[str, Any]:
+    return {"hit": cfg.hit, "miss": cfg.miss, "psi": cfg.psi, "label_accuracy": cfg.label_accuracy,
+            "h_min": cfg.h_min, "h_max": cfg.h_max, "top_k": cfg.top_k,
+            "dynamic_classes": [CLASS_IDS[n] for n in cfg.dynamic_classes]}
+
+
+def get_octree(cfg: OctreeConfig, num_classes: int = NUM_CLASSES) -> SemanticOctree:
+    """A :class:`SemanticOctree` from its config."""
+    try:
+        return SemanticOctree(cfg.resolution, num_classes, **_octree_kwargs(cfg))
+    except ValueError as exc:
+        raise ConfigError("mapping.octree", str(exc)) from None
+
+
+def get_submap_map(cfg: MappingConfig, num_classes: int = NUM_CLASSES) -> SubmapMap:
+    """A :class:`SubmapMap` from the mapping config."""
+    try:
+        return SubmapMap(cfg.octree.resolution, num_classes, move_threshold=cfg.move_threshold,
+                         **_octree_kwargs(cfg.octree))
+    except ValueError as exc:
+        raise ConfigError("mapping.octree", str(exc)) from None
+
+
+def get_object_map(cfg: MappingConfig, num_classes: int = NUM_CLASSES) -> ObjectMap:
+    """An :class:`ObjectMap` from the mapping config."""
+    o = cfg.objects
+    return ObjectMap(num_classes, [CLASS_IDS[n] for n in o.classes],
+                     resolution=cfg.octree.resolution, cluster_radius=o.cluster_radius,
+                     min_points=o.min_points, gate_distance=o.gate_distance,
+                     confirm_after=o.confirm_after)

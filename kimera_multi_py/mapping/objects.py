@@ -1,0 +1,496 @@
+"""Object map: per-keyframe detections, Hungarian data association and landmarks (DESIGN §4.2).
+
+Detections
+    Euclidean clusters (single linkage at ``cluster_radius``, about two voxels) of the end
+    points of one keyframe that share an object class; structure and dynamic classes are not
+    objects. Clusters below ``min_points`` are label noise and dropped.
+
+Association
+    Detections and landmarks are compatible when the landmark gives the detection's class a
+    posterior probability of at least ``min_class_prob``, and gated when their centroids are
+    within ``gate_distance`` or their boxes overlap (a partial view of a long table has a
+    centroid far from the table's). The assignment minimises the total centroid distance
+    (``scipy.optimize.linear_sum_assignment``). A detection left over that still gates with a
+    matched landmark is a second fragment of it and is absorbed; any other starts a tentative
+    landmark, which is confirmed after ``confirm_after`` sightings. Confirmed landmarks of
+    the same class whose boxes overlap strongly are merged.
+
+Landmarks
+    Each keeps a Dirichlet class posterior, a running centroid of its points, the voxels its
+    points fell in with hit counts, and its number of observations. Its box is the extent of
+    the voxels hit at least ``min_voxel_hits`` times (one-off mislabelled points do not grow
+    it), and its ``position`` is the box centre: surface points are biased toward the sides
+    that were seen, the union of views is not. Geometry is stored in the reference frame of
+    the submap the landmark was created in, so it re-anchors exactly when that submap moves.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from kimera_multi_py.geometry import inverse, transform_points
+from kimera_multi_py.mapping import morton
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
+
+log = logging.getLogger(__name__)
+
+_INFEASIBLE = 1e9
+
+
+@dataclass
+class Detection:
+    """One cluster of same-class end points from one keyframe (world frame)."""
+
+    label: int
+    points: np.ndarray  # (n, 3)
+    centroid: np.ndarray  # (3,)
+    box_min: np.ndarray  # (3,)
+    box_max: np.ndarray  # (3,)
+
+    @property
+    def num_points(self) -> int:
+        return len(self.points)
+
+
+def _core_clusters(P: np.ndarray, radius: float, min_core: int) -> np.ndarray:
+    """Cluster id per point (-1 for noise): single linkage over *core* points only.
+
+    A core point has at least ``min_core`` neighbours within ``radius``; other points join
+    the cluster of a core neighbour. Isolated mislabelled points therefore cannot chain two
+    objects together (DBSCAN's rule).
+    """
+    n = len(P)
+    pairs = cKDTree(P).query_pairs(radius, output_type="ndarray")
+    degree = np.bincount(pairs.ravel(), minlength=n)
+    core = degree >= min_core
+    both = core[pairs[:, 0]] & core[pairs[:, 1]]
+    cp = pairs[both]
+    graph = coo_matrix((np.ones(len(cp)), (cp[:, 0], cp[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    out = np.where(core, comp, -1)
+    # border points take the cluster of a core neighbour
+    border = pairs[core[pairs[:, 0]] ^ core[pairs[:, 1]]]
+    src = np.where(core[border[:, 0]], border[:, 0], border[:, 1])
+    dst = np.where(core[border[:, 0]], border[:, 1], border[:, 0])
+    out[dst] = comp[src]
+    # relabel to 0..m-1
+    valid = out >= 0
+    _, out[valid] = np.unique(out[valid], return_inverse=True)
+    return out
+
+
+def detect_objects(points: np.ndarray, labels: np.ndarray, object_classes: Iterable[int],
+                   cluster_radius: float, min_points: int = 8, min_purity: float = 0.5,
+                   purity_voxel: float | None = None, min_core: int = 3) -> list[Detection]:
+    """Euclidean clusters of same-class points, one detection per cluster of ``min_points``+.
+
+    Clustering links points within ``cluster_radius`` through core points (points with
+    ``min_core`` neighbours), so sparse label noise cannot bridge two objects.
+
+    A cluster is kept only if its class holds at least ``min_purity`` of all the points
+    (any class) in the voxels (edge ``purity_voxel``, default ``cluster_radius / 2``) it
+    occupies: label noise on a large surface chains into clusters at high point densities,
+    but it is always a small minority where it lies.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    lab = np.asarray(labels).reshape(-1)
+    if len(pts) != len(lab):
+        raise ValueError(f"{len(pts)} points but {len(lab)} labels")
+    ok = np.all(np.isfinite(pts), axis=1)
+    voxel = cluster_radius / 2 if purity_voxel is None else purity_voxel
+    all_codes = morton.points_to_codes(pts[ok], voxel)
+    vox, vox_count = np.unique(all_codes, return_counts=True)
+    out: list[Detection] = []
+    for c in sorted(set(int(x) for x in object_classes)):
+        P = pts[ok & (lab == c)]
+        if len(P) < min_points:
+            continue
+        comp = _core_clusters(P, cluster_radius, min_core)
+        keep = comp >= 0
+        P, comp = P[keep], comp[keep]
+        if len(P) == 0:
+            continue
+        sizes = np.bincount(comp)
+        order = np.argsort(comp, kind="stable")
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        Ps = P[order]
+        mins = np.minimum.reduceat(Ps, starts, axis=0)
+        maxs = np.maximum.reduceat(Ps, starts, axis=0)
+        sums = np.add.reduceat(Ps, starts, axis=0)
+        codes = morton.points_to_codes(Ps, voxel)
+        for k in np.flatnonzero(sizes >= min_points):
+            members = Ps[starts[k]: starts[k] + sizes[k]]
+            mine = np.unique(codes[starts[k]: starts[k] + sizes[k]])
+            total = vox_count[np.searchsorted(vox, mine)].sum()
+            if sizes[k] < min_purity * total:
+                continue
+            out.append(Detection(c, members, sums[k] / sizes[k], mins[k], maxs[k]))
+    return out
+
+
+@dataclass
+class Landmark:
+    """An object landmark; geometry is kept in its anchor submap's reference frame."""
+
+    id: int
+    submap: int
+    class_counts: np.ndarray  # (K+1,) Dirichlet counts (prior included)
+    point_sum: np.ndarray  # (3,) sum of observed points, reference frame
+    num_points: int
+    voxels: np.ndarray  # sorted voxel codes hit, reference frame
+    voxel_hits: np.ndarray  # hits per voxel
+    num_observations: int = 1
+    first_seen: int = 0
+    last_seen: int = 0
+    confirmed: bool = False
+    T_world_ref: np.ndarray = field(default_factory=lambda: np.eye(4))
+    resolution: float = 0.1
+    min_voxel_hits: int = 2
+
+    @property
+    def label(self) -> int:
+        return int(np.argmax(self.class_counts))
+
+    @property
+    def posterior(self) -> np.ndarray:
+        """Class PMF (Dirichlet mean)."""
+        return self.class_counts / self.class_counts.sum()
+
+    @property
+    def centroid(self) -> np.ndarray:
+        """Running centroid of the observed points (world frame)."""
+        return transform_points(self.T_world_ref, (self.point_sum / self.num_points)[None])[0]
+
+    def box_ref(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned box (reference frame) over the centres of well-supported voxels."""
+        keep = self.voxel_hits >= self.min_voxel_hits
+        codes = self.voxels[keep] if keep.any() else self.voxels
+        c = morton.node_centers(codes, np.zeros(len(codes), np.int8), self.resolution)
+        return c.min(0), c.max(0)
+
+    @property
+    def position(self) -> np.ndarray:
+        """Centre of the landmark's box (world frame): the object's position estimate."""
+        lo, hi = self.box_ref()
+        return transform_points(self.T_world_ref, ((lo + hi) / 2)[None])[0]
+
+    def box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Oriented box in the world: ``(center, size, R)``."""
+        lo, hi = self.box_ref()
+        center = transform_points(self.T_world_ref, ((lo + hi) / 2)[None])[0]
+        return center, hi - lo + self.resolution, self.T_world_ref[:3, :3].copy()
+
+    def aabb(self) -> tuple[np.ndarray, np.ndarray]:
+        """World axis-aligned bounds of the oriented box."""
+        center, size, R = self.box()
+        ext = np.abs(R) @ (size / 2)
+        return center - ext, center + ext
+
+
+class ObjectMap:
+    """Object landmarks built from per-keyframe detections (see module docstring)."""
+
+    def __init__(self, num_classes: int, object_classes: Iterable[int], *, resolution: float = 0.1,
+                 cluster_radius: float | None = None, min_points: int = 8,
+                 gate_distance: float = 0.5, box_margin: float = 0.1, min_class_prob: float = 0.3,
+                 confirm_after: int = 3, min_voxel_hits: int = 2, merge_iou: float = 0.3,
+                 class_prior: float = 0.5, min_purity: float = 0.5, min_core: int = 3,
+                 structure_classes: Iterable[int] = ()) -> None:
+        self.num_classes = int(num_classes)
+        self.object_classes = tuple(sorted({int(c) for c in object_classes}))
+        if any(c < 1 or c > self.num_classes for c in self.object_classes):
+            raise ValueError(f"object classes must lie in 1..{self.num_classes}")
+        if not resolution > 0:
+            raise ValueError(f"resolution must be positive, got {resolution}")
+        self.resolution = float(resolution)
+        self.cluster_radius = 2.0 * self.resolution if cluster_radius is None else float(cluster_radius)
+        self.min_points = int(min_points)
+        self.min_purity = float(min_purity)
+        self.min_core = int(min_core)
+        self.structure_classes = np.array(sorted({int(c) for c in structure_classes}), dtype=np.int64)
+        self.gate_distance = float(gate_distance)
+        self.box_margin = float(box_margin)
+        self.min_class_prob = float(min_class_prob)
+        self.confirm_after = int(confirm_after)
+        self.min_voxel_hits = int(min_voxel_hits)
+        self.merge_iou = float(merge_iou)
+        self._prior = np.zeros(self.num_classes + 1)
+        self._prior[list(self.object_classes)] = float(class_prior)
+        self.landmarks: dict[int, Landmark] = {}
+        self._submap_ref: dict[int, np.ndarray] = {}
+        self._submap_pose: dict[int, np.ndarray] = {}
+        self._next_id = 0
+        self._frame = 0
+        self._merged_into: dict[int, int] = {}
+
+    # ---- submaps ---------------------------------------------------------------------------
+    def set_submap_pose(self, submap_id: int, pose: np.ndarray) -> None:
+        """Record a submap's world pose; later calls re-anchor the landmarks created in it."""
+        pose = np.asarray(pose, dtype=np.float64).copy()
+        if submap_id not in self._submap_ref:
+            self._submap_ref[submap_id] = pose.copy()
+        self._submap_pose[submap_id] = pose
+        C = pose @ inverse(self._submap_ref[submap_id])
+        for lm in self.landmarks.values():
+            if lm.submap == submap_id:
+                lm.T_world_ref = C.copy()
+
+    def _correction(self, submap_id: int) -> np.ndarray:
+        if submap_id not in self._submap_ref:
+            return np.eye(4)
+        return self._submap_pose[submap_id] @ inverse(self._submap_ref[submap_id])
+
+    # ---- update ----------------------------------------------------------------------------
+    def update(self, points: np.ndarray, labels: np.ndarray, submap_id: int = 0,
+               stamp: int | None = None) -> list[int]:
+        """Detect objects in one keyframe (world-frame end points) and fold them into the map.
+
+        Returns the ids of the landmarks the detections were associated with (new ones too).
+        """
+        dets = detect_objects(points, labels, self.object_classes, self.cluster_radius,
+                              self.min_points, self.min_purity, min_core=self.min_core)
+        return self.observe(dets, submap_id, stamp)
+
+    def observe(self, detections: list[Detection], submap_id: int = 0,
+                stamp: int | None = None) -> list[int]:
+        """Associate detections with landmarks (Hungarian) and update or create landmarks."""
+        self._frame = self._frame + 1 if stamp is None else int(stamp)
+        if not detections:
+            return []
+        ids = list(self.landmarks)
+        feasible, cost = self._gate(detections, ids)
+        rows, cols = linear_sum_assignment(cost) if ids else (np.zeros(0, int), np.zeros(0, int))
+        assigned: dict[int, int] = {}
+        for r, c in zip(rows, cols, strict=True):
+            if feasible[r, c]:
+                assigned[int(r)] = ids[int(c)]
+        matched_cols = sorted({ids.index(v) for v in assigned.values()})
+        touched: list[int] = []
+        self._merged_into: dict[int, int] = {}
+        for i, det in enumerate(detections):
+            if i in assigned:
+                lid = assigned[i]
+            elif matched_cols and feasible[i, matched_cols].any():
+                # a second fragment of a landmark matched in this keyframe
+                cand = [c for c in matched_cols if feasible[i, c]]
+                lid = ids[min(cand, key=lambda c: cost[i, c])]
+            else:
+                lid = self._create(det, submap_id)
+                touched.append(lid)
+                continue
+            while lid in self._merged_into:  # merged away earlier in this keyframe
+                lid = self._merged_into[lid]
+            self._absorb(self.landmarks[lid], det)
+            touched.append(lid)
+            self._merge_bridged(lid, det)
+        self._merge_overlapping()
+        out = []
+        for t in touched:
+            while t in self._merged_into:
+                t = self._merged_into[t]
+            out.append(t)
+        return list(dict.fromkeys(out))
+
+    def confirmed(self) -> list[Landmark]:
+        return [lm for lm in self.landmarks.values() if lm.confirmed]
+
+    # ---- internals -------------------------------------------------------------------------
+    def _gate(self, dets: list[Detection], ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        n, m = len(dets), len(ids)
+        if m == 0:
+            return np.zeros((n, 0), dtype=np.bool_), np.zeros((n, 0))
+        dc = np.array([d.centroid for d in dets])
+        dlo = np.array([d.box_min for d in dets]) - self.box_margin
+        dhi = np.array([d.box_max for d in dets]) + self.box_margin
+        lms = [self.landmarks[i] for i in ids]
+        lc = np.array([lm.position for lm in lms])
+        boxes = [lm.aabb() for lm in lms]
+        llo = np.array([b[0] for b in boxes])
+        lhi = np.array([b[1] for b in boxes])
+        post = np.array([lm.posterior for lm in lms])  # (m, K+1)
+        dl = np.array([d.label for d in dets])
+        compatible = post[:, dl].T >= self.min_class_prob  # (n, m)
+        dist = np.linalg.norm(dc[:, None, :] - lc[None, :, :], axis=2)
+        overlap = np.all((dlo[:, None, :] <= lhi[None]) & (dhi[:, None, :] >= llo[None]), axis=2)
+        feasible = compatible & ((dist <= self.gate_distance) | overlap)
+        cost = np.where(feasible, dist, _INFEASIBLE)
+        return feasible, cost
+
+    def _ref_points(self, lm_submap: int, points: np.ndarray) -> np.ndarray:
+        return transform_points(inverse(self._correction(lm_submap)), points)
+
+    def _voxelise(self, pts_ref: np.ndarray) -> np.ndarray:
+        """Sorted unique voxel codes of points (each voxel counts once per detection)."""
+        codes = morton.points_to_codes(pts_ref, self.resolution)
+        return np.unique(codes[codes >= 0])
+
+    def _create(self, det: Detection, submap_id: int) -> int:
+        lid = self._next_id
+        self._next_id += 1
+        pts = self._ref_points(submap_id, det.points)
+        vox = self._voxelise(pts)
+        counts = self._prior.copy()
+        counts[det.label] += 1.0
+        lm = Landmark(lid, submap_id, counts, pts.sum(0), len(pts), vox,
+                      np.ones(len(vox), dtype=np.int32), 1, self._frame, self._frame,
+                      self.confirm_after <= 1, self._correction(submap_id), self.resolution,
+                      self.min_voxel_hits)
+        self.landmarks[lid] = lm
+        return lid
+
+    def _absorb(self, lm: Landmark, det: Detection) -> None:
+        pts = self._ref_points(lm.submap, det.points)
+        vox = self._voxelise(pts)
+        lm.class_counts[det.label] += 1.0
+        lm.point_sum = lm.point_sum + pts.sum(0)
+        lm.num_points += len(pts)
+        lm.voxels, lm.voxel_hits = _merge_counts(lm.voxels, lm.voxel_hits, vox,
+                                                 np.ones(len(vox), dtype=np.int32))
+        if lm.last_seen != self._frame:
+            lm.num_observations += 1
+        lm.last_seen = self._frame
+        if lm.num_observations >= self.confirm_after:
+            lm.confirmed = True
+
+    def _merge_bridged(self, lid: int, det: Detection) -> None:
+        """Merge into ``lid`` the same-class landmarks lying mostly inside this detection's box.
+
+        One connected cluster spanning two landmarks (the two ends of a long table, first
+        seen in separate partial views) shows they are one object.
+        """
+        keep = self.landmarks[lid]
+        lo, hi = det.box_min - self.box_margin, det.box_max + self.box_margin
+        for oid in [i for i in self.landmarks if i != lid]:
+            other = self.landmarks[oid]
+            if other.label != keep.label:
+                continue
+            olo, ohi = other.aabb()
+            inter = np.clip(np.minimum(hi, ohi) - np.maximum(lo, olo), 0, None).prod()
+            if inter >= 0.5 * max(float(np.prod(ohi - olo)), 1e-12):
+                self._merge(keep, self.landmarks.pop(oid))
+                self._merged_into[oid] = lid
+
+    def _merge_overlapping(self) -> None:
+        """Merge pairs of same-class landmarks whose boxes overlap by ``merge_iou`` or more."""
+        ids = list(self.landmarks)
+        if len(ids) < 2:
+            return
+        lo, hi, labels = self._boxes(ids)
+        inter = np.clip(np.minimum(hi[:, None], hi[None]) - np.maximum(lo[:, None], lo[None]), 0, None)
+        vi = inter.prod(axis=2)
+        vol = (hi - lo).prod(axis=1)
+        iou = vi / np.maximum(vol[:, None] + vol[None] - vi, 1e-12)
+        # a small box mostly inside a bigger one counts as overlapping too
+        inside = vi / np.maximum(np.minimum(vol[:, None], vol[None]), 1e-12)
+        same = (labels[:, None] == labels[None]) & ((iou >= self.merge_iou) | (inside >= 0.7))
+        np.fill_diagonal(same, False)
+        for a, b in zip(*np.nonzero(np.triu(same)), strict=True):
+            ia, ib = ids[a], ids[b]
+            if ia in self.landmarks and ib in self.landmarks:
+                self._merge(self.landmarks[ia], self.landmarks.pop(ib))
+                self._merged_into[ib] = ia
+
+    def _boxes(self, ids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        boxes = [self.landmarks[i].aabb() for i in ids]
+        return (np.array([b[0] for b in boxes]), np.array([b[1] for b in boxes]),
+                np.array([self.landmarks[i].label for i in ids]))
+
+    def merge_fragments(self, octree: SemanticOctree, max_gap: float = 1.0) -> int:
+        """Merge same-class landmarks that are fragments of one object hidden by an occluder.
+
+        Two landmarks of one class whose nearest voxels are at most ``max_gap`` apart are
+        merged when no cell on the segment between those voxels is *observed free* in
+        ``octree`` (all are unknown or occupied): a chair in front of a table splits the table
+        in every view, while two tables side by side have seen free space between them.
+        Returns the number of merges.
+        """
+        merged = 0
+        changed = True
+        while changed:
+            changed = False
+            ids = list(self.landmarks)
+            if len(ids) < 2:
+                break
+            lo, hi, labels = self._boxes(ids)
+            gap = np.max(np.maximum(lo[:, None] - hi[None], lo[None] - hi[:, None]), axis=2)
+            cand = (labels[:, None] == labels[None]) & (gap <= max_gap)
+            for a, b in zip(*np.nonzero(np.triu(cand, 1)), strict=True):
+                A, B = self.landmarks[ids[a]], self.landmarks[ids[b]]
+                if self._hidden_between(A, B, octree, max_gap):
+                    self._merge(A, self.landmarks.pop(ids[b]))
+                    merged += 1
+                    changed = True
+                    break
+        return merged
+
+    def _hidden_between(self, a: Landmark, b: Landmark, octree: SemanticOctree,
+                        max_gap: float, pairs: int = 8) -> bool:
+        """Is some straight gap between two landmarks entirely unseen or filled by objects?
+
+        The ``pairs`` closest voxel pairs are tried; a gap qualifies when none of its cells is
+        observed free or occupied by a structure class (walls and floors do not occlude
+        anything between two pieces of furniture standing on them).
+        """
+        ca, cb = _world_voxel_centers(a), _world_voxel_centers(b)
+        if len(ca) == 0 or len(cb) == 0:
+            return False
+        d, j = cKDTree(cb).query(ca, k=1)
+        for i in np.argsort(d)[:pairs]:
+            if d[i] > max_gap + 1e-9:
+                break
+            p, q = ca[i], cb[j[i]]
+            steps = max(2, int(np.ceil(np.linalg.norm(q - p) / (0.5 * self.resolution))) + 1)
+            seg = p + np.linspace(0.0, 1.0, steps)[:, None] * (q - p)
+            cls = octree.class_at(seg)
+            if not np.any((cls == 0) | np.isin(cls, self.structure_classes)):
+                return True
+        return False
+
+    def _merge(self, keep: Landmark, other: Landmark) -> None:
+        centroid_world = other.centroid
+        centroid_ref = transform_points(inverse(keep.T_world_ref), centroid_world[None])[0]
+        keep.point_sum = keep.point_sum + centroid_ref * other.num_points
+        keep.num_points += other.num_points
+        keep.class_counts = keep.class_counts + other.class_counts - self._prior
+        centers = morton.node_centers(other.voxels, np.zeros(len(other.voxels), np.int8),
+                                      self.resolution)
+        moved = transform_points(inverse(keep.T_world_ref) @ other.T_world_ref, centers)
+        codes = morton.points_to_codes(moved, self.resolution)
+        ok = codes >= 0
+        order = np.argsort(codes[ok], kind="stable")
+        vox, hits = codes[ok][order], other.voxel_hits[ok][order]
+        uniq, first = np.unique(vox, return_index=True)
+        hits = np.add.reduceat(hits, first) if len(vox) else hits
+        keep.voxels, keep.voxel_hits = _merge_counts(keep.voxels, keep.voxel_hits, uniq, hits)
+        keep.num_observations += other.num_observations
+        keep.first_seen = min(keep.first_seen, other.first_seen)
+        keep.last_seen = max(keep.last_seen, other.last_seen)
+        keep.confirmed = keep.confirmed or other.confirmed or (
+            keep.num_observations >= self.confirm_after)
+
+
+def _world_voxel_centers(lm: Landmark) -> np.ndarray:
+    """World centres of a landmark's well-supported voxels."""
+    keep = lm.voxel_hits >= lm.min_voxel_hits
+    codes = lm.voxels[keep]
+    c = morton.node_centers(codes, np.zeros(len(codes), np.int8), lm.resolution)
+    return transform_points(lm.T_world_ref, c)
+
+
+def _merge_counts(a: np.ndarray, ac: np.ndarray, b: np.ndarray,
+                  bc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Union of two sorted code sets with summed counts."""
+    codes = np.concatenate([a, b])
+    counts = np.concatenate([ac, bc]).astype(np.int32)
+    uniq, inv = np.unique(codes, return_inverse=True)
+    out = np.zeros(len(uniq), dtype=np.int32)
+    np.add.at(out, inv, counts)
+    return uniq, out

@@ -1,0 +1,226 @@
+"""Submaps with exact re-anchoring: the robot's map is ``clamp(prior + sum_s T_s . dh_s)``.
+
+Each submap (a group of consecutive keyframes) keeps its own evidence ``dh_s``: the sum of its
+scans' log-odds updates, in fixed point. ``dh_s`` lives on the voxel grid of the submap's
+*reference frame*, the world frame as it was when the submap was created (its pose then is
+``T_ref``); the submap's local frame is ``T_ref^-1`` of it. While PGO leaves the submap where
+it is, its cells map to the world grid one to one, with no resampling. When PGO moves the
+submap to ``T_new``, its cell centres are moved by ``C = T_new T_ref^-1`` and re-binned.
+
+The fused evidence ``A = sum_s C_s . dh_s`` is an int32 array with, per cell, the number of
+submap cells that land there. Because it is integer, ``move_submap`` subtracts the old
+contribution and adds the new one exactly: moving a submap away and back restores ``A``,
+and the octree view ``clamp(prior + A)`` (canonically pruned), bit for bit.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kimera_multi_py.geometry import inverse, transform_points
+from kimera_multi_py.mapping import morton
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Submap:
+    """One submap: reference and current pose, and its evidence on the reference grid."""
+
+    id: int
+    T_ref: np.ndarray  # world pose of the submap frame when it was created
+    T: np.ndarray  # world pose at which its contribution is currently in the map
+    codes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 1), dtype=np.int32))
+    world_codes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    num_scans: int = 0
+
+    @property
+    def correction(self) -> np.ndarray:
+        """``C = T T_ref^-1``: how the submap moved since its cells were computed."""
+        return self.T @ inverse(self.T_ref)
+
+
+def _group_sum(codes: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unique sorted codes, summed rows and multiplicities."""
+    uniq, inv, cnt = np.unique(codes, return_inverse=True, return_counts=True)
+    if len(uniq) == len(codes):
+        out = np.empty_like(rows)
+        out[inv] = rows
+        return uniq, out, cnt.astype(np.int32)
+    out = np.zeros((len(uniq), rows.shape[1]), dtype=rows.dtype)
+    np.add.at(out, inv, rows)
+    return uniq, out, cnt.astype(np.int32)
+
+
+class SubmapMap:
+    """A robot's semantic map assembled from re-anchorable submaps (DESIGN §4.1).
+
+    ``octree_kwargs`` are passed to :class:`SemanticOctree` (observation model, clamping,
+    dynamic classes, top-K). ``move_threshold`` (default half a voxel) is how far any cell of a
+    submap must move before :meth:`move_submap` re-integrates it.
+    """
+
+    def __init__(self, resolution: float, num_classes: int, *, move_threshold: float | None = None,
+                 **octree_kwargs: object) -> None:
+        self.octree = SemanticOctree(resolution, num_classes, **octree_kwargs)  # type: ignore[arg-type]
+        self.resolution = self.octree.resolution
+        self.num_classes = self.octree.num_classes
+        self.move_threshold = 0.5 * self.resolution if move_threshold is None else float(move_threshold)
+        self.submaps: dict[int, Submap] = {}
+        k1 = self.num_classes + 1
+        self._codes = np.zeros(0, dtype=np.int64)  # fused evidence, sorted world codes
+        self._evidence = np.zeros((0, k1), dtype=np.int32)
+        self._support = np.zeros(0, dtype=np.int32)
+        m = self.octree.model
+        self._span = m.hi - m.lo  # a submap's evidence per cell stays within +-span
+
+    # ---- submaps ---------------------------------------------------------------------------
+    def new_submap(self, submap_id: int, pose: np.ndarray) -> Submap:
+        """Start a submap whose frame is at world pose ``pose`` (4x4)."""
+        if submap_id in self.submaps:
+            raise KeyError(f"submap {submap_id} already exists")
+        T = np.asarray(pose, dtype=np.float64).copy()
+        s = Submap(int(submap_id), T.copy(), T,
+                   rows=np.zeros((0, self.num_classes + 1), dtype=np.int32))
+        self.submaps[s.id] = s
+        return s
+
+    def integrate(self, submap_id: int, T_submap_sensor: np.ndarray, points_sensor: np.ndarray,
+                  labels: np.ndarray, max_range: float = -1.0) -> int:
+        """Add one scan (sensor-frame end points) taken at ``T_submap_sensor`` in the submap.
+
+        The scan is ray-cast on the submap's reference grid, its updates are added to the
+        submap's evidence (clamped to +-(h_max - h_min) per cell), and the change is pushed
+        into the fused map. Returns the number of cells updated.
+        """
+        s = self.submaps[submap_id]
+        T_ref_sensor = s.T_ref @ np.asarray(T_submap_sensor, dtype=np.float64)
+        pts = transform_points(T_ref_sensor, np.asarray(points_sensor, dtype=np.float64))
+        cells = self.octree.scan_cells(T_ref_sensor[:3, 3], pts, labels, max_range)
+        codes, deltas = self.octree.model.deltas(cells)
+        if len(codes) == 0:
+            return 0
+        # merge into the submap's evidence (sequentially clamped)
+        pos = np.searchsorted(s.codes, codes)
+        known = pos < len(s.codes)
+        known[known] = s.codes[pos[known]] == codes[known]
+        before = np.zeros((len(codes), self.num_classes + 1), dtype=np.int32)
+        before[known] = s.rows[pos[known]]
+        after = np.clip(before + deltas, -self._span, self._span)
+        change = after - before
+        s.rows[pos[known]] = after[known]
+        new = ~known
+        if new.any():
+            new_world = self._map_codes(codes[new], s.correction)
+            at = pos[new]
+            s.codes = np.insert(s.codes, at, codes[new])
+            s.rows = np.insert(s.rows, at, after[new], axis=0)
+            s.world_codes = np.insert(s.world_codes, at, new_world)
+        s.num_scans += 1
+        # push the change into the fused evidence
+        idx = np.searchsorted(s.codes, codes)
+        world = s.world_codes[idx]
+        self._apply(world, change, new.astype(np.int32))
+        return int(len(codes))
+
+    def move_submap(self, submap_id: int, new_pose: np.ndarray, force: bool = False) -> bool:
+        """Re-anchor a submap at ``new_pose``: subtract its old contribution, add the new one.
+
+        Nothing is re-integrated (returns False) unless some cell would move by more than
+        ``move_threshold`` from where the map currently has it, or ``force`` is set; small
+        corrections accumulate until they cross the threshold.
+        """
+        s = self.submaps[submap_id]
+        new_pose = np.asarray(new_pose, dtype=np.float64)
+        moved = self._max_cell_motion(s, new_pose)
+        if not force and moved <= self.move_threshold:
+            return False
+        s.T = new_pose.copy()
+        new_world = self._map_codes(s.codes, s.correction)
+        if len(s.codes):
+            ones = np.ones(len(s.codes), dtype=np.int32)
+            self._apply(s.world_codes, -s.rows, -ones)
+            self._apply(new_world, s.rows, ones)
+        s.world_codes = new_world
+        log.debug("re-anchored submap %d (max cell motion %.3f m)", submap_id, moved)
+        return True
+
+    def remove_submap(self, submap_id: int) -> None:
+        """Drop a submap and subtract its contribution."""
+        s = self.submaps.pop(submap_id)
+        if len(s.codes):
+            self._apply(s.world_codes, -s.rows, -np.ones(len(s.codes), dtype=np.int32))
+
+    def submap_ids(self) -> list[int]:
+        return sorted(self.submaps)
+
+    def contribution(self, submap_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """World codes and evidence rows a submap currently adds to the map."""
+        s = self.submaps[submap_id]
+        return s.world_codes.copy(), s.rows.copy()
+
+    # ---- internals -------------------------------------------------------------------------
+    def _max_cell_motion(self, s: Submap, new_pose: np.ndarray) -> float:
+        """Largest displacement of the submap's bounding-box corners between two poses."""
+        if len(s.codes) == 0:
+            return 0.0
+        keys = morton.decode(s.codes)
+        lo = (keys.min(0) - morton.KEY_OFFSET) * self.resolution
+        hi = (keys.max(0) + 1 - morton.KEY_OFFSET) * self.resolution
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                            for z in (lo[2], hi[2])])
+        C_old = s.correction
+        C_new = new_pose @ inverse(s.T_ref)
+        d = transform_points(C_new, corners) - transform_points(C_old, corners)
+        return float(np.linalg.norm(d, axis=1).max())
+
+    def _map_codes(self, ref_codes: np.ndarray, C: np.ndarray) -> np.ndarray:
+        """World codes of reference-grid cells moved by ``C`` (identity keeps them exactly)."""
+        if len(ref_codes) == 0 or np.allclose(C, np.eye(4), rtol=0.0, atol=1e-12):
+            return ref_codes.copy()
+        centers = morton.node_centers(ref_codes, np.zeros(len(ref_codes), np.int8), self.resolution)
+        moved = transform_points(C, centers)
+        return morton.encode(morton.points_to_keys(moved, self.resolution))
+
+    def _apply(self, codes: np.ndarray, rows: np.ndarray, support: np.ndarray) -> None:
+        """Add rows and support counts at (possibly repeated) world codes; refresh the view."""
+        if len(codes) == 0:
+            return
+        uniq, summed, _ = _group_sum(codes, rows.astype(np.int32))
+        sup = np.zeros(len(uniq), dtype=np.int32)
+        np.add.at(sup, np.searchsorted(uniq, codes), support)
+        pos = np.searchsorted(self._codes, uniq)
+        known = pos < len(self._codes)
+        known[known] = self._codes[pos[known]] == uniq[known]
+        kp = pos[known]
+        self._evidence[kp] += summed[known]
+        self._support[kp] += sup[known]
+        new = ~known
+        if new.any():
+            at = pos[new]
+            self._codes = np.insert(self._codes, at, uniq[new])
+            self._evidence = np.insert(self._evidence, at, summed[new], axis=0)
+            self._support = np.insert(self._support, at, sup[new])
+        # refresh the octree at the touched cells
+        idx = np.searchsorted(self._codes, uniq)
+        alive = self._support[idx] > 0
+        if (~alive).any():
+            self.octree.remove_cells(uniq[~alive])
+            drop = idx[~alive]
+            keep = np.ones(len(self._codes), dtype=np.bool_)
+            keep[drop] = False
+            self._codes, self._evidence = self._codes[keep], self._evidence[keep]
+            self._support = self._support[keep]
+            idx = np.searchsorted(self._codes, uniq[alive])
+        live_codes = uniq[alive]
+        if len(live_codes):
+            m = self.octree.model
+            vals = self._evidence[idx] + m.prior_row.astype(np.int32)
+            np.clip(vals, m.lo, m.hi, out=vals)
+            vals[:, 0] = 0
+            self.octree.set_cells(live_codes, vals.astype(np.int16))

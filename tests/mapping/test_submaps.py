@@ -1,0 +1,128 @@
+import numpy as np
+import pytest
+
+from kimera_multi_py.geometry import inverse, make_pose, so3_exp, transform_points
+from kimera_multi_py.mapping import SemanticOctree, SubmapMap
+
+from .helpers import HUMAN, TABLE, WALL, K, room_scan
+
+RES = 0.1
+SENSORS = [np.array(p) for p in ([0.0, 0.0, 1.0], [-1.5, 1.0, 1.2], [1.0, -1.2, 0.9],
+                                 [-2.0, -1.5, 1.5], [0.5, 1.5, 1.1], [2.0, 1.0, 1.3])]
+
+
+def submap_poses():
+    return {0: make_pose(so3_exp([0, 0, 0.3]), [0.2, -0.1, 0.0]),
+            1: make_pose(so3_exp([0, 0, -1.1]), [-1.0, 0.5, 0.1]),
+            2: make_pose(None, [1.5, 0.0, 0.0])}
+
+
+def build(skip=(), seed=0, **kw):
+    """Three submaps of two scans each; scans are given in each keyframe's sensor frame."""
+    m = SubmapMap(RES, K, dynamic_classes=[HUMAN], **kw)
+    for sid, T_ws in submap_poses().items():
+        if sid in skip:
+            continue
+        m.new_submap(sid, T_ws)
+        for j in range(2):
+            o = SENSORS[2 * sid + j]
+            p, lab = room_scan(o, 3000, seed=seed + 10 * sid + j, noise=0.1)
+            T_w_sensor = make_pose(so3_exp([0.1 * j, 0, 0.5 * sid]), o)
+            T_s_sensor = inverse(T_ws) @ T_w_sensor
+            m.integrate(sid, T_s_sensor, transform_points(inverse(T_w_sensor), p), lab)
+    return m
+
+
+def snapshot(tree: SemanticOctree):
+    return tree.codes.copy(), tree.levels.copy(), tree.values.copy()
+
+
+def same(a, b):
+    return all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+def test_the_fused_map_agrees_with_direct_insertion():
+    m = build()
+    direct = SemanticOctree(RES, K, dynamic_classes=[HUMAN])
+    for sid in (0, 1, 2):
+        for j in range(2):
+            o = SENSORS[2 * sid + j]
+            direct.insert_scan(o, *room_scan(o, 3000, seed=10 * sid + j, noise=0.1))
+    probes = np.array([[-3.05, 0.33, 1.31], [0.0, 0.5, 1.5], [9.0, 0, 0]])
+    assert np.array_equal(m.octree.class_at(probes), [WALL, 0, -1])
+    centers = direct.leaves().centers
+    agree = m.octree.class_at(centers) == direct.class_at(centers)
+    assert agree.mean() > 0.97
+    occ = direct.occupied_leaves()
+    assert (m.octree.class_at(centers[occ]) == direct.class_at(centers[occ])).mean() > 0.9
+    assert np.any(m.octree.class_at(centers) == TABLE)
+
+
+def test_moving_a_submap_away_and_back_restores_the_map_bit_for_bit():
+    m = build()
+    before = snapshot(m.octree)
+    evidence = m._evidence.copy()
+    T1 = m.submaps[1].T.copy()
+    away = make_pose(so3_exp([0.02, -0.01, 0.25]), [0.7, -0.4, 0.05]) @ T1
+    assert m.move_submap(1, away)
+    moved = snapshot(m.octree)
+    assert not same(before, moved)
+    assert m.move_submap(2, make_pose(None, [0.0, 0.35, 0.0]) @ m.submaps[2].T)
+    assert m.move_submap(1, T1)
+    assert m.move_submap(2, submap_poses()[2])
+    assert same(before, snapshot(m.octree))
+    assert np.array_equal(evidence, m._evidence)
+
+
+def test_moving_by_whole_voxels_equals_integrating_there():
+    shift = make_pose(None, [0.3, -0.2, 0.1])
+    m = build()
+    m.move_submap(0, shift @ m.submaps[0].T)
+    ref = SubmapMap(RES, K, dynamic_classes=[HUMAN])
+    # the same scans, integrated with submap 0 created where it was moved to
+    orig = build()
+    for sid in (0, 1, 2):
+        ref.new_submap(sid, orig.submaps[sid].T)
+    for sid in (1, 2):
+        ref.submaps[sid] = orig.submaps[sid]
+    ref._codes, ref._evidence, ref._support = orig._codes, orig._evidence, orig._support
+    ref.octree = orig.octree
+    w0, rows0 = orig.contribution(0)
+    ref._apply(w0, -rows0, -np.ones(len(w0), np.int32))
+    shifted = transform_points(shift, _centers(w0))
+    from kimera_multi_py.mapping import morton
+    ref._apply(morton.encode(morton.points_to_keys(shifted, RES)), rows0, np.ones(len(w0), np.int32))
+    assert same(snapshot(ref.octree), snapshot(m.octree))
+
+
+def _centers(codes):
+    from kimera_multi_py.mapping import morton
+    return morton.node_centers(codes, np.zeros(len(codes), np.int8), RES)
+
+
+def test_removing_a_submap_equals_never_adding_it():
+    m = build()
+    m.remove_submap(1)
+    assert same(snapshot(m.octree), snapshot(build(skip=(1,)).octree))
+    assert 1 not in m.submap_ids()
+
+
+def test_small_corrections_wait_for_the_threshold():
+    m = build()
+    before = snapshot(m.octree)
+    T = m.submaps[2].T.copy()
+    assert not m.move_submap(2, make_pose(None, [0.02, 0.0, 0.0]) @ T)
+    assert same(before, snapshot(m.octree))
+    assert m.move_submap(2, make_pose(None, [0.02, 0.0, 0.0]) @ T, force=True)
+    assert not m.move_submap(2, make_pose(None, [0.03, 0.0, 0.0]) @ T)  # 1 cm from applied
+    assert m.move_submap(2, make_pose(None, [0.2, 0.0, 0.0]) @ T)
+
+
+def test_submap_ids_are_checked():
+    m = SubmapMap(RES, K)
+    m.new_submap(3, np.eye(4))
+    with pytest.raises(KeyError):
+        m.new_submap(3, np.eye(4))
+    with pytest.raises(KeyError):
+        m.integrate(4, np.eye(4), np.ones((1, 3)), np.array([1]))
+    assert m.integrate(3, np.eye(4), np.zeros((0, 3)), np.zeros(0, int)) == 0
