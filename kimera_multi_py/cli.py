@@ -63,7 +63,7 @@ def sim(
     scenario: Annotated[Path, typer.Argument(help="Scenario TOML file.")] = DEFAULT_SCENARIO,
     robots: Annotated[int | None, typer.Option("--robots", "-n", help="Team size (overrides the file).")] = None,
     seed: Annotated[int | None, typer.Option(help="Random seed (overrides the file).")] = None,
-    mode: Annotated[str, typer.Option(help="odometry (dead reckoning) or distributed.")] = "odometry",
+    mode: Annotated[str, typer.Option(help="odometry (dead reckoning), distributed or centralized.")] = "odometry",
     transport: Annotated[str, typer.Option(help="loopback (in-process) or zenoh (one session per robot).")]
     = "loopback",
     out: Annotated[Path, typer.Option(help="Run folder for results.json and trajectories.")] = Path("runs/sim"),

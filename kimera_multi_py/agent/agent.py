@@ -32,7 +32,9 @@ from kimera_multi_py.comms.messages import (
     LoopClosureRequest,
     LoopClosures,
     LoopClosuresAck,
+    KeyframeOdometry,
     Message,
+    PublicPoses,
 )
 from kimera_multi_py.consensus.pcm import PcmNoise, odometry_consistent, pcm
 from kimera_multi_py.consensus.pgo import LocalGraph
@@ -66,6 +68,7 @@ class AgentParams:
     min_inliers: int = 5
     pcm_min_size: int = 2
     intra_min_gap: int = 40  # keyframes between an intra-robot closure's ends
+    server: int | None = None  # centralised mode: the server's id (odometry streams to it)
     pcm: PcmNoise | None = None  # default: drift from odom_sigmas, closure noise from closure_sigmas
 
     def pcm_noise(self) -> PcmNoise:
@@ -184,6 +187,9 @@ class Agent:
         seen = self.objects.update(transform_points(pose, kf.points[hits]), kf.labels[hits], sid, kf.index)
         self.kf_landmarks.append(seen)
         out: list[Message] = []
+        if self.params.server is not None:
+            out.append(KeyframeOdometry(robot=self.robot, keyframes=np.array([kf.index], dtype=np.int64),
+                                        odometry=odom[None]))
         if kf.index % self.params.descriptor_every == 0:
             c = self._constellation(kf.index)
             if c is not None:
@@ -277,10 +283,10 @@ class Agent:
         self.stats.candidates += 1
         o = old[best]
         res = self._verify(o, c.xyz, c.classes)
-        if res is not None:
-            self._add_closure(self.robot, Closure(o.keyframe, self.robot, c.keyframe, res[0], res[1],
-                                                  self.dead_reckoning[o.keyframe], self.dead_reckoning[c.keyframe]))
-        return []
+        if res is None:
+            return []
+        return self._add_closure(self.robot, Closure(o.keyframe, self.robot, c.keyframe, res[0], res[1],
+                                                     self.dead_reckoning[o.keyframe], self.dead_reckoning[c.keyframe]))
 
     def _add_closure(self, peer: int, closure: Closure) -> list[Message]:
         """Record a verified closure and re-run PCM over the pair; publish the accepted set."""
@@ -301,14 +307,13 @@ class Agent:
             c.accepted = bool(k)
         if [c.accepted for c in group] == before and not closure.accepted:
             return []
-        if peer == self.robot:
-            return []
         accepted = [c for c in group if c.accepted]
-        self.inter_edges = {k: v for k, v in self.inter_edges.items() if k[1] != peer or not self._verifier(peer)}
-        for c in accepted:
-            self.inter_edges[(c.own_kf, peer, c.peer_kf)] = (c.Z, c.inliers)
-        if accepted:
-            self.robot_graph.add((min(self.robot, peer), max(self.robot, peer)))
+        if peer != self.robot:
+            self.inter_edges = {k: v for k, v in self.inter_edges.items() if k[1] != peer}
+            for c in accepted:
+                self.inter_edges[(c.own_kf, peer, c.peer_kf)] = (c.Z, c.inliers)
+            if accepted:
+                self.robot_graph.add((min(self.robot, peer), max(self.robot, peer)))
         self._batch[peer] = self._batch.get(peer, 0) + 1
         n = len(accepted)
         return [LoopClosures(
@@ -323,6 +328,12 @@ class Agent:
     def handle(self, msg: Message) -> list[Message]:
         """React to a message from another robot; return the messages to send."""
         if msg.robot == self.robot:
+            return []
+        if msg.robot == self.params.server and self.params.server is not None:
+            if isinstance(msg, PublicPoses):
+                own = np.array([(int(k) >> 56) - ord("a") == self.robot for k in msg.keys.tolist()], dtype=bool)
+                if own.any():
+                    self.apply_poses(np.array(msg.poses[own]))
             return []
         if msg.robot not in self.team:
             raise ValueError(f"robot {self.robot}: message from unknown robot {msg.robot}")
@@ -341,7 +352,7 @@ class Agent:
                                                    self.dead_reckoning[own_kf], np.array(msg.pose)))
         if isinstance(msg, LoopClosures):
             pair = (min(msg.robot, msg.peer), max(msg.robot, msg.peer))
-            if len(msg.keys_a):
+            if len(msg.keys_a) and msg.robot != msg.peer:
                 self.robot_graph.add(pair)
             if msg.peer != self.robot:
                 return []
@@ -398,10 +409,19 @@ class Agent:
         )
 
     def apply_poses(self, poses: np.ndarray) -> int:
-        """Adopt optimised keyframe poses; re-anchor the submaps and objects that moved."""
+        """Adopt optimised poses of the first keyframes; re-anchor the submaps and objects that moved.
+
+        Keyframes newer than the optimised ones follow by chaining their odometry.
+        """
         poses = np.asarray(poses, dtype=float)
-        if poses.shape != (self.num_keyframes, 4, 4) or not np.all(np.isfinite(poses)):
+        m = len(poses)
+        if poses.shape[1:] != (4, 4) or not 0 < m <= self.num_keyframes or not np.all(np.isfinite(poses)):
             raise ValueError(f"robot {self.robot}: bad optimised poses of shape {poses.shape}")
+        if m < self.num_keyframes:
+            tail = [poses[-1]]
+            for odo in self.odometry[m:]:
+                tail.append(tail[-1] @ odo)
+            poses = np.concatenate([poses, np.array(tail[1:])])
         self.poses = list(poses)
         moved = 0
         per = self.params.mapping.keyframes_per_submap

@@ -12,6 +12,9 @@ them, evaluate against ground truth, write the outputs. Modes:
   loop closures (descriptors, queries, verification, PCM) and distributed PGO every
   ``pgo_period`` seconds of simulated time and at the end. Estimates end in the team frame
   (robot 0's), which one SE(3) alignment places in the world for evaluation.
+* ``centralized`` -- the same agents and nodes plus a :class:`ServerNode` (id N) on its own
+  bus: agents stream keyframe odometry and their accepted loop closures; the server runs gtsam
+  GNC on the joint graph on the same schedule and publishes corrected poses back.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams
 from kimera_multi_py.consensus.runner import run_team
+from kimera_multi_py.consensus.server_node import Server, ServerNode
 from kimera_multi_py.consensus.workflow import open_buses
 from kimera_multi_py.errors import ConfigError
 from kimera_multi_py.eval.metrics import align_se3, ate_rmse
@@ -40,7 +44,7 @@ from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
 from kimera_multi_py.viz.rerun_viz import NullViz, Viz
 
-MODES = ("odometry", "distributed")
+MODES = ("odometry", "distributed", "centralized")
 TRANSPORTS = ("loopback", "zenoh")
 Progress = Callable[[int, int], None]
 
@@ -115,6 +119,10 @@ class SimRunner:
     def _spawn_agents(self) -> None:
         self.tracks = [_Track() for _ in range(self.sim.num_robots)]
         team = tuple(range(self.sim.num_robots))
+        if self.mode == "centralized":
+            from dataclasses import replace
+
+            self.params = replace(self.params, server=len(team))
         if self.mode != "odometry":
             self.agents = [Agent(r, team, self.params) for r in team]
         self.viz.log_world(self.sim.world)
@@ -132,8 +140,13 @@ class SimRunner:
 
     async def _run_team(self) -> None:
         robots = list(range(self.sim.num_robots))
-        async with open_buses(robots, self.transport, team="sim", seed=self.sim.seed) as buses:
-            nodes = [AgentNode(a, b) for a, b in zip(self.agents, buses, strict=True)]
+        ids = robots + ([len(robots)] if self.mode == "centralized" else [])
+        async with open_buses(ids, self.transport, team="sim", seed=self.sim.seed) as buses:
+            nodes: list[AgentNode | ServerNode] = [AgentNode(a, b) for a, b in zip(self.agents, buses, strict=False)]
+            if self.mode == "centralized":
+                self.server = ServerNode(Server(len(robots), tuple(robots), self.params.closure_sigmas,
+                                                self.params.odom_sigmas), buses[-1])
+                nodes.append(self.server)
             for node in nodes:
                 await node.start()
             next_pgo = self.pgo_period
@@ -144,10 +157,10 @@ class SimRunner:
                 self.tracks[kf.robot].add(kf)
                 self._step(done, kf, node.agent.poses[-1])
                 if kf.stamp >= next_pgo:
-                    await self._optimise(buses)
+                    await self._optimise(buses, nodes)
                     next_pgo += self.pgo_period
-            await self._optimise(buses)
             await _drain(nodes)
+            await self._optimise(buses, nodes)
             self.bytes = {"per_robot": {}, "per_topic": {}}
             for b in buses:
                 snap = b.counters.snapshot()["sent"]
@@ -155,17 +168,22 @@ class SimRunner:
                 for topic, v in snap.items():
                     per_topic = self.bytes["per_topic"]  # type: ignore[assignment]
                     per_topic[topic] = per_topic.get(topic, 0) + int(v["bytes"])  # type: ignore[union-attr]
-            self.refused = {n.robot: dict(n.errors) for n in nodes}
+            self.refused = {n.robot: dict(n.errors) for n in nodes if isinstance(n, AgentNode)}
             for node in nodes:
                 await node.close()
         self.viz.close()
 
-    async def _optimise(self, buses: list[Bus]) -> None:
-        """Distributed PGO over the agents' current graphs; the agents adopt the result."""
-        pgo = [PgoAgent(a.local_graph(), self.pgo_params) for a in self.agents]
-        await run_team(pgo, buses, self.pgo_params.max_rounds)
-        for agent, p in zip(self.agents, pgo, strict=True):
-            agent.apply_poses(p.final_poses())
+    async def _optimise(self, buses: list[Bus], nodes: list[AgentNode | ServerNode]) -> None:
+        """Distributed PGO over the agents' graphs, or the server's GNC; the agents adopt the result."""
+        if self.mode == "centralized":
+            await self.server.optimise()
+            await _drain(nodes)
+        else:
+            pgo = [PgoAgent(a.local_graph(), self.pgo_params) for a in self.agents]
+            await run_team(pgo, buses, self.pgo_params.max_rounds)
+            for agent, p in zip(self.agents, pgo, strict=True):
+                agent.apply_poses(p.final_poses())
+            self.pgo = pgo
         self.pgo_runs += 1
 
     def _evaluate(self, wall_s: float) -> Results:
@@ -204,36 +222,62 @@ class SimRunner:
         objects = object_quality(cls, cen, np.array([o.label for o in world.objects]),
                                  np.array([o.centroid for o in world.objects]))
         objects["landmarks"] = len(lms)
-        # loop closures: what each verifier accepted, scored against the true poses
-        truth = [np.array(tr.true) for tr in self.tracks]
-        Z, Ta, Tb, inter = [], [], [], []
-        for a in self.agents:
-            for peer, group in a.closures.items():
-                for c in group:
-                    if c.accepted:
-                        Z.append(c.Z)
-                        Ta.append(truth[a.robot][c.own_kf])
-                        Tb.append(truth[peer][c.peer_kf])
-                        inter.append(peer != a.robot)
-        ok = score_closures(np.array(Z).reshape(-1, 4, 4), np.array(Ta).reshape(-1, 4, 4),
-                            np.array(Tb).reshape(-1, 4, 4))
-        inter_arr = np.array(inter, dtype=bool)
-        stats = [a.stats for a in self.agents]
-        closures = {
-            "candidates": sum(s.candidates for s in stats),
-            "verified": sum(s.verified for s in stats),
-            "rejected_verification": sum(s.rejected_verification for s in stats),
-            "rejected_pcm": sum(sum(not c.accepted for c in g) for a in self.agents for g in a.closures.values()),
-            "accepted_inter": int(inter_arr.sum()),
-            "accepted_intra": int((~inter_arr).sum()),
-            "true_accepted_inter": int((ok & inter_arr).sum()),
-            "false_accepted_inter": int((~ok & inter_arr).sum()),
-            "true_accepted_intra": int((ok & ~inter_arr).sum()),
-            "false_accepted_intra": int((~ok & ~inter_arr).sum()),
-        }
+        closures = self._closure_stats()
         return {"map": maps, "objects": objects, "loop_closures": closures, "bytes_sent": self.bytes,
                 "pgo_runs": self.pgo_runs, "refused_messages": getattr(self, "refused", {}),
                 "transport": self.transport}
+
+    def _backend_weights(self) -> dict[tuple[int, int, int, int], float]:
+        """Final back-end (GNC) weight of each inter-robot edge, keyed ``(a, kf_a, b, kf_b)``."""
+        if self.mode == "centralized":
+            return dict(self.server.server.stats.weights)
+        out: dict[tuple[int, int, int, int], float] = {}
+        for a, p in zip(self.agents, getattr(self, "pgo", []), strict=False):
+            lg = p.local
+            for e in range(len(lg.inter_own)):
+                peer_kf = int(lg.inter_peer_key[e]) & ((1 << 56) - 1)
+                out[(a.robot, int(lg.inter_own[e]), int(lg.inter_peer[e]), peer_kf)] = float(p.inter_weights[e])
+            for e in np.flatnonzero(~lg.intra_odometry):
+                out[(a.robot, int(lg.intra_i[e]), a.robot, int(lg.intra_j[e]))] = float(p.intra_weights[e])
+        return out
+
+    def _closure_stats(self) -> dict[str, int]:
+        """Loop closures through the pipeline, scored against the true poses.
+
+        ``candidates`` were fetched and verified; ``verified`` passed geometry; PCM then kept a
+        consistent set and the back end's GNC weights decided the rest (weight < 0.5 = rejected).
+        """
+        truth = [np.array(tr.true) for tr in self.tracks]
+        weights = self._backend_weights()
+        rows = []  # (inter, pcm accepted, gnc accepted, true)
+        for a in self.agents:
+            for peer, group in a.closures.items():
+                if not group:
+                    continue
+                ok = score_closures(np.stack([c.Z for c in group]), truth[a.robot][[c.own_kf for c in group]],
+                                    truth[peer][[c.peer_kf for c in group]])
+                for c, true in zip(group, ok, strict=True):
+                    w = weights.get((a.robot, c.own_kf, peer, c.peer_kf), 0.0)
+                    rows.append((peer != a.robot, c.accepted, c.accepted and w >= 0.5, bool(true)))
+        r = np.array(rows, dtype=bool).reshape(-1, 4)
+        inter, pcm_ok, final, true = r.T
+        stats = [a.stats for a in self.agents]
+        return {
+            "candidates": sum(s.candidates for s in stats),
+            "verified": sum(s.verified for s in stats),
+            "rejected_verification": sum(s.rejected_verification for s in stats),
+            "verified_true_inter": int((inter & true).sum()),
+            "verified_false_inter": int((inter & ~true).sum()),
+            "rejected_pcm_true_inter": int((inter & ~pcm_ok & true).sum()),
+            "rejected_pcm_false_inter": int((inter & ~pcm_ok & ~true).sum()),
+            "rejected_gnc_true_inter": int((inter & pcm_ok & ~final & true).sum()),
+            "rejected_gnc_false_inter": int((inter & pcm_ok & ~final & ~true).sum()),
+            "accepted_inter": int((inter & final).sum()),
+            "true_accepted_inter": int((inter & final & true).sum()),
+            "false_accepted_inter": int((inter & final & ~true).sum()),
+            "accepted_intra": int((~inter & final).sum()),
+            "false_accepted_intra": int((~inter & final & ~true).sum()),
+        }
 
     def _write_results(self, results: Results) -> None:
         if self.out_dir is None:
@@ -246,7 +290,7 @@ class SimRunner:
         results.write_json(self.out_dir / "results.json")
 
 
-async def _drain(nodes: list[AgentNode]) -> None:
+async def _drain(nodes: list[AgentNode | ServerNode]) -> None:
     """Let every node handle its queued messages until the team is quiet."""
     while True:
         handled = 0

@@ -1,0 +1,160 @@
+"""Server: the centralised-mode runtime (DESIGN §1). Same agents, different wiring.
+
+Agents stream their keyframe odometry (``KeyframeOdometry``) and every loop closure their
+front ends accept (``LoopClosures``, inter- and intra-robot) over the Bus. The server keeps the
+joint graph, optimises it with gtsam GNC (:func:`solve_centralized`, robust) and publishes each
+robot's corrected keyframe poses back as ``PublicPoses`` from its own id. It never sees a
+robot's raw sensor data, and a robot that never connects simply keeps its odometry.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kimera_multi_py.comms import keys
+from kimera_multi_py.comms.bus import Bus
+from kimera_multi_py.comms.messages import KeyframeOdometry, LoopClosures, Message, PublicPoses
+from kimera_multi_py.consensus.server import solve_centralized
+from kimera_multi_py.io.pose_graph import PoseGraph, robot_key, split_key
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ServerStats:
+    solves: int = 0
+    poses: int = 0
+    edges: int = 0
+    inter_edges: int = 0
+    rejected_by_gnc: int = 0
+    wall_s: float = 0.0
+    refused: int = 0
+    weights: dict[tuple[int, int, int, int], float] = field(default_factory=dict)
+
+
+class Server:
+    """Joint-graph GNC over what the agents stream (see the module docstring)."""
+
+    def __init__(self, server_id: int, team: tuple[int, ...], closure_sigmas: tuple[float, float],
+                 odom_sigmas: tuple[float, float]) -> None:
+        self.id = server_id
+        self.team = tuple(team)
+        self.odometry: dict[int, list[np.ndarray]] = {r: [] for r in self.team}
+        self.closures: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.closure_info = np.diag(np.repeat(1.0 / np.square(closure_sigmas), 3))
+        self.odom_info = np.diag(np.repeat(1.0 / np.square(odom_sigmas), 3))
+        self.stats = ServerStats()
+        self.round = 0
+
+    # ---- messages in ----------------------------------------------------------------------
+    def handle(self, msg: Message) -> None:
+        if isinstance(msg, KeyframeOdometry):
+            chain = self.odometry.setdefault(msg.robot, [])
+            for k, T in zip(msg.keyframes.tolist(), msg.odometry, strict=True):
+                if k != len(chain):
+                    raise ValueError(f"robot {msg.robot}: odometry for keyframe {k}, expected {len(chain)}")
+                chain.append(np.array(T))
+        elif isinstance(msg, LoopClosures):
+            self.closures[(msg.robot, msg.peer)] = (np.array(msg.keys_a), np.array(msg.keys_b), np.array(msg.poses))
+
+    # ---- the joint graph ------------------------------------------------------------------
+    def graph(self) -> tuple[PoseGraph, list[tuple[int, int, int, int]]]:
+        robots = [r for r in self.team if self.odometry.get(r)]
+        offset, n = {}, 0
+        for r in robots:
+            offset[r] = n
+            n += len(self.odometry[r])
+        poses, robot, local, ei, ej, Z, info = [], [], [], [], [], [], []
+        for r in robots:
+            chain = self.odometry[r]
+            T = np.eye(4)
+            for k, odo in enumerate(chain):
+                T = T @ odo if k else np.eye(4)
+                poses.append(T)
+                robot.append(r)
+                local.append(k)
+                if k:
+                    ei.append(offset[r] + k - 1)
+                    ej.append(offset[r] + k)
+                    Z.append(odo)
+                    info.append(self.odom_info)
+        tags: list[tuple[int, int, int, int]] = []
+        for (a, b), (ka, kb, meas) in sorted(self.closures.items()):
+            for x, y, T in zip(ka.tolist(), kb.tolist(), meas, strict=True):
+                (ra, ia), (rb, ib) = split_key(x), split_key(y)
+                if ra not in offset or rb not in offset or ia >= len(self.odometry[ra]) \
+                        or ib >= len(self.odometry[rb]):
+                    continue  # refers to keyframes we have not heard about yet
+                ei.append(offset[ra] + ia)
+                ej.append(offset[rb] + ib)
+                Z.append(T)
+                info.append(self.closure_info)
+                tags.append((ra, ia, rb, ib))
+        g = PoseGraph(
+            poses=np.array(poses).reshape(-1, 4, 4), robot=np.array(robot, dtype=int), local=np.array(local, dtype=int),
+            ids=np.array([robot_key(r, k) for r, k in zip(robot, local, strict=True)], dtype=np.int64),
+            edge_i=np.array(ei, dtype=int), edge_j=np.array(ej, dtype=int),
+            measurement=np.array(Z).reshape(-1, 4, 4), information=np.array(info).reshape(-1, 6, 6), source="server",
+        )
+        return g, tags
+
+    def optimise(self) -> list[Message]:
+        """Solve the joint graph with GNC; return each robot's corrected poses."""
+        g, tags = self.graph()
+        if g.num_poses == 0:
+            return []
+        t0 = time.perf_counter()
+        res = solve_centralized(g, robust=True)
+        self.stats.wall_s += time.perf_counter() - t0
+        self.stats.solves += 1
+        self.stats.poses, self.stats.edges, self.stats.inter_edges = g.num_poses, g.num_edges, len(tags)
+        loop_w = np.ones(len(tags)) if res.weights is None else np.asarray(res.weights)[g.num_edges - len(tags):]
+        self.stats.weights = {t: float(w) for t, w in zip(tags, loop_w, strict=True)}
+        self.stats.rejected_by_gnc = int(np.sum(loop_w < 0.5))
+        self.round += 1
+        out: list[Message] = []
+        for r in sorted(set(g.robot.tolist())):
+            idx = g.robot_indices(r)
+            out.append(PublicPoses(robot=self.id, round=self.round,
+                                   keys=np.array([robot_key(r, k) for k in range(len(idx))], dtype=np.int64),
+                                   poses=res.poses[idx]))
+        return out
+
+
+class ServerNode:
+    """The Server on a Bus: absorbs the team's topics, publishes solutions on request."""
+
+    def __init__(self, server: Server, bus: Bus) -> None:
+        self.server = server
+        self.bus = bus
+        self._sub = None
+
+    async def start(self) -> None:
+        await self.bus.announce()
+        self._sub = self.bus.subscribe(keys.team_all(self.bus.team))
+
+    async def drain(self) -> int:
+        assert self._sub is not None, "start() first"
+        n = 0
+        while self._sub.pending():
+            msg = await self._sub.recv(timeout=0)
+            try:
+                self.server.handle(msg)
+            except ValueError as exc:
+                self.server.stats.refused += 1
+                log.warning("server refused %s from robot %d: %s", type(msg).__name__, msg.robot, exc)
+            n += 1
+        return n
+
+    async def optimise(self) -> None:
+        await self.drain()
+        for msg in self.server.optimise():
+            await self.bus.publish(self.bus.key(msg.TOPIC), msg)
+
+    async def close(self) -> None:
+        if self._sub is not None:
+            self._sub.close()
