@@ -28,11 +28,11 @@ import numpy as np
 from kimera_multi_py.agent.loop_closure import DescriptorSpec, constellation_descriptor, similarity, verify
 from kimera_multi_py.comms.messages import (
     KeyframeDescriptor,
+    KeyframeOdometry,
     LoopClosureReply,
     LoopClosureRequest,
     LoopClosures,
     LoopClosuresAck,
-    KeyframeOdometry,
     Message,
     PublicPoses,
 )

@@ -83,7 +83,7 @@ class Server:
                     Z.append(odo)
                     info.append(self.odom_info)
         tags: list[tuple[int, int, int, int]] = []
-        for (a, b), (ka, kb, meas) in sorted(self.closures.items()):
+        for _pair, (ka, kb, meas) in sorted(self.closures.items()):
             for x, y, T in zip(ka.tolist(), kb.tolist(), meas, strict=True):
                 (ra, ia), (rb, ib) = split_key(x), split_key(y)
                 if ra not in offset or rb not in offset or ia >= len(self.odometry[ra]) \
