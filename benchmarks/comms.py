@@ -1,16 +1,27 @@
 """ZenohBus between two processes against raw zenoh-python, same payloads, same sessions, same run.
 
-For 1 KB and 100 KB payloads it measures:
+For 1 KB and 100 KB application payloads it measures, for the raw baseline and for the bus alike:
 
-- latency: sequential round trips (ping -> echo -> back), p50/p99 in microseconds;
-- throughput: N messages published back to back (congestion control BLOCK, so nothing is
-  dropped) until the receiver reports its count; messages/s end to end.
+- latency: sequential round trips (ping -> echo -> back), timed at the sender; raw and bus
+  blocks of ``--lat-block`` round trips alternate ``--lat-blocks`` times, so machine noise hits
+  both alike; p50/p99 over all samples (after ``--warmup`` discarded round trips each);
+- throughput: the sender publishes N messages back to back (congestion control BLOCK, so
+  nothing is dropped), then an end marker; the receiver counts what it delivers to the
+  application and times it from the first delivered message to the end marker: messages/s
+  *at the receiver* (``throughput_msgs_s``, the ratio's basis). The sender's end-to-end rate
+  (first put to the count coming back) is reported too. Runs alternate raw/bus ``--repeat``
+  times after one discarded warm-up run each; medians are reported.
 
 The raw baseline is zenoh-python as its own examples use it (``z_ping``/``z_pong``,
-``z_pub_thr``/``z_sub_thr``): bytes put on a declared publisher, the echo and the count done in
-the subscriber callback. The ZenohBus path does everything the system does: encode a ``Ping``
-message into the envelope, hand each sample to asyncio, decode and validate, and (for echoes)
-re-encode. Both run over the same pair of sessions (the bus's own), one after the other.
+``z_pub_thr``/``z_sub_thr``): a prebuilt ``bytes`` payload put on a declared publisher, the echo
+and the count done in the subscriber callback on Zenoh's callback thread, the ping's echo read
+with a blocking ``FifoChannel.recv``. The ZenohBus side does everything the system does, per
+message: build a typed ``Ping`` (validated) carrying the same payload bytes, encode it into the
+envelope, coalesce bursts into batch puts (``ZenohBus.publish``), hand each sample to asyncio,
+decode and validate every message, deliver it through a ``Subscription``, and (for echoes)
+build and encode a reply. The bus's wire payload is larger by its envelope (``wire_bytes``); the
+application payload is the same. Both run over the same pair of sessions (the bus's own) on the
+same event loop (``event_loop``: uvloop when installed, else asyncio; ``--loop`` forces one).
 
 Overheads reported: ``throughput_ratio`` = bus / raw (target >= 0.5) and
 ``p50_latency_ratio`` = bus / raw (target <= 2).
@@ -36,7 +47,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from kimera_multi_py.comms import keys
+from kimera_multi_py.comms import keys, runtime
 from kimera_multi_py.comms.messages import Heartbeat, Ping
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 
@@ -70,21 +81,24 @@ async def child(connect: str, queue_size: int) -> None:
                                              congestion_control=zenoh.CongestionControl.BLOCK)
         done_pub = session.declare_publisher(RAW_THR_DONE,
                                              congestion_control=zenoh.CongestionControl.BLOCK)
-        count = [0]
+        count = [0, 0]  # messages, first arrival (ns)
 
         def on_lat(sample: zenoh.Sample) -> None:
             echo_pub.put(sample.payload)
 
         def on_thr(sample: zenoh.Sample) -> None:
-            if len(sample.payload) <= 8:  # end marker
-                done_pub.put(count[0].to_bytes(8, "little"))
+            if len(sample.payload) <= 8:  # end marker: report count and receiver-side time
+                elapsed = time.perf_counter_ns() - count[1]
+                done_pub.put(count[0].to_bytes(8, "little") + elapsed.to_bytes(8, "little"))
                 count[0] = 0
             else:
+                if not count[0]:
+                    count[1] = time.perf_counter_ns()
                 count[0] += 1
 
         raw_subs = [session.declare_subscriber(RAW_LAT, on_lat),
                     session.declare_subscriber(RAW_THR, on_thr)]
-        # bus: echo pings, count bulk messages
+        # bus: echo pings, count bulk messages (the same work as the raw callbacks)
         pings = bus.subscribe(keys.topic_key(TEAM, 0, keys.PING))
         bulk = bus.subscribe(keys.topic_key(TEAM, 0, BULK))
 
@@ -94,12 +108,15 @@ async def child(connect: str, queue_size: int) -> None:
                     robot=1, nonce=msg.nonce, sent_ns=msg.sent_ns, echo=True, payload=msg.payload))
 
         async def counter() -> None:
-            n = 0
+            n = first = 0
             async for msg in bulk:
-                if isinstance(msg, Heartbeat):
-                    await bus.publish(bus.key(BULK), Heartbeat(robot=1, keyframes=n, status="n"))
+                if isinstance(msg, Heartbeat):  # end marker
+                    elapsed = time.perf_counter_ns() - first
+                    await bus.publish(bus.key(BULK), Ping(robot=1, nonce=n, sent_ns=elapsed))
                     n = 0
                 else:
+                    if not n:
+                        first = time.perf_counter_ns()
                     n += 1
 
         tasks = [asyncio.create_task(echo()), asyncio.create_task(counter())]
@@ -135,13 +152,14 @@ class Parent:
             out.append(time.perf_counter_ns() - t0)
         return out
 
-    def raw_throughput(self, payload: bytes, n: int) -> tuple[float, int]:
-        t0 = time.perf_counter()
+    def raw_throughput(self, payload: bytes, n: int) -> dict[str, float]:
+        t0 = time.perf_counter_ns()
         for _ in range(n):
             self.raw_thr_pub.put(payload)
         self.raw_thr_pub.put(b"end")
-        got = int.from_bytes(self.raw_done.recv().payload.to_bytes(), "little")
-        return got / (time.perf_counter() - t0), got
+        report = self.raw_done.recv().payload.to_bytes()
+        return _rates(int.from_bytes(report[:8], "little"), int.from_bytes(report[8:], "little"),
+                      time.perf_counter_ns() - t0)
 
     # bus ------------------------------------------------------------------------------
     async def bus_latency(self, payload: np.ndarray, n: int) -> list[int]:
@@ -155,14 +173,19 @@ class Parent:
             assert msg.nonce == i and msg.payload.size == payload.size
         return out
 
-    async def bus_throughput(self, payload: np.ndarray, n: int) -> tuple[float, int]:
+    async def bus_throughput(self, payload: np.ndarray, n: int) -> dict[str, float]:
         key = self.bus.key(BULK)
-        t0 = time.perf_counter()
+        t0 = time.perf_counter_ns()
         for i in range(n):
             await self.bus.publish(key, Ping(robot=0, nonce=i, sent_ns=0, payload=payload))
         await self.bus.publish(key, Heartbeat(robot=0, keyframes=n, status="end"))
-        got = (await self.counts.recv(timeout=60)).keyframes
-        return got / (time.perf_counter() - t0), got
+        report = await self.counts.recv(timeout=60)
+        return _rates(report.nonce, report.sent_ns, time.perf_counter_ns() - t0)
+
+
+def _rates(delivered: int, receiver_ns: int, sender_ns: int) -> dict[str, float]:
+    return {"delivered": delivered, "receiver_msgs_s": delivered / max(receiver_ns, 1) * 1e9,
+            "end_to_end_msgs_s": delivered / sender_ns * 1e9}
 
 
 async def measure(args: argparse.Namespace) -> dict[str, Any]:
@@ -172,7 +195,7 @@ async def measure(args: argparse.Namespace) -> dict[str, Any]:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         [str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])}
     proc = subprocess.Popen(
-        [sys.executable, __file__, "--child", "--connect", endpoint,
+        [sys.executable, __file__, "--child", "--connect", endpoint, "--loop", args.loop,
          "--queue-size", str(max(args.thr_1k, args.thr_100k) + 16)],
         env=env,
     )
@@ -187,7 +210,7 @@ async def measure(args: argparse.Namespace) -> dict[str, Any]:
             results = {}
             for label, size in SIZES.items():
                 n_thr = args.thr_1k if size < 10_000 else args.thr_100k
-                results[label] = await _one_size(parent, size, args.lat, n_thr, args.repeat)
+                results[label] = await _one_size(parent, size, n_thr, args)
                 results[label]["wire_bytes"] = {
                     "raw": size,
                     "bus": len(bus.codec.encode(Ping(robot=0, nonce=0, sent_ns=0,
@@ -205,21 +228,30 @@ async def measure(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "benchmark": "comms",
         "transport": "zenoh tcp 127.0.0.1, peer mode, two processes",
-        "zenoh": _zenoh_version(),
+        "zenoh": _version("eclipse-zenoh"),
         "python": platform.python_version(),
+        "event_loop": runtime.loop_name(args.loop),
         "cpus": os.cpu_count(),
-        "repeat": args.repeat,
+        "method": {
+            "latency": "round trip timed at the sender; raw and bus blocks alternate",
+            "throughput": "messages delivered to the application / receiver-side time from the "
+                          "first delivered message to the end marker; median of runs",
+            "payload": "same application bytes; raw puts them as is, the bus wraps them in a "
+                       "typed Ping and its envelope (see wire_bytes)",
+            "warmup": {"round_trips": args.warmup, "throughput_runs": 1},
+            "lat_blocks": args.lat_blocks, "lat_block": args.lat_block, "repeat": args.repeat,
+        },
         "results": results,
         "targets": {"throughput_ratio_min": 0.5, "p50_latency_ratio_max": 2.0, "met": met},
         "bus_counters_parent": counters,
     }
 
 
-def _zenoh_version() -> str:
+def _version(dist: str) -> str:
     from importlib.metadata import PackageNotFoundError, version
 
     try:
-        return version("eclipse-zenoh")
+        return version(dist)
     except PackageNotFoundError:
         return "unknown"
 
@@ -242,58 +274,65 @@ async def _wait_raw_ready(parent: Parent) -> None:
         pass
 
 
-async def _one_size(parent: Parent, size: int, n_lat: int, n_thr: int, repeat: int) -> dict:
+async def _one_size(parent: Parent, size: int, n_thr: int, args: argparse.Namespace) -> dict:
     raw_payload = bytes(np.random.default_rng(size).integers(0, 256, size, dtype=np.uint8))
     bus_payload = np.frombuffer(raw_payload, np.uint8).copy()
-    # warm up both paths
-    parent.raw_latency(raw_payload, 20)
-    await parent.bus_latency(bus_payload, 20)
+    # warm up both paths alike
+    parent.raw_latency(raw_payload, args.warmup)
+    await parent.bus_latency(bus_payload, args.warmup)
+    parent.raw_throughput(raw_payload, max(n_thr // 4, 1))
+    await parent.bus_throughput(bus_payload, max(n_thr // 4, 1))
     raw_lat: list[int] = []
     bus_lat: list[int] = []
-    raw_thr, bus_thr = [], []
-    raw_got, bus_got = [], []
-    for _ in range(repeat):  # interleave so that machine noise hits both alike
-        raw_lat += parent.raw_latency(raw_payload, n_lat)
-        bus_lat += await parent.bus_latency(bus_payload, n_lat)
-        rate, got = parent.raw_throughput(raw_payload, n_thr)
-        raw_thr.append(rate)
-        raw_got.append(got)
-        rate, got = await parent.bus_throughput(bus_payload, n_thr)
-        bus_thr.append(rate)
-        bus_got.append(got)
-    raw = {"latency_rtt": percentiles(raw_lat),
-           "throughput_msgs_s": statistics.median(raw_thr),
-           "throughput_runs": raw_thr, "delivered": raw_got, "sent_per_run": n_thr}
-    bus = {"latency_rtt": percentiles(bus_lat),
-           "throughput_msgs_s": statistics.median(bus_thr),
-           "throughput_runs": bus_thr, "delivered": bus_got, "sent_per_run": n_thr}
-    for r in (raw, bus):
-        r["throughput_MB_s"] = r["throughput_msgs_s"] * size / 1e6
+    for _ in range(args.lat_blocks):  # alternate so that machine noise hits both alike
+        raw_lat += parent.raw_latency(raw_payload, args.lat_block)
+        bus_lat += await parent.bus_latency(bus_payload, args.lat_block)
+    raw_runs, bus_runs = [], []
+    for _ in range(args.repeat):
+        raw_runs.append(parent.raw_throughput(raw_payload, n_thr))
+        bus_runs.append(await parent.bus_throughput(bus_payload, n_thr))
+    raw = _side(raw_lat, raw_runs, n_thr, size)
+    bus = _side(bus_lat, bus_runs, n_thr, size)
     return {
         "payload_bytes": size,
         "raw": raw,
         "bus": bus,
         "throughput_ratio": bus["throughput_msgs_s"] / raw["throughput_msgs_s"],
+        "end_to_end_throughput_ratio": bus["end_to_end_msgs_s"] / raw["end_to_end_msgs_s"],
         "p50_latency_ratio": bus["latency_rtt"]["p50_us"] / raw["latency_rtt"]["p50_us"],
         "p99_latency_ratio": bus["latency_rtt"]["p99_us"] / raw["latency_rtt"]["p99_us"],
     }
 
 
+def _side(lat: list[int], runs: list[dict[str, float]], n_thr: int, size: int) -> dict[str, Any]:
+    rate = statistics.median(r["receiver_msgs_s"] for r in runs)
+    return {"latency_rtt": percentiles(lat),
+            "throughput_msgs_s": rate,
+            "throughput_MB_s": rate * size / 1e6,
+            "end_to_end_msgs_s": statistics.median(r["end_to_end_msgs_s"] for r in runs),
+            "throughput_runs": [r["receiver_msgs_s"] for r in runs],
+            "delivered": [int(r["delivered"]) for r in runs], "sent_per_run": n_thr}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--json", action="store_true", help="print the full JSON result")
-    p.add_argument("--lat", type=int, default=500, help="round trips per repeat")
+    p.add_argument("--lat-blocks", type=int, default=15, help="alternating latency blocks")
+    p.add_argument("--lat-block", type=int, default=100, help="round trips per block and side")
+    p.add_argument("--warmup", type=int, default=100, help="discarded round trips per side")
     p.add_argument("--thr-1k", type=int, default=20_000, help="1 KB messages per repeat")
     p.add_argument("--thr-100k", type=int, default=2_000, help="100 KB messages per repeat")
-    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--repeat", type=int, default=5, help="throughput runs per side")
+    p.add_argument("--loop", choices=runtime.LOOPS, default="auto",
+                   help="event loop: uvloop when installed (auto), or force one")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--connect", help=argparse.SUPPRESS)
     p.add_argument("--queue-size", type=int, default=100_000, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
-        asyncio.run(child(args.connect, args.queue_size))
+        runtime.run(child(args.connect, args.queue_size), args.loop)
         return
-    result = asyncio.run(measure(args))
+    result = runtime.run(measure(args), args.loop)
     if args.json:
         print(json.dumps(result, indent=2))
         return

@@ -54,7 +54,9 @@ class TrafficCounters:
     """Per-topic sent/received counters and drop counts by reason. Thread-safe.
 
     Topics are labels from :func:`keys.topic_label` (``pgo/public_poses``, ``keyframe``, ...).
-    Byte counts are encoded payload sizes (what goes on the wire, before transport framing).
+    Byte counts are encoded payload sizes (what goes on the wire, before transport framing). A
+    batch payload (several messages in one put, see :func:`share`) is split evenly between its
+    messages, so per-topic byte totals are exactly the payload bytes on the wire.
     """
 
     def __init__(self) -> None:
@@ -63,21 +65,23 @@ class TrafficCounters:
         self.received: dict[str, TopicCount] = {}
         self.dropped: dict[str, int] = {}
 
-    def count_sent(self, key: str, nbytes: int) -> None:
-        self._add(self.sent, key, nbytes)
+    def count_sent(self, key: str, nbytes: int, messages: int = 1) -> None:
+        self._add(self.sent, key, nbytes, messages)
 
-    def count_received(self, key: str, nbytes: int) -> None:
-        self._add(self.received, key, nbytes)
+    def count_received(self, key: str, nbytes: int, messages: int = 1) -> None:
+        self._add(self.received, key, nbytes, messages)
 
     def count_dropped(self, reason: str) -> None:
         with self._lock:
             self.dropped[reason] = self.dropped.get(reason, 0) + 1
 
-    def _add(self, table: dict[str, TopicCount], key: str, nbytes: int) -> None:
+    def _add(self, table: dict[str, TopicCount], key: str, nbytes: int, messages: int) -> None:
         label = keys.topic_label(key)
         with self._lock:
-            c = table.setdefault(label, TopicCount())
-            c.messages += 1
+            c = table.get(label)
+            if c is None:
+                c = table[label] = TopicCount()
+            c.messages += messages
             c.bytes += nbytes
 
     def total(self, direction: str = "sent") -> TopicCount:
@@ -96,6 +100,11 @@ class TrafficCounters:
                 "received": _table(self.received),
                 "dropped": dict(self.dropped),
             }
+
+
+def share(nbytes: int, n: int, i: int) -> int:
+    """Message ``i``'s share of a payload of ``nbytes`` carrying ``n`` messages (sums exactly)."""
+    return nbytes // n + (i < nbytes % n)
 
 
 def _table(table: dict[str, TopicCount]) -> dict[str, dict[str, int]]:
@@ -222,12 +231,14 @@ class Subscription(Stream[Message]):
         self._bus = bus
 
     def push(self, item: Any) -> None:
-        """Decode ``(key, payload bytes)`` now (so counters reflect arrivals) and queue it."""
+        """Decode ``(key, payload bytes)`` now (so counters reflect arrivals) and queue it.
+
+        The payload holds one message or a batch of them (:func:`codec.decode_batch`).
+        """
         if self.closed:
             return
         key, data = item
-        env = self._bus.accept(key, data)
-        if env is not None:
+        for env in self._bus.accept_batch(key, data):
             super().push(env.msg)
 
 
@@ -321,6 +332,7 @@ class BusBase:
         self.queue_size = queue_size
         self.closed = False
         self._own_keys: set[str] = set()
+        self._key_verdicts: dict[str, tuple[CodecError | None, int | MessageError]] = {}
         self._peers: set[int] = set()
         self._presence_streams: list[Stream[PresenceEvent]] = []
         self._peers_changed = asyncio.Event()
@@ -355,6 +367,61 @@ class BusBase:
             return None
         self.counters.count_received(key, len(data))
         return env
+
+    def accept_batch(self, key: str, data: bytes, from_owner: bool = True) -> list[Envelope]:
+        """:meth:`accept` for a payload holding one message or a batch (same checks per message).
+
+        Each message of a batch is validated, counted and dropped on its own, exactly as if it
+        had come alone; its share of the payload bytes is what the counters attribute to it.
+        """
+        try:
+            items = self.codec.decode_batch(data)
+        except MessageError as exc:  # the batch as a whole is malformed
+            self._reject(key, exc)
+            return []
+        team_error, owner = self._key_verdict(key)
+        out: list[Envelope] = []
+        nbytes = 0
+        n = len(items)
+        for i, item in enumerate(items):
+            if isinstance(item, MessageError):
+                self._reject(key, item)
+            elif team_error is not None:
+                self._reject(key, team_error)
+            elif from_owner and owner != item.src:
+                self._reject(key, owner if isinstance(owner, MessageError) else CodecError(
+                    "key", f"key {key!r} does not belong to sender {item.src}"))
+            else:
+                out.append(item)
+                nbytes += share(len(data), n, i)
+        if out:
+            self.counters.count_received(key, nbytes, len(out))
+        return out
+
+    def _key_verdict(self, key: str) -> tuple[CodecError | None, int | MessageError]:
+        """(error if ``key`` is not of this team, owner robot or parse error); cached per key."""
+        verdict = self._key_verdicts.get(key)
+        if verdict is None:
+            chunks = key.split("/")
+            team_error = None
+            if len(chunks) < 3 or chunks[0] != keys.ROOT or chunks[1] != self.team:
+                team_error = CodecError("team", f"key {key!r} is not of team {self.team!r}")
+            owner: int | MessageError
+            try:
+                owner = keys.parse_key(key).robot  # type: ignore[assignment]
+            except MessageError as exc:
+                owner = exc
+            verdict = (team_error, owner)
+            if len(self._key_verdicts) < 10_000:
+                self._key_verdicts[key] = verdict
+        return verdict
+
+    def _reject(self, key: str, exc: MessageError) -> None:
+        reason = exc.field if isinstance(exc, CodecError) else "invalid"
+        if reason not in ("team", "src", "key", "size"):
+            reason = "invalid"
+        self.counters.count_dropped(reason)
+        log.debug("robot %d dropped a message on %s: %s", self.robot, key, exc)
 
     def encode_for(self, key: str, msg: Message) -> bytes:
         """Encode ``msg`` for sending on ``key``; refuse keys of other teams or robots."""

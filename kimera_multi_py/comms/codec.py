@@ -22,10 +22,11 @@ from __future__ import annotations
 
 import math
 import struct
-import threading
 import time
 from collections.abc import Collection
 from dataclasses import dataclass
+from functools import lru_cache
+from itertools import count
 from typing import Any
 
 import msgpack
@@ -35,6 +36,7 @@ from kimera_multi_py.comms.keys import check_team
 from kimera_multi_py.comms.messages import (
     INT64_MAX,
     MAX_ROBOT_ID,
+    MESSAGE_TYPES,
     SCHEMA_VERSION,
     Message,
     message_type,
@@ -44,7 +46,11 @@ from kimera_multi_py.errors import MessageError
 EXT_NDARRAY = 1
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 MAX_NDIM = 8
+MAX_BATCH = 4096
 ENVELOPE_FIELDS = ("v", "type", "team", "src", "seq", "stamp", "body")
+_N_FIELDS = len(ENVELOPE_FIELDS)
+_isfinite = math.isfinite
+_new = object.__new__
 
 _DTYPES: dict[int, np.dtype] = {
     1: np.dtype("<f8"),
@@ -60,7 +66,9 @@ _DTYPES: dict[int, np.dtype] = {
     11: np.dtype("?"),
 }
 _CODES: dict[np.dtype, int] = {dt: code for code, dt in _DTYPES.items()}
+_NATIVE: dict[int, np.dtype] = {code: dt.newbyteorder("=") for code, dt in _DTYPES.items()}
 _HEAD = struct.Struct("<BB")
+_SHAPES = [struct.Struct(f"<{ndim}I") for ndim in range(MAX_NDIM + 1)]
 
 
 class CodecError(MessageError):
@@ -94,7 +102,7 @@ def _pack_array(a: np.ndarray) -> msgpack.ExtType:
     if a.ndim > MAX_NDIM:
         raise CodecError("array", f"more than {MAX_NDIM} dimensions")
     a = np.ascontiguousarray(a, dtype=dt)
-    head = _HEAD.pack(code, a.ndim) + struct.pack(f"<{a.ndim}I", *a.shape)
+    head = _HEAD.pack(code, a.ndim) + _SHAPES[a.ndim].pack(*a.shape)
     return msgpack.ExtType(EXT_NDARRAY, b"".join((head, memoryview(a))))  # one copy
 
 
@@ -102,7 +110,7 @@ def _unpack_array(data: bytes) -> np.ndarray:
     if len(data) < _HEAD.size:
         raise CodecError("array", "truncated header")
     code, ndim = _HEAD.unpack_from(data)
-    dt = _DTYPES.get(code)
+    dt = _NATIVE.get(code)
     if dt is None:
         raise CodecError("array", f"unknown dtype code {code}")
     if ndim > MAX_NDIM:
@@ -110,7 +118,7 @@ def _unpack_array(data: bytes) -> np.ndarray:
     start = _HEAD.size + 4 * ndim
     if len(data) < start:
         raise CodecError("array", "truncated shape")
-    shape = struct.unpack_from(f"<{ndim}I", data, _HEAD.size)
+    shape = _SHAPES[ndim].unpack_from(data, _HEAD.size)
     n = math.prod(shape)
     if n * dt.itemsize != len(data) - start:
         raise CodecError("array", f"shape {shape} needs {n * dt.itemsize} bytes, has "
@@ -118,18 +126,51 @@ def _unpack_array(data: bytes) -> np.ndarray:
     if dt.kind == "b" and n and np.frombuffer(data, np.uint8, n, start).max() > 1:
         raise CodecError("array", "boolean array holds values other than 0 and 1")
     # a read-only view on the ext bytes (no copy): received messages are immutable values
-    return np.frombuffer(data, dtype=dt.newbyteorder("="), count=n, offset=start).reshape(shape)
+    a = np.frombuffer(data, dtype=dt, count=n, offset=start)
+    return a if ndim == 1 else a.reshape(shape)
+
+
+# 1-D arrays of a non-bool dtype (the common case): header and size checked inline
+_BY_CODE: list[np.dtype | None] = [
+    _NATIVE[c] if c in _NATIVE and _NATIVE[c].kind != "b" else None for c in range(256)]
+_U32 = struct.Struct("<I")
 
 
 def _ext_hook(code: int, data: bytes) -> Any:
+    if code == EXT_NDARRAY and len(data) >= 6 and data[1] == 1:
+        dt = _BY_CODE[data[0]]
+        if dt is not None:
+            n = _U32.unpack_from(data, 2)[0]
+            if n * dt.itemsize == len(data) - 6:
+                return _frombuffer(data, dt, n, 6)
     if code != EXT_NDARRAY:
         raise CodecError("ext", f"unknown ext type {code}")
-    return _unpack_array(data)
+    return _unpack_array(data)  # the reference checks, for everything else
+
+
+_frombuffer = np.frombuffer
+
+
+def ext_of(a: np.ndarray) -> msgpack.ExtType:
+    """The ext value of an array: :func:`_pack_array`, with a shortcut for the common case."""
+    if a.__class__ is np.ndarray and a.flags.c_contiguous:
+        code = _CODES.get(a.dtype)
+        if code is not None:
+            head = _HEADS[code][a.ndim] if a.ndim <= MAX_NDIM else None
+            if head is not None:
+                # the fields are valid by construction: skip ExtType.__new__'s type checks
+                return _ext_new(msgpack.ExtType, (EXT_NDARRAY, b"".join(
+                    (head, _SHAPES[a.ndim].pack(*a.shape), memoryview(a)))))
+    return _pack_array(a)
+
+
+_ext_new = tuple.__new__
+_HEADS = {code: [_HEAD.pack(code, ndim) for ndim in range(MAX_NDIM + 1)] for code in _DTYPES}
 
 
 def _default(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
-        return _pack_array(obj)
+        return ext_of(obj)
     raise CodecError("body", f"cannot encode {type(obj).__name__}")
 
 
@@ -152,7 +193,11 @@ def encode(msg: Message, *, team: str, src: int, seq: int, stamp: float | None =
         "stamp": float(time.time() if stamp is None else stamp),
         "body": msg.to_wire(),
     }
-    return msgpack.packb(env, default=_default, use_bin_type=True)
+    return _packb(env)
+
+
+def _packb(obj: Any) -> bytes:
+    return msgpack.packb(obj, default=_default, use_bin_type=True)  # a Packer per call: thread-safe
 
 
 def decode(
@@ -180,7 +225,134 @@ def decode(
     return _check_envelope(env, team, robots)
 
 
+def decode_batch(
+    data: bytes | bytearray | memoryview,
+    *,
+    team: str | None = None,
+    robots: Collection[int] | None = None,
+    max_bytes: int = MAX_MESSAGE_BYTES,
+) -> list[Envelope | MessageError]:
+    """Parse a payload holding one envelope (a map) or a batch (an array of envelopes).
+
+    Returns one item per message, in order: its :class:`Envelope`, or the :class:`MessageError`
+    that :func:`decode` would raise for that message alone (each envelope is validated exactly as
+    :func:`decode` validates a single one). A batch as a whole (size, msgpack, a non-empty array
+    of at most :data:`MAX_BATCH` items) is checked first; a failure there raises.
+    """
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise CodecError("payload", f"expected bytes, got {type(data).__name__}")
+    if len(data) > max_bytes:
+        raise CodecError("size", f"{len(data)} bytes exceeds the limit of {max_bytes}")
+    if not len(data) or not _is_batch_head(data[0]):
+        try:
+            return [decode(data, team=team, robots=robots, max_bytes=max_bytes)]
+        except MessageError as exc:
+            return [exc]
+    try:
+        items = msgpack.unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=True)
+    except MessageError:
+        # an array failed in some envelope: decode them one by one to blame only that one
+        return _decode_each(data, team, robots)
+    except Exception as exc:  # noqa: BLE001 - msgpack raises many types on hostile input
+        raise CodecError("payload", f"not valid msgpack ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(items, list) or not 1 <= len(items) <= MAX_BATCH:
+        raise CodecError("batch", f"expected 1 to {MAX_BATCH} envelopes")
+    out: list[Envelope | MessageError] = []
+    for env in items:
+        try:
+            out.append(_check_envelope(env, team, robots))
+        except MessageError as exc:
+            out.append(exc)
+    return out
+
+
+def _decode_each(
+    data: bytes | bytearray | memoryview, team: str | None, robots: Collection[int] | None
+) -> list[Envelope | MessageError]:
+    """Slow path of :func:`decode_batch` when an element's arrays are malformed."""
+    unpacker = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=len(data) + 1)
+    unpacker.feed(data)
+    try:
+        n = unpacker.read_array_header()
+    except Exception as exc:  # noqa: BLE001
+        raise CodecError("payload", f"not valid msgpack ({type(exc).__name__}: {exc})") from exc
+    if not 1 <= n <= MAX_BATCH:
+        raise CodecError("batch", f"expected 1 to {MAX_BATCH} envelopes")
+    out: list[Envelope | MessageError] = []
+    for _ in range(n):
+        start = unpacker.tell()
+        try:
+            unpacker.skip()
+        except Exception as exc:  # noqa: BLE001
+            raise CodecError("payload", f"not valid msgpack ({type(exc).__name__}: {exc})") \
+                from exc
+        try:
+            out.append(decode(bytes(data[start:unpacker.tell()]), team=team, robots=robots))
+        except MessageError as exc:
+            out.append(exc)
+    if unpacker.tell() != len(data):
+        raise CodecError("payload", "not valid msgpack (extra data after the batch)")
+    return out
+
+
+def _is_batch_head(byte: int) -> bool:
+    """True for a msgpack array header (fixarray, array 16, array 32)."""
+    return 0x90 <= byte <= 0x9F or byte in (0xDC, 0xDD)
+
+
+def batch_header(n: int) -> bytes:
+    """The msgpack array header that makes ``n`` concatenated envelopes one batch payload."""
+    if not 1 <= n <= MAX_BATCH:
+        raise CodecError("batch", f"expected 1 to {MAX_BATCH} envelopes")
+    return bytes((0x90 | n,)) if n < 16 else b"\xdc" + n.to_bytes(2, "big")
+
+
 def _check_envelope(env: Any, team: str | None, robots: Collection[int] | None) -> Envelope:
+    """Validate a decoded envelope; the compiled common case, else the reference checks."""
+    if env.__class__ is dict and len(env) == _N_FIELDS:
+        try:
+            v, type_name, env_team, src, seq, stamp, body = (
+                env["v"], env["type"], env["team"], env["src"], env["seq"], env["stamp"],
+                env["body"])
+        except KeyError:
+            return _check_envelope_slow(env, team, robots)
+        cls = MESSAGE_TYPES.get(type_name) if type_name.__class__ is str else None
+        if (
+            v.__class__ is int and v == SCHEMA_VERSION
+            and cls is not None
+            and env_team.__class__ is str and (team is None or env_team == team)
+            and _team_ok(env_team)
+            and src.__class__ is int and 0 <= src <= MAX_ROBOT_ID
+            and (robots is None or src in robots)
+            and seq.__class__ is int and 0 <= seq <= INT64_MAX
+            and stamp.__class__ is float and stamp >= 0 and _isfinite(stamp)
+        ):
+            msg = cls.from_wire(body)
+            if msg.robot != src:
+                raise CodecError("src", f"sender {src} differs from {cls.TYPE}.robot={msg.robot}")
+            return _envelope(cls.TYPE, env_team, src, seq, stamp, msg)
+    return _check_envelope_slow(env, team, robots)
+
+
+@lru_cache(maxsize=256)
+def _team_ok(team: str) -> bool:
+    try:
+        check_team(team)
+    except MessageError:
+        return False
+    return True
+
+
+def _envelope(type_name: str, team: str, src: int, seq: int, stamp: float, msg: Message) -> Envelope:
+    """An :class:`Envelope` of validated fields, without the frozen dataclass's setattr calls."""
+    env = _new(Envelope)
+    env.__dict__.update(v=SCHEMA_VERSION, type=type_name, team=team, src=src, seq=seq,
+                        stamp=stamp, msg=msg)
+    return env
+
+
+def _check_envelope_slow(env: Any, team: str | None, robots: Collection[int] | None) -> Envelope:
+    """The reference envelope check: what :func:`decode` accepts, raises or names."""
     if not isinstance(env, dict):
         raise CodecError("envelope", f"expected a map, got {type(env).__name__}")
     for name in ENVELOPE_FIELDS:
@@ -235,20 +407,27 @@ class Codec:
         self.robot = robot
         self.robots = frozenset(robots) if robots is not None else None
         self.max_bytes = max_bytes
-        self._seq = 0
-        self._lock = threading.Lock()
+        self._seq = count()  # next() on a C iterator is atomic: thread-safe without a lock
 
     def next_seq(self) -> int:
-        with self._lock:
-            seq = self._seq
-            self._seq += 1
-        return seq
+        return next(self._seq)
 
     def encode(self, msg: Message) -> bytes:
-        data = encode(msg, team=self.team, src=self.robot, seq=self.next_seq())
+        """:func:`encode` with this sender's team, id and next sequence number."""
+        if not isinstance(msg, Message):
+            raise CodecError("body", f"not a message: {type(msg).__name__}")
+        if msg.robot != self.robot:
+            raise CodecError("src", f"message robot {msg.robot} is not the sender {self.robot}")
+        # the team was checked once in __init__ and seq comes from our own counter
+        data = _packb({"v": SCHEMA_VERSION, "type": msg.TYPE, "team": self.team,
+                       "src": self.robot, "seq": next(self._seq), "stamp": time.time(),
+                       "body": msg._wire_body(ext_of)})
         if len(data) > self.max_bytes:
             raise CodecError("size", f"{len(data)} bytes exceeds the limit of {self.max_bytes}")
         return data
 
     def decode(self, data: bytes | bytearray | memoryview) -> Envelope:
         return decode(data, team=self.team, robots=self.robots, max_bytes=self.max_bytes)
+
+    def decode_batch(self, data: bytes | bytearray | memoryview) -> list[Envelope | MessageError]:
+        return decode_batch(data, team=self.team, robots=self.robots, max_bytes=self.max_bytes)

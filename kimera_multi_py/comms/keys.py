@@ -35,6 +35,7 @@ OBJECTS = "map/objects"
 HEARTBEAT = "heartbeat"
 PING = "diag/ping"
 KEYFRAME = "keyframe"
+ODOMETRY = "server/odometry"
 
 _TEAM_RE = re.compile(r"^[A-Za-z0-9_\-]{1,32}$")
 _ROBOT_RE = re.compile(r"^r(0|[1-9][0-9]{0,5})$")

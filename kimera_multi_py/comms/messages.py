@@ -114,13 +114,29 @@ class Message:
     robot: int
 
     def __post_init__(self) -> None:
+        # the compiled check accepts values that need no coercion; anything else (or anything
+        # wrong) takes the reference path, which coerces or raises
+        if not type(self)._fast_ok(self.__dict__):
+            self._validate_slow()
+
+    def _validate_slow(self) -> None:
         values = {name: getattr(self, name) for name in self.SPECS}
         for name, value in _validate(type(self), values, strict=False).items():
             object.__setattr__(self, name, value)
 
+    # replaced per class by :func:`message` with compiled checks (see :func:`_compile_checks`)
+    @staticmethod
+    def _fast_ok(values: dict[str, Any]) -> bool:
+        return False
+
     @classmethod
     def from_wire(cls, body: Any) -> Message:
         """Build a message from a decoded body, checking types strictly (no coercion)."""
+        return cls._from_wire_slow(body)
+
+    @classmethod
+    def _from_wire_slow(cls, body: Any) -> Message:
+        """The reference strict check: what :meth:`from_wire` accepts, raises or names."""
         if not isinstance(body, dict):
             raise MessageError(f"{cls.TYPE}: body must be a map, got {type(body).__name__}")
         missing = [n for n in cls.SPECS if n not in body]
@@ -138,6 +154,14 @@ class Message:
     def to_wire(self) -> dict[str, Any]:
         """The body map: field name to value (arrays stay numpy arrays)."""
         return {name: getattr(self, name) for name in self.SPECS}
+
+    def _wire_body(self, pack_array: Callable[[np.ndarray], Any]) -> dict[str, Any]:
+        """:meth:`to_wire` with ``pack_array`` applied to the array fields (compiled per class)."""
+        body = self.to_wire()
+        for name, spec in self.SPECS.items():
+            if isinstance(spec, Array):
+                body[name] = pack_array(body[name])
+        return body
 
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):
@@ -173,10 +197,112 @@ def message(type_name: str, topic: str) -> Callable[[M], M]:
         dc.TYPE = type_name
         dc.TOPIC = topic
         dc.SPECS = {f.name: f.metadata["spec"] for f in dataclasses.fields(dc)}
+        _compile_checks(dc)
         MESSAGE_TYPES[type_name] = dc
         return dc
 
     return wrap
+
+
+# ---------------------------------------------------------------------------- compiled checks
+def _compile_checks(cls: type[Message]) -> None:
+    """Give ``cls`` a compiled ``from_wire`` and ``_fast_ok`` generated from its specs.
+
+    Both are straight-line code (one test per spec property, no per-field dispatch) that only
+    *accepts* the common case: exact types, the right dtype and shape, every value in range. On
+    any doubt they defer to the reference path (:meth:`Message._from_wire_slow`, or
+    :func:`_validate` with coercion), which then raises the usual :class:`MessageError` or
+    coerces. So the compiled checks accept nothing the reference refuses, and return the very
+    values the reference would (``tests/comms/test_messages.py`` checks parity on random and
+    mutated bodies).
+    """
+    env: dict[str, Any] = {"ndarray": np.ndarray, "isfinite": math.isfinite,
+                           "np_isfinite": np.isfinite, "new": object.__new__, "cls": cls}
+    tests: list[str] = []  # conditions of the strict (wire) check
+    loose: list[str] = []  # conditions of the construction check (values already exact)
+    dims: dict[str, str] = {}
+    for i, spec in enumerate(cls.SPECS.values()):
+        v = f"v{i}"
+        if isinstance(spec, Int):
+            env[f"lo{i}"], env[f"hi{i}"] = spec.lo, spec.hi
+            conds = [f"{v}.__class__ is int", f"lo{i} <= {v} <= hi{i}"]
+        elif isinstance(spec, Float):
+            env[f"lo{i}"], env[f"hi{i}"] = spec.lo, spec.hi
+            conds = [f"{v}.__class__ is float", f"lo{i} <= {v} <= hi{i}"]  # NaN fails here
+            if spec.finite:
+                conds.append(f"isfinite({v})")
+        elif isinstance(spec, Bool):
+            conds = [f"({v} is True or {v} is False)"]
+        elif isinstance(spec, Str):
+            env[f"max{i}"] = spec.max_len
+            conds = [f"{v}.__class__ is str", f"len({v}) <= max{i}"]
+            if spec.choices:
+                env[f"choices{i}"] = frozenset(spec.choices)
+                conds.append(f"{v} in choices{i}")
+        else:
+            assert isinstance(spec, Array)
+            want = np.dtype(spec.dtype)
+            env[f"dt{i}"] = want
+            conds = [f"{v}.__class__ is ndarray", f"({v}.dtype is dt{i} or {v}.dtype == dt{i})",
+                     f"{v}.ndim == {len(spec.shape)}"]
+            for axis, size in enumerate(spec.shape):
+                if isinstance(size, int):
+                    conds.append(f"{v}.shape[{axis}] == {size}")
+                elif size in dims:
+                    conds.append(f"{v}.shape[{axis}] == {dims[size]}")
+                else:
+                    dims[size] = f"{v}.shape[{axis}]"
+            values: list[str] = []
+            if spec.finite and want.kind == "f":
+                values.append(f"np_isfinite({v}).all()")
+            if spec.lo is not None:
+                env[f"alo{i}"] = spec.lo
+                values.append(f"{v}.min() >= alo{i}")
+            if spec.hi is not None:
+                env[f"ahi{i}"] = spec.hi
+                values.append(f"{v}.max() <= ahi{i}")
+            if values:
+                conds.append(f"({v}.size == 0 or ({' and '.join(values)}))")
+            loose.append(f"{v}.flags.c_contiguous")  # construction would copy otherwise
+        tests.extend(conds)
+    names = list(cls.SPECS)
+    loads = "\n".join(f"        v{i} = d[{n!r}]" for i, n in enumerate(names))
+    fill = ", ".join(f"{n!r}: v{i}" for i, n in enumerate(names))
+    all_tests = " and\n            ".join(tests) or "True"
+    all_loose = " and\n            ".join(tests + loose) or "True"
+    body = ", ".join(f"{n!r}: pack_array(d[{n!r}])" if isinstance(cls.SPECS[n], Array)
+                     else f"{n!r}: d[{n!r}]" for n in names)
+    src = f"""
+def from_wire(body):
+    d = body
+    if d.__class__ is not dict or len(d) != {len(names)}:
+        return cls._from_wire_slow(body)
+    try:
+{loads}
+    except KeyError:
+        return cls._from_wire_slow(body)
+    if not ({all_tests}):
+        return cls._from_wire_slow(body)
+    msg = new(cls)
+    msg.__dict__.update({{{fill}}})
+    return msg
+
+def wire_body(self, pack_array):
+    d = self.__dict__
+    return {{{body}}}
+
+def fast_ok(d):
+    try:
+{loads}
+    except KeyError:
+        return False
+    return bool({all_loose})
+"""
+    exec(compile(src, f"<{cls.TYPE} checks>", "exec"), env)  # noqa: S102 - generated from specs
+    cls.from_wire = staticmethod(env["from_wire"])  # type: ignore[method-assign,assignment]
+    cls._fast_ok = staticmethod(env["fast_ok"])  # type: ignore[method-assign]
+    cls._wire_body = env["wire_body"]  # type: ignore[method-assign]
+    cls._checks_source = src  # type: ignore[attr-defined]
 
 
 # ---------------------------------------------------------------------------- validation
@@ -468,6 +594,15 @@ class Ping(Message):
     payload: np.ndarray = _f(
         Array("uint8", ("n",)), factory=lambda: np.zeros(0, np.uint8)
     )
+
+
+@message("KeyframeOdometry", keys.ODOMETRY)
+class KeyframeOdometry(Message):
+    """Centralised mode: a robot's keyframe odometry ``T_{k-1,k}`` streamed to the server."""
+
+    robot: int = robot_id()
+    keyframes: np.ndarray = arr("int64", "n", lo=0)
+    odometry: np.ndarray = arr("float64", "n", 4, 4)
 
 
 def message_type(name: str) -> type[Message]:

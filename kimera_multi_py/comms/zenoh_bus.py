@@ -37,12 +37,14 @@ import zenoh
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import DEFAULT_QUEUE_SIZE, BusBase, Handler, Stream, Subscription
+from kimera_multi_py.comms.codec import MAX_BATCH, batch_header
 from kimera_multi_py.comms.messages import Message
 from kimera_multi_py.errors import ConfigError, MessageError
 
 log = logging.getLogger(__name__)
 
 MODES = ("peer", "client", "router")
+DEFAULT_BATCH_BYTES = 60_000  # below Zenoh's 64 KiB transport batch: one batch, no fragments
 INDIRECT_CALLBACKS = True  # run data callbacks on zenoh-python's callback thread
 
 
@@ -129,6 +131,7 @@ class ZenohBus(BusBase):
         extra_config: Mapping[str, Any] | None = None,
         block_on_congestion: bool = False,
         queue_size: int = DEFAULT_QUEUE_SIZE,
+        batch_bytes: int = DEFAULT_BATCH_BYTES,
     ) -> None:
         super().__init__(team, robot, robots, queue_size)
         try:
@@ -147,6 +150,11 @@ class ZenohBus(BusBase):
         self._inbox: deque[tuple[Subscription, str, bytes]] = deque()
         self._drain_scheduled = False
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._batch_bytes = batch_bytes
+        self._burst = False  # a message went out in this loop iteration: coalesce the next ones
+        self._runs: list[tuple[str, list[bytes]]] = []  # pending batches, in publication order
+        self._pending_bytes = 0
+        self._pending_msgs = 0
         self._subs: dict[Subscription, Any] = {}
         self._served: list[_Served] = []
         self._tasks: set[asyncio.Task[None]] = set()
@@ -181,13 +189,58 @@ class ZenohBus(BusBase):
 
     # publish / subscribe -----------------------------------------------------------------
     async def publish(self, key: str, msg: Message) -> None:
+        """Encode ``msg`` now; put it now, or (within a burst) in a batch before the loop idles.
+
+        The first message of an event-loop iteration goes out at once, so a lone message waits
+        for nothing. Messages published after it in the same iteration (a burst: no ``await``
+        yielded to the loop in between) are coalesced, in publication order, into batch payloads
+        of at most ``batch_bytes`` per key, each one Zenoh put; whatever is pending is put when
+        the loop next runs its callbacks, i.e. as soon as the publishing task yields. Order
+        across keys is kept: pending batches are put in the order their messages were published.
+        """
         data = self.encode_for(key, msg)
-        pub = self._publisher(key)
+        if not self._burst:  # first in this loop iteration: send now
+            self._burst = True
+            self._loop.call_soon(self._end_burst)
+            self._put(key, [data])
+            return
+        if self._batch_bytes <= 0:  # coalescing off
+            self._put(key, [data])
+            return
+        if self._pending_bytes + len(data) > self._batch_bytes or self._pending_msgs >= MAX_BATCH:
+            self._flush()
+        runs = self._runs
+        if runs and runs[-1][0] == key:
+            runs[-1][1].append(data)
+        else:
+            runs.append((key, [data]))
+        self._pending_bytes += len(data)
+        self._pending_msgs += 1
+
+    def _end_burst(self) -> None:
+        self._burst = False
+        self._flush()
+
+    def _flush(self) -> None:
+        """Put every pending batch, in publication order (errors are logged and counted)."""
+        runs = self._runs
+        self._runs = []
+        self._pending_bytes = self._pending_msgs = 0
+        for key, parts in runs:
+            try:
+                self._put(key, parts)
+            except MessageError as exc:
+                self.counters.count_dropped("publish_error")
+                log.warning("robot %d: %s", self.robot, exc)
+
+    def _put(self, key: str, parts: list[bytes]) -> None:
+        """One Zenoh put of one envelope, or of a batch (msgpack array) of several."""
+        data = parts[0] if len(parts) == 1 else batch_header(len(parts)) + b"".join(parts)
         try:
-            pub.put(data)
+            self._publisher(key).put(data)
         except zenoh.ZError as exc:
             raise MessageError(f"key: zenoh refused to publish on {key!r}: {exc}") from exc
-        self.counters.count_sent(key, len(data))
+        self.counters.count_sent(key, len(data), len(parts))
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         pub = self._publishers.get(key)
@@ -360,6 +413,7 @@ class ZenohBus(BusBase):
     async def close(self) -> None:
         if self.closed:
             return
+        self._flush()  # what was published before close() still goes out
         self.closed = True
         for sub in list(self._subs):
             sub.close()

@@ -98,6 +98,7 @@ class SimRunner:
         self.tracks: list[_Track] = []
         self.agents: list[Agent] = []
         self.bytes: dict[str, object] = {}
+        self.refused: dict[int, dict[str, int]] = {}
         self.pgo_runs = 0
         self.rays = 0
 
@@ -142,7 +143,8 @@ class SimRunner:
         robots = list(range(self.sim.num_robots))
         ids = robots + ([len(robots)] if self.mode == "centralized" else [])
         async with open_buses(ids, self.transport, team="sim", seed=self.sim.seed) as buses:
-            nodes: list[AgentNode | ServerNode] = [AgentNode(a, b) for a, b in zip(self.agents, buses, strict=False)]
+            agent_nodes = [AgentNode(a, b) for a, b in zip(self.agents, buses, strict=False)]
+            nodes: list[AgentNode | ServerNode] = list(agent_nodes)
             if self.mode == "centralized":
                 self.server = ServerNode(Server(len(robots), tuple(robots), self.params.closure_sigmas,
                                                 self.params.odom_sigmas), buses[-1])
@@ -151,23 +153,26 @@ class SimRunner:
                 await node.start()
             next_pgo = self.pgo_period
             for done, kf in enumerate(self.sim.stream(), 1):
-                node = nodes[kf.robot]
+                node = agent_nodes[kf.robot]
                 await node.process_keyframe(keyframe_input(kf))
                 await _drain(nodes)
                 self.tracks[kf.robot].add(kf)
                 self._step(done, kf, node.agent.poses[-1])
                 if kf.stamp >= next_pgo:
                     await self._optimise(buses, nodes)
+                    self._log_team(kf.stamp)
                     next_pgo += self.pgo_period
             await _drain(nodes)
             await self._optimise(buses, nodes)
-            self.bytes = {"per_robot": {}, "per_topic": {}}
+            self._log_team()
+            per_robot: dict[str, int] = {}
+            per_topic: dict[str, int] = {}
             for b in buses:
                 snap = b.counters.snapshot()["sent"]
-                self.bytes["per_robot"][str(b.robot)] = int(sum(v["bytes"] for v in snap.values()))  # type: ignore[index]
+                per_robot[str(b.robot)] = int(sum(v["bytes"] for v in snap.values()))
                 for topic, v in snap.items():
-                    per_topic = self.bytes["per_topic"]  # type: ignore[assignment]
-                    per_topic[topic] = per_topic.get(topic, 0) + int(v["bytes"])  # type: ignore[union-attr]
+                    per_topic[topic] = per_topic.get(topic, 0) + int(v["bytes"])
+            self.bytes = {"per_robot": per_robot, "per_topic": per_topic, "total": sum(per_robot.values())}
             self.refused = {n.robot: dict(n.errors) for n in nodes if isinstance(n, AgentNode)}
             for node in nodes:
                 await node.close()
@@ -185,6 +190,31 @@ class SimRunner:
                 agent.apply_poses(p.final_poses())
             self.pgo = pgo
         self.pgo_runs += 1
+
+    def _log_team(self, stamp: float | None = None) -> None:
+        """Send the team's current estimate to the visualiser, placed in the world by the true start
+        of robot 0 (the team frame is robot 0's odometry frame)."""
+        if isinstance(self.viz, NullViz):
+            return
+        T = self.tracks[0].true[0] if self.tracks[0].true else np.eye(4)
+        trajs = [transform_points(T, np.array(a.poses)[:, :3, 3]) if a.poses else np.zeros((0, 3))
+                 for a in self.agents]
+        closures = []
+        for a in self.agents:
+            for peer, group in a.closures.items():
+                for c in group:
+                    if c.own_kf < len(a.poses) and c.peer_kf < len(self.agents[peer].poses):
+                        closures.append((transform_points(T, a.poses[c.own_kf][None, :3, 3])[0],
+                                         transform_points(T, self.agents[peer].poses[c.peer_kf][None, :3, 3])[0],
+                                         c.accepted))
+        voxels = []
+        for a in self.agents:
+            lv, occ = a.map.octree.leaves(), a.map.octree.occupied_leaves()
+            voxels.append((transform_points(T, lv.centers[occ]), np.argmax(lv.logodds[occ], axis=1)))
+        lms = [lm for a in self.agents for lm in a.objects.confirmed()]
+        objects = (transform_points(T, np.array([lm.position for lm in lms]).reshape(-1, 3)),
+                   np.array([lm.box()[1] for lm in lms]).reshape(-1, 3), np.array([lm.label for lm in lms], dtype=int))
+        self.viz.log_team(stamp if stamp is not None else self.sim.duration, trajs, closures, voxels, objects)
 
     def _evaluate(self, wall_s: float) -> Results:
         robots, team_est, team_true = [], [], []
@@ -224,7 +254,7 @@ class SimRunner:
         objects["landmarks"] = len(lms)
         closures = self._closure_stats()
         return {"map": maps, "objects": objects, "loop_closures": closures, "bytes_sent": self.bytes,
-                "pgo_runs": self.pgo_runs, "refused_messages": getattr(self, "refused", {}),
+                "pgo_runs": self.pgo_runs, "refused_messages": self.refused,
                 "transport": self.transport}
 
     def _backend_weights(self) -> dict[tuple[int, int, int, int], float]:
@@ -237,8 +267,8 @@ class SimRunner:
             for e in range(len(lg.inter_own)):
                 peer_kf = int(lg.inter_peer_key[e]) & ((1 << 56) - 1)
                 out[(a.robot, int(lg.inter_own[e]), int(lg.inter_peer[e]), peer_kf)] = float(p.inter_weights[e])
-            for e in np.flatnonzero(~lg.intra_odometry):
-                out[(a.robot, int(lg.intra_i[e]), a.robot, int(lg.intra_j[e]))] = float(p.intra_weights[e])
+            for e_ in np.flatnonzero(~lg.intra_odometry).tolist():
+                out[(a.robot, int(lg.intra_i[e_]), a.robot, int(lg.intra_j[e_]))] = float(p.intra_weights[e_])
         return out
 
     def _closure_stats(self) -> dict[str, int]:

@@ -14,10 +14,17 @@ _ROBOT_COLORS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 3
                           [148, 103, 189], [140, 86, 75], [227, 119, 194], [127, 127, 127]], dtype=np.uint8)
 
 
+Closures = list[tuple[np.ndarray, np.ndarray, bool]]  # (end a, end b, accepted)
+Voxels = list[tuple[np.ndarray, np.ndarray]]  # per robot: (centres, class ids)
+Boxes = tuple[np.ndarray, np.ndarray, np.ndarray]  # centres, sizes, class ids
+
+
 class Viz(Protocol):
     def log_world(self, world: object) -> None: ...
     def log_keyframe(self, robot: int, stamp: float, est_pose: np.ndarray, true_pose: np.ndarray,
                      points_sensor: np.ndarray, labels: np.ndarray) -> None: ...
+    def log_team(self, stamp: float, trajectories: list[np.ndarray], closures: Closures, voxels: Voxels,
+                 objects: Boxes) -> None: ...
     def close(self) -> None: ...
 
 
@@ -29,6 +36,10 @@ class NullViz:
 
     def log_keyframe(self, robot: int, stamp: float, est_pose: np.ndarray, true_pose: np.ndarray,
                      points_sensor: np.ndarray, labels: np.ndarray) -> None:
+        pass
+
+    def log_team(self, stamp: float, trajectories: list[np.ndarray], closures: Closures, voxels: Voxels,
+                 objects: Boxes) -> None:
         pass
 
     def close(self) -> None:
@@ -71,6 +82,27 @@ class RerunViz:
         step = max(1, len(points_sensor) // self.max_points)
         pts = transform_points(true_pose, points_sensor[::step])
         self.rec.log(f"robots/r{robot}/scan", rr.Points3D(pts, colors=CLASS_COLORS[labels[::step]], radii=0.02))
+
+    def log_team(self, stamp: float, trajectories: list[np.ndarray], closures: Closures, voxels: Voxels,
+                 objects: Boxes) -> None:
+        """The team's estimate (world frame): optimised trajectories, loop closures (green accepted,
+        red rejected), occupied voxels coloured by class and object boxes with labels."""
+        rr = self.rr
+        self.rec.set_time("sim", duration=float(stamp))
+        for r, xyz in enumerate(trajectories):
+            color = _ROBOT_COLORS[r % len(_ROBOT_COLORS)]
+            self.rec.log(f"team/r{r}/trajectory", rr.LineStrips3D([xyz], colors=[color]))
+        if closures:
+            strips = [np.stack([a, b]) for a, b, _ in closures]
+            colors = [[40, 200, 40] if ok else [220, 40, 40] for _, _, ok in closures]
+            self.rec.log("team/loop_closures", rr.LineStrips3D(strips, colors=colors, radii=0.02))
+        for r, (centers, labels) in enumerate(voxels):
+            if len(centers):
+                self.rec.log(f"team/r{r}/map", rr.Points3D(centers, colors=CLASS_COLORS[labels], radii=0.05))
+        c, size, lab = objects
+        if len(c):
+            self.rec.log("team/objects", rr.Boxes3D(centers=c, sizes=size, colors=CLASS_COLORS[lab],
+                                                    labels=[CLASS_NAMES[i] for i in lab]))
 
     def close(self) -> None:
         self.rec.flush()

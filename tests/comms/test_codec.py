@@ -185,3 +185,66 @@ def test_fuzz_mutated_payloads() -> None:
         valid += check(_mutate(seed, rng)) is not None
     # mutations that keep a message valid exist (e.g. a flipped float bit) but are a minority
     assert 0 < valid < n // 2
+
+
+# ---------------------------------------------------------------------------- batches
+def _batch(parts: list[bytes]) -> bytes:
+    return codec.batch_header(len(parts)) + b"".join(parts)
+
+
+def test_batch_round_trip_and_single_payloads() -> None:
+    c = Codec("t0", 1, ROBOTS)
+    msgs = all_random_messages(seed=5, robot=1) * 2  # 24 > 15: array 16 header
+    items = c.decode_batch(_batch([c.encode(m) for m in msgs]))
+    assert [e.msg for e in items] == msgs  # type: ignore[union-attr]
+    assert [e.seq for e in items] == list(range(len(msgs)))  # type: ignore[union-attr]
+    single = c.decode_batch(c.encode(msgs[0]))
+    assert len(single) == 1 and single[0].msg == msgs[0]  # type: ignore[union-attr]
+    bad = c.decode_batch(b"\x81\xa1v\x01")
+    assert len(bad) == 1 and isinstance(bad[0], MessageError)
+
+
+def test_batch_blames_only_the_bad_envelopes() -> None:
+    """Each element is validated as decode() validates it alone; the others still arrive."""
+    c = Codec("t0", 1, ROBOTS)
+    good = [c.encode(Heartbeat(robot=1, keyframes=i)) for i in range(3)]
+    foreign = Codec("t1", 1).encode(Heartbeat(robot=1, keyframes=9))
+    blob = bytearray(c.encode(PublicPoses(robot=1, round=0, keys=[1], poses=np.eye(4)[None])))
+    blob[blob.index(b"\x01\x03\x01\x00\x00\x00\x04\x00")] = 99  # unknown dtype code in the ext
+    items = c.decode_batch(_batch([good[0], foreign, good[1], bytes(blob), good[2]]))
+    assert [type(i).__name__ for i in items] == ["Envelope", "CodecError", "Envelope",
+                                                 "CodecError", "Envelope"]
+    assert items[1].field == "team" and items[3].field == "array"  # type: ignore[union-attr]
+    for i in (1, 3):  # the same error decode() raises for the message alone
+        with pytest.raises(CodecError) as alone:
+            c.decode([foreign, bytes(blob)][i // 2])
+        assert str(alone.value) == str(items[i])
+
+
+@pytest.mark.parametrize("payload", [b"\x90", b"\x91", b"\x92\xc0", b"\x91\x81\xa1v\x01\xc0",
+                                     b"\xdd\xff\xff\xff\xff", b"\x9f" + b"\xc0" * 3])
+def test_malformed_batches_raise_message_error(payload: bytes) -> None:
+    c = Codec("t0", 1, ROBOTS)
+    try:
+        items = c.decode_batch(payload)
+    except MessageError:
+        return
+    assert all(isinstance(i, MessageError) for i in items)
+
+
+def test_fuzz_mutated_batches() -> None:
+    """Mutated batches: MessageError for the batch, or one valid envelope / error per element."""
+    rng = np.random.default_rng(99)
+    c = Codec("t0", 1, ROBOTS)
+    parts = [c.encode(m) for m in all_random_messages(seed=8, robot=1)]
+    for _ in range(2_000):
+        k = int(rng.integers(1, len(parts) + 1))
+        data = _mutate(_batch(parts[:k]), rng)
+        try:
+            items = codec.decode_batch(data, team="t0", robots=ROBOTS)
+        except MessageError:
+            continue
+        for item in items:
+            assert isinstance(item, Envelope | MessageError)
+            if isinstance(item, Envelope):
+                assert item.msg.robot == item.src and item.src in ROBOTS

@@ -177,3 +177,57 @@ async def test_client_mode_through_a_router(port: int) -> None:
             await a.publish(a.key(keys.HEARTBEAT), Heartbeat(robot=0, keyframes=9))
             assert (await sub.recv(timeout=5)).keyframes == 9
             assert router.peers() == frozenset()  # another team: invisible to the router's bus
+
+
+async def test_bursts_are_coalesced_in_order_and_counted_per_message(port: int) -> None:
+    """A burst (no await yielding between publishes) goes out as few batch puts; every message
+    arrives validated, in publication order across keys, and the byte counters still agree."""
+    a, b = pair(port, robots=range(3), block_on_congestion=True)
+    async with a, b:
+        sub = b.subscribe(keys.team_all(TEAM))
+        for topic in (keys.PING, keys.HEARTBEAT):
+            await a.wait_for_subscribers(a.key(topic), timeout=5)
+        puts = []
+        real_put = a._put
+        a._put = lambda key, parts: (puts.append(len(parts)), real_put(key, parts))  # type: ignore
+        payload = np.arange(1000, dtype=np.uint8)
+        sent = []
+        for i in range(300):
+            msg = (Heartbeat(robot=0, keyframes=i) if i % 50 == 49
+                   else Ping(robot=0, nonce=i, sent_ns=0, payload=payload))
+            sent.append(msg)
+            await a.publish(a.key(msg.TOPIC), msg)
+        got = [await sub.recv(timeout=5) for _ in sent]
+        assert got == sent
+        assert sum(puts) == len(sent) and len(puts) < len(sent) // 10  # batched
+        assert puts[0] == 1  # the first message of the burst went out at once
+        assert a.counters.snapshot()["sent"] == b.counters.snapshot()["received"]
+        assert a.counters.sent["diag/ping"].messages == 294
+        # a lone message is not held back: it is put before publish() returns
+        n = len(puts)
+        await asyncio.sleep(0)
+        await a.publish(a.key(keys.PING), Ping(robot=0, nonce=1, sent_ns=0))
+        assert len(puts) == n + 1
+        assert (await sub.recv(timeout=5)).nonce == 1
+
+
+async def test_a_forged_batch_element_is_dropped_alone(port: int, wait_until) -> None:
+    a, b = pair(port, robots=range(3))
+    async with a, b:
+        sub = b.subscribe(keys.team_all(TEAM))
+        target = a.key(keys.HEARTBEAT)
+        await a.wait_for_subscribers(target, timeout=5)
+        c0, c2 = Codec(TEAM, 0), Codec(TEAM, 2)
+        parts = [c0.encode(Heartbeat(robot=0, keyframes=1)),
+                 c2.encode(Heartbeat(robot=2, keyframes=2)),  # r2 posing as r0
+                 c0.encode(Heartbeat(robot=0, keyframes=3))]
+        a.session.put(target, codec_batch(parts))
+        assert [(await sub.recv(timeout=5)).keyframes for _ in range(2)] == [1, 3]
+        await wait_until(lambda: b.counters.dropped == {"key": 1}, 5)
+        assert b.counters.received["heartbeat"].messages == 2
+
+
+def codec_batch(parts: list[bytes]) -> bytes:
+    from kimera_multi_py.comms.codec import batch_header
+
+    return batch_header(len(parts)) + b"".join(parts)
