@@ -37,7 +37,7 @@ def test_default_scenarios_load_and_office_has_identical_rooms():
         ('class = "chair"', 'class = "unicorn"', "layouts.twin.objects[2].class"),  # unknown class
         ('max = [8.0, 6.0]', 'max = [8.0, 6.0]\nheight = 3', "spaces[0].height"),  # unknown key
         ('layout = "twin"', 'layout = "nope"', "spaces[1].layout"),
-        ('route = ["room_a", "room_b"]', 'route = ["room_a", "attic"]', "robots[0].route[1]"),
+        ('route = ["room_a", "room_b", "room_a"]', 'route = ["room_a", "attic"]', "robots[0].route[1]"),
         ('at = [6.0, 4.0]', 'at = [6.0, 3.0]', "doors[1].at"),  # not on a wall
     ],
 )

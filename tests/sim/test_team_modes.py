@@ -1,0 +1,87 @@
+"""The team modes end to end on the tiny scenario (fast), and the server's joint graph."""
+
+import json
+
+import numpy as np
+import pytest
+
+from kimera_multi_py.comms.messages import KeyframeOdometry, LoopClosures
+from kimera_multi_py.consensus.server_node import Server
+from kimera_multi_py.geometry import inverse, yaw_pose
+from kimera_multi_py.io.pose_graph import robot_key
+from kimera_multi_py.sim import load_scenario
+from kimera_multi_py.sim.runner import SimRunner
+
+from .helpers import TINY
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    out = {}
+    for mode in ("odometry", "distributed", "centralized"):
+        d = tmp_path_factory.mktemp(mode)
+        SimRunner(load_scenario(TINY), seed=0, mode=mode, out_dir=d).run()
+        out[mode] = json.loads((d / "results.json").read_text())
+    return out
+
+
+def test_team_results_have_the_fields_and_the_pipeline_ran(runs):
+    for mode in ("distributed", "centralized"):
+        r = runs[mode]
+        lc = r["loop_closures"]
+        assert lc["candidates"] > 0 and lc["verified"] > 0
+        assert lc["verified"] + lc["rejected_verification"] == lc["candidates"]
+        assert lc["accepted_inter"] == lc["true_accepted_inter"] + lc["false_accepted_inter"]
+        assert set(r["map"]) == {"0", "1"} and all(0 <= m["occupancy_f1"] <= 1 for m in r["map"].values())
+        assert r["objects"]["landmarks"] > 5
+        assert r["bytes_sent"]["total"] == sum(r["bytes_sent"]["per_robot"].values()) > 0
+        assert "lc/descriptors" in r["bytes_sent"]["per_topic"]
+        assert r["realtime_factor"] > 0 and r["pgo_runs"] >= 1
+        assert all(not errs for errs in r["refused_messages"].values())
+    assert "server/odometry" in runs["centralized"]["bytes_sent"]["per_topic"]
+    assert "pgo/public_poses" in runs["distributed"]["bytes_sent"]["per_topic"]
+    assert "map" not in runs["odometry"]
+
+
+def test_same_seed_same_team_metrics(runs, tmp_path):
+    SimRunner(load_scenario(TINY), seed=0, mode="centralized", out_dir=tmp_path).run()
+    again = json.loads((tmp_path / "results.json").read_text())
+    for key in ("robots", "team", "loop_closures", "objects", "map"):
+        assert again[key] == runs["centralized"][key], key
+
+
+def odometry_msgs(robot, n):
+    step = yaw_pose(0.5, 0.0, 0.0, 0.0)
+    return KeyframeOdometry(robot=robot, keyframes=np.arange(n), odometry=np.stack([np.eye(4)] + [step] * (n - 1)))
+
+
+def test_server_builds_the_joint_graph_and_rejects_an_outlier():
+    server = Server(2, (0, 1), closure_sigmas=(0.02, 0.05), odom_sigmas=(0.01, 0.02))
+    server.handle(odometry_msgs(0, 10))
+    server.handle(odometry_msgs(1, 10))
+    # robot 1 starts 3 m to the left of robot 0, both drive straight along x
+    T0 = [yaw_pose(0.5 * k, 0.0, 0.0, 0.0) for k in range(10)]
+    T1 = [yaw_pose(0.5 * k, 3.0, 0.0, 0.0) for k in range(10)]
+    pairs = [(1, 1), (4, 4), (6, 5), (8, 8)]
+    Z = [inverse(T0[a]) @ T1[b] for a, b in pairs] + [yaw_pose(4.0, -7.0, 0.0, 2.0)]  # the last is wrong
+    pairs.append((2, 9))
+    server.handle(LoopClosures(robot=0, peer=1, batch=1,
+                               keys_a=np.array([robot_key(0, a) for a, _ in pairs], dtype=np.int64),
+                               keys_b=np.array([robot_key(1, b) for _, b in pairs], dtype=np.int64),
+                               poses=np.stack(Z), sigmas=np.full((5, 6), 0.05), inliers=np.full(5, 8, np.int32)))
+    graph, tags = server.graph()
+    assert graph.num_poses == 20 and len(tags) == 5
+    out = server.optimise()
+    assert [m.robot for m in out] == [2, 2]
+    P0, P1 = out[0].poses, out[1].poses
+    rel = inverse(P0[0]) @ P1[0]
+    assert np.allclose(rel[:3, 3], [0.0, 3.0, 0.0], atol=0.05)
+    assert server.stats.rejected_by_gnc == 1 and server.stats.weights[(0, 2, 1, 9)] < 0.5
+
+
+def test_server_refuses_out_of_order_odometry():
+    server = Server(2, (0, 1), closure_sigmas=(0.02, 0.05), odom_sigmas=(0.01, 0.02))
+    server.handle(odometry_msgs(0, 3))
+    with pytest.raises(ValueError, match="expected 3"):
+        server.handle(KeyframeOdometry(robot=0, keyframes=np.array([7]), odometry=np.eye(4)[None]))
+    assert len(server.odometry[0]) == 3  # nothing lost
