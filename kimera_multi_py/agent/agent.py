@@ -25,7 +25,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kimera_multi_py.agent.loop_closure import DescriptorSpec, constellation_descriptor, similarity, verify
+from kimera_multi_py.agent.loop_closure import (
+    DescriptorSpec,
+    constellation_descriptor,
+    refine_icp,
+    similarity,
+    verify,
+    voxel_downsample,
+)
 from kimera_multi_py.comms.messages import (
     KeyframeDescriptor,
     KeyframeOdometry,
@@ -38,7 +45,7 @@ from kimera_multi_py.comms.messages import (
 )
 from kimera_multi_py.consensus.pcm import PcmNoise, odometry_consistent, pcm
 from kimera_multi_py.consensus.pgo import LocalGraph
-from kimera_multi_py.geometry import inverse, transform_points
+from kimera_multi_py.geometry import inverse, so3_log, transform_points
 from kimera_multi_py.io.pose_graph import robot_key
 from kimera_multi_py.mapping.config import MappingConfig, get_object_map, get_submap_map
 from kimera_multi_py.semantics import NUM_CLASSES, OBJECT_CLASSES, class_id
@@ -48,6 +55,7 @@ log = logging.getLogger(__name__)
 _OBJECT_IDS = np.array([class_id(c) for c in OBJECT_CLASSES])
 _CLASS_TO_SLOT = np.full(NUM_CLASSES + 1, -1)
 _CLASS_TO_SLOT[_OBJECT_IDS] = np.arange(len(_OBJECT_IDS))
+_FLOOR_CEILING = (class_id("floor"), class_id("ceiling"))
 
 
 @dataclass
@@ -62,12 +70,18 @@ class AgentParams:
     descriptor_window: int = 8
     min_objects: int = 5
     min_similarity: float = 0.75
-    budget: int = 6  # verification requests per peer per budget period
+    budget: int = 8  # verification requests per peer per budget period
+    matches_per_query: int = 2
+    distinct_places: int = 20  # keyframes between two places tried for one query
     budget_period: float = 20.0  # s
-    verify_eps: float = 0.25
+    verify_eps: float = 0.3
     min_inliers: int = 5
     pcm_min_size: int = 2
+    pcm_groups: int = 3  # consistent groups per robot pair handed to the back end (see consensus.pcm)
     intra_min_gap: int = 40  # keyframes between an intra-robot closure's ends
+    cloud_voxel: float = 0.2  # downsampling of the semantic cloud kept per keyframe for ICP
+    icp_min_overlap: float = 0.1
+    icp_max_correction: tuple[float, float] = (0.5, np.deg2rad(10.0))  # larger ICP moves are not trusted
     server: int | None = None  # centralised mode: the server's id (odometry streams to it)
     pcm: PcmNoise | None = None  # default: drift from odom_sigmas, closure noise from closure_sigmas
 
@@ -102,6 +116,8 @@ class Constellation:
     xyz: np.ndarray  # (m, 3)
     classes: np.ndarray  # (m,) class ids
     descriptor: np.ndarray
+    cloud: np.ndarray  # (p, 3) semantic points of the window, keyframe frame
+    cloud_labels: np.ndarray  # (p,)
 
 
 @dataclass
@@ -144,6 +160,7 @@ class Agent:
         self.poses: list[np.ndarray] = []  # current estimate (team frame once aligned)
         self.submap_of: list[int] = []
         self.kf_landmarks: list[list[int]] = []
+        self.kf_clouds: list[tuple[np.ndarray, np.ndarray]] = []  # downsampled hits, sensor frame
         self.constellations: dict[int, Constellation] = {}
         self.peer_descriptors: dict[int, list[tuple[int, np.ndarray]]] = {}
         self.closures: dict[int, list[Closure]] = {}  # verified by me, per peer (self for intra)
@@ -178,6 +195,8 @@ class Agent:
         # mapping: a new submap every keyframes_per_submap keyframes, anchored at its first pose
         sid = kf.index // self.params.mapping.keyframes_per_submap
         if sid not in self.map.submaps:
+            if sid:  # a submap closed: fuse object fragments an occluder split in every view
+                self.objects.merge_fragments(self.map.octree)
             self.map.new_submap(sid, pose)
             self.objects.set_submap_pose(sid, pose)
         self.submap_of.append(sid)
@@ -186,6 +205,9 @@ class Agent:
         hits = np.asarray(kf.hit, dtype=bool)
         seen = self.objects.update(transform_points(pose, kf.points[hits]), kf.labels[hits], sid, kf.index)
         self.kf_landmarks.append(seen)
+        # the semantic cloud for ICP: walls and objects (floor and ceiling add bytes, not constraints)
+        static = hits & ~np.isin(kf.labels, [*self.map.octree.dynamic_classes, *_FLOOR_CEILING])
+        self.kf_clouds.append(voxel_downsample(kf.points[static], kf.labels[static], self.params.cloud_voxel))
         out: list[Message] = []
         if self.params.server is not None:
             out.append(KeyframeOdometry(robot=self.robot, keyframes=np.array([kf.index], dtype=np.int64),
@@ -213,7 +235,12 @@ class Agent:
         xyz = transform_points(inverse(self.poses[k]), xyz_world)
         classes = np.array([lm.label for lm in lms])
         desc = constellation_descriptor(xyz, _CLASS_TO_SLOT[classes], self.spec)
-        return Constellation(k, self.stamps[k], xyz, classes, desc)
+        first = max(0, k - self.params.descriptor_window + 1)
+        inv = inverse(self.poses[k])
+        parts = [transform_points(inv @ self.poses[j], self.kf_clouds[j][0]) for j in range(first, k + 1)]
+        labels = np.concatenate([self.kf_clouds[j][1] for j in range(first, k + 1)])
+        cloud, cloud_labels = voxel_downsample(np.concatenate(parts), labels, self.params.cloud_voxel)
+        return Constellation(k, self.stamps[k], xyz, classes, desc, cloud, cloud_labels)
 
     # ---- loop closures --------------------------------------------------------------------
     def _verifier(self, peer: int) -> bool:
@@ -229,24 +256,37 @@ class Agent:
 
     def _maybe_request(self, peer: int, peer_kf: int, desc: np.ndarray, stamp: float,
                        own: list[Constellation] | None = None) -> list[Message]:
-        """Request the peer keyframe's constellation if it resembles one of ours."""
+        """Request the peer keyframe's constellation if it resembles places of ours.
+
+        Up to ``matches_per_query`` of our most similar places are tried, each at least
+        ``distinct_places`` keyframes from the others: in identical rooms the best-scoring one
+        is a coin toss, so every look-alike is verified and PCM / GNC decide between them.
+        """
         if not self._verifier(peer):
             return []
         cands = own if own is not None else list(self.constellations.values())
         if not cands:
             return []
         sims = similarity(desc, np.stack([c.descriptor for c in cands]))
-        best = int(np.argmax(sims))
-        if sims[best] < self.params.min_similarity:
-            return []
         done = {(c.own_kf, c.peer_kf) for c in self.closures.get(peer, [])}
-        if (cands[best].keyframe, peer_kf) in done or not self._spend(peer, stamp):
-            return []
-        self._request_id += 1
-        self._pending[self._request_id] = (peer, peer_kf, cands[best].keyframe)
-        self.stats.candidates += 1
-        return [LoopClosureRequest(robot=self.robot, target=peer, request_id=self._request_id,
-                                   keyframe=peer_kf, query_keyframe=cands[best].keyframe)]
+        chosen: list[int] = []
+        for i in np.argsort(-sims, kind="stable"):
+            if sims[i] < self.params.min_similarity or len(chosen) >= self.params.matches_per_query:
+                break
+            k = cands[int(i)].keyframe
+            if (k, peer_kf) in done or any(abs(k - c) < self.params.distinct_places for c in chosen):
+                continue
+            chosen.append(k)
+        out: list[Message] = []
+        for k in chosen:
+            if not self._spend(peer, stamp):
+                break
+            self._request_id += 1
+            self._pending[self._request_id] = (peer, peer_kf, k)
+            self.stats.candidates += 1
+            out.append(LoopClosureRequest(robot=self.robot, target=peer, request_id=self._request_id,
+                                          keyframe=peer_kf, query_keyframe=k))
+        return out
 
     def serve_keyframe(self, keyframe: int, request_id: int = 0) -> LoopClosureReply:
         """The constellation of one of our keyframes, for a peer's verification."""
@@ -258,18 +298,29 @@ class Agent:
                                     pose=np.eye(4), points=empty3, labels=empty, object_centroids=empty3,
                                     object_classes=empty)
         return LoopClosureReply(robot=self.robot, request_id=request_id, keyframe=keyframe, found=True,
-                                pose=self.dead_reckoning[keyframe], points=empty3, labels=empty,
+                                pose=self.dead_reckoning[keyframe], points=c.cloud.astype(np.float32),
+                                labels=c.cloud_labels.astype(np.int32),
                                 object_centroids=c.xyz.astype(np.float32),
                                 object_classes=c.classes.astype(np.int32))
 
-    def _verify(self, own: Constellation, xyz: np.ndarray, classes: np.ndarray) -> tuple[np.ndarray, int] | None:
+    def _verify(self, own: Constellation, xyz: np.ndarray, classes: np.ndarray, cloud: np.ndarray,
+                cloud_labels: np.ndarray) -> tuple[np.ndarray, int] | None:
+        """Objects first (max clique + Umeyama), then class-consistent ICP on the semantic clouds."""
         v = verify(own.xyz, own.classes, np.asarray(xyz, float), np.asarray(classes), eps=self.params.verify_eps,
                    min_inliers=self.params.min_inliers)
         if not v.accepted:
             self.stats.rejected_verification += 1
             return None
         self.stats.verified += 1
-        return v.T, v.num_inliers
+        refined = refine_icp(own.cloud, own.cloud_labels, cloud, cloud_labels, v.T,
+                             min_overlap=self.params.icp_min_overlap)
+        if refined is None:
+            return v.T, v.num_inliers
+        step = inverse(v.T) @ refined[0]
+        max_t, max_r = self.params.icp_max_correction
+        if np.linalg.norm(step[:3, 3]) > max_t or np.linalg.norm(so3_log(step[:3, :3])) > max_r:
+            return v.T, v.num_inliers
+        return refined[0], v.num_inliers
 
     def _intra_closures(self, c: Constellation) -> list[Message]:
         """Intra-robot candidates against our own older keyframes (same machinery, no query)."""
@@ -282,7 +333,7 @@ class Agent:
             return []
         self.stats.candidates += 1
         o = old[best]
-        res = self._verify(o, c.xyz, c.classes)
+        res = self._verify(o, c.xyz, c.classes, c.cloud, c.cloud_labels)
         if res is None:
             return []
         return self._add_closure(self.robot, Closure(o.keyframe, self.robot, c.keyframe, res[0], res[1],
@@ -300,7 +351,7 @@ class Agent:
         pa = np.array([c.own_kf for c in group]) * d
         pb = np.array([c.peer_kf for c in group]) * d
         noise = self.params.pcm_noise()
-        keep = pcm(Z, A, B, pa, pb, noise, min_size=self.params.pcm_min_size)
+        keep = pcm(Z, A, B, pa, pb, noise, min_size=self.params.pcm_min_size, groups=self.params.pcm_groups)
         if peer == self.robot:  # intra-robot: each closure must also agree with odometry alone
             keep &= odometry_consistent(Z, A, B, pa, pb, noise)
         for c, k in zip(group, keep, strict=True):
@@ -345,7 +396,8 @@ class Agent:
             if pending is None or not msg.found or pending[:2] != (msg.robot, msg.keyframe):
                 return []
             peer, peer_kf, own_kf = pending
-            res = self._verify(self.constellations[own_kf], msg.object_centroids, msg.object_classes)
+            res = self._verify(self.constellations[own_kf], msg.object_centroids, msg.object_classes,
+                               msg.points, msg.labels)
             if res is None:
                 return []
             return self._add_closure(peer, Closure(own_kf, peer, peer_kf, res[0], res[1],

@@ -100,8 +100,10 @@ def verify(src_xyz: np.ndarray, src_cls: np.ndarray, dst_xyz: np.ndarray, dst_cl
            eps: float = 0.3, min_inliers: int = 4, min_spread: float = 0.5) -> Verification:
     """Relative pose between two labelled point sets (e.g. object centroids), or a rejection.
 
-    ``eps``: tolerance on pairwise distances (m); ``min_spread``: the inliers' second principal
-    extent (m) must exceed this, so the rotation is not ambiguous about a line.
+    ``eps``: tolerance on pairwise distances (m); after the fit a clique member stays an inlier
+    within ``2 eps`` of its match (object centres from partial views disagree by a few
+    decimetres); ``min_spread``: the inliers' second principal extent (m) must exceed this, so
+    the rotation is not ambiguous about a line.
     """
     src_xyz = np.asarray(src_xyz, dtype=float).reshape(-1, 3)
     dst_xyz = np.asarray(dst_xyz, dtype=float).reshape(-1, 3)
@@ -116,7 +118,59 @@ def verify(src_xyz: np.ndarray, src_cls: np.ndarray, dst_xyz: np.ndarray, dst_cl
     R, t, _ = umeyama(d, s)
     T = make_pose(R, t)
     resid = np.linalg.norm(d @ R.T + t - s, axis=1)
-    inl = clique[resid <= eps]
+    inl = clique[resid <= 2 * eps]
     if len(inl) < min_inliers:
         return Verification(False, T, inl, f"{len(inl)} inliers after the fit < {min_inliers}")
     return Verification(True, T, inl)
+
+
+def voxel_downsample(xyz: np.ndarray, labels: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """One point (the first) per occupied voxel and label."""
+    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    if len(xyz) == 0:
+        return xyz, np.asarray(labels).reshape(-1)
+    keys = np.floor(xyz / voxel).astype(np.int64)
+    _, first = np.unique(np.column_stack([keys, np.asarray(labels).reshape(-1, 1)]), axis=0, return_index=True)
+    first.sort()
+    return xyz[first], np.asarray(labels)[first]
+
+
+def refine_icp(src: np.ndarray, src_cls: np.ndarray, dst: np.ndarray, dst_cls: np.ndarray, T0: np.ndarray,
+               radii: tuple[float, ...] = (0.5, 0.3, 0.2, 0.15, 0.1, 0.1, 0.1), min_overlap: float = 0.3
+               ) -> tuple[np.ndarray, float, float] | None:
+    """Class-consistent point-to-point ICP of ``dst`` onto ``src`` from ``T0``.
+
+    Returns ``(T, overlap, rms)`` (overlap = fraction of ``dst`` points matched at the last,
+    tightest radius), or None when too little overlaps.
+    """
+    from scipy.spatial import cKDTree
+
+    src = np.asarray(src, dtype=float).reshape(-1, 3)
+    dst = np.asarray(dst, dtype=float).reshape(-1, 3)
+    if len(src) < 10 or len(dst) < 10:
+        return None
+    tree = cKDTree(src)
+    T = np.asarray(T0, dtype=float).copy()
+    src_cls = np.asarray(src_cls)
+    dst_cls = np.asarray(dst_cls)
+    ok = np.zeros(len(dst), dtype=bool)
+    d = np.full(len(dst), np.inf)
+    for r in radii:
+        moved = dst @ T[:3, :3].T + T[:3, 3]
+        d, idx = tree.query(moved, distance_upper_bound=r)
+        found = np.isfinite(d)
+        ok = found.copy()
+        ok[found] &= src_cls[idx[found]] == dst_cls[found]
+        if ok.sum() < 10:
+            return None
+        R, t, _ = umeyama(dst[ok], src[idx[ok]])
+        T = make_pose(R, t)
+    moved = dst @ T[:3, :3].T + T[:3, 3]
+    d, idx = tree.query(moved, distance_upper_bound=radii[-1])
+    found = np.isfinite(d)
+    ok = found.copy()
+    ok[found] &= src_cls[idx[found]] == dst_cls[found]
+    overlap = float(ok.mean())
+    if overlap < min_overlap:
+        return None
+    return T, overlap, float(np.sqrt(np.mean(d[ok] ** 2)))

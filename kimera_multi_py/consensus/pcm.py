@@ -83,11 +83,15 @@ def max_consistent_set(r2: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def pcm(Z: np.ndarray, A_i: np.ndarray, B_j: np.ndarray, path_a: np.ndarray, path_b: np.ndarray,
-        noise: PcmNoise | None = None, min_size: int = 1) -> np.ndarray:
-    """Boolean mask of the closures PCM accepts (the maximum pairwise-consistent set).
+        noise: PcmNoise | None = None, min_size: int = 1, groups: int = 1) -> np.ndarray:
+    """Boolean mask of the closures PCM accepts.
 
-    A maximum clique smaller than ``min_size`` accepts nothing: one closure alone cannot be
-    told apart from a perceptual alias.
+    ``groups = 1`` is classic PCM: the maximum pairwise-consistent set. With ``groups > 1`` the
+    next largest disjoint consistent sets are kept too: when odometry drift over long spans
+    makes a true group and an alias group (identical rooms) look equally plausible to one robot
+    pair, the choice is left to the back end's GNC, which sees every robot's closures at once.
+    A clique smaller than ``min_size`` accepts nothing: one closure alone cannot be told apart
+    from a perceptual alias.
     """
     noise = noise or PcmNoise()
     Z = np.asarray(Z, dtype=float).reshape(-1, 4, 4)
@@ -96,7 +100,14 @@ def pcm(Z: np.ndarray, A_i: np.ndarray, B_j: np.ndarray, path_a: np.ndarray, pat
         return mask
     r2 = consistency_errors(Z, np.asarray(A_i, float), np.asarray(B_j, float), np.asarray(path_a, float),
                             np.asarray(path_b, float), noise)
-    best = max_consistent_set(r2, float(chi2.ppf(noise.probability, 6)))
-    if len(best) >= min_size:
+    threshold = float(chi2.ppf(noise.probability, 6))
+    left = np.arange(len(Z))
+    for _ in range(groups):
+        if len(left) == 0:
+            break
+        best = left[max_consistent_set(r2[np.ix_(left, left)], threshold)]
+        if len(best) < min_size:
+            break
         mask[best] = True
+        left = np.setdiff1d(left, best)
     return mask

@@ -12,6 +12,16 @@ from kimera_multi_py.mapping.semantic_octree import SCALE, Leaves, ObservationMo
 from kimera_multi_py.mapping.submaps import Submap, SubmapMap
 
 __all__ = [
-    "SCALE", "Detection", "Landmark", "Leaves", "ObjectMap", "ObservationModel", "ScanCells",
-    "SemanticOctree", "Submap", "SubmapMap", "detect_objects", "scan_cells",
+    "SCALE",
+    "Detection",
+    "Landmark",
+    "Leaves",
+    "ObjectMap",
+    "ObservationModel",
+    "ScanCells",
+    "SemanticOctree",
+    "Submap",
+    "SubmapMap",
+    "detect_objects",
+    "scan_cells",
 ]

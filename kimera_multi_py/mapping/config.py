@@ -14,7 +14,13 @@ from kimera_multi_py.errors import ConfigError
 from kimera_multi_py.mapping.objects import ObjectMap
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.mapping.submaps import SubmapMap
-from kimera_multi_py.semantics import CLASS_IDS, DYNAMIC_CLASSES, NUM_CLASSES, OBJECT_CLASSES
+from kimera_multi_py.semantics import (
+    CLASS_IDS,
+    DYNAMIC_CLASSES,
+    NUM_CLASSES,
+    OBJECT_CLASSES,
+    STRUCTURE_CLASSES,
+)
 
 PosFloat = Annotated[float, Field(gt=0)]
 
@@ -37,8 +43,14 @@ class OctreeConfig(StrictModel):
     h_min: float = -5.0
     h_max: float = 5.0
     top_k: Annotated[int, Field(ge=1)] | None = None
-    dynamic_classes: list[str] = list(DYNAMIC_CLASSES)
-    max_range: float = -1.0
+    dynamic_classes: list[str] = sorted(DYNAMIC_CLASSES)
+    free_margin_voxels: Annotated[float, Field(ge=0)] = 2.0
+    """Free space of a ray stops this many voxels before what it hit (grazing rays would
+    otherwise erode the surface cells they skim; 0 is OctoMap)."""
+    surface_offset_voxels: Annotated[float, Field(ge=0)] = 0.5
+    """A hit is binned this many voxels behind the measured point: the middle of the first
+    voxel-thick slice of matter, so a surface on a voxel boundary lands in the right cell
+    (0 is OctoMap)."""
 
     @field_validator("dynamic_classes")
     @classmethod
@@ -55,9 +67,12 @@ class OctreeConfig(StrictModel):
 class ObjectMapConfig(StrictModel):
     cluster_radius: PosFloat | None = None
     min_points: Annotated[int, Field(ge=1)] = 8
+    min_purity: Annotated[float, Field(ge=0, le=1)] = 0.5
     gate_distance: PosFloat = 0.5
     confirm_after: Annotated[int, Field(ge=1)] = 3
     classes: list[str] = list(OBJECT_CLASSES)
+    fragment_gap: Annotated[float, Field(ge=0)] = 1.0
+    """Largest occluded gap across which two same-class fragments are merged."""
 
     @field_validator("classes")
     @classmethod
@@ -78,9 +93,18 @@ def mapping_config(data: dict[str, Any] | None = None) -> MappingConfig:
 
 
 def _octree_kwargs(cfg: OctreeConfig) -> dict[str, Any]:
-    return {"hit": cfg.hit, "miss": cfg.miss, "psi": cfg.psi, "label_accuracy": cfg.label_accuracy,
-            "h_min": cfg.h_min, "h_max": cfg.h_max, "top_k": cfg.top_k,
-            "dynamic_classes": [CLASS_IDS[n] for n in cfg.dynamic_classes]}
+    return {
+        "hit": cfg.hit,
+        "miss": cfg.miss,
+        "psi": cfg.psi,
+        "label_accuracy": cfg.label_accuracy,
+        "h_min": cfg.h_min,
+        "h_max": cfg.h_max,
+        "top_k": cfg.top_k,
+        "dynamic_classes": [CLASS_IDS[n] for n in cfg.dynamic_classes],
+        "free_margin": cfg.free_margin_voxels * cfg.resolution,
+        "surface_offset": cfg.surface_offset_voxels * cfg.resolution,
+    }
 
 
 def get_octree(cfg: OctreeConfig, num_classes: int = NUM_CLASSES) -> SemanticOctree:
@@ -94,8 +118,12 @@ def get_octree(cfg: OctreeConfig, num_classes: int = NUM_CLASSES) -> SemanticOct
 def get_submap_map(cfg: MappingConfig, num_classes: int = NUM_CLASSES) -> SubmapMap:
     """A :class:`SubmapMap` from the mapping config."""
     try:
-        return SubmapMap(cfg.octree.resolution, num_classes, move_threshold=cfg.move_threshold,
-                         **_octree_kwargs(cfg.octree))
+        return SubmapMap(
+            cfg.octree.resolution,
+            num_classes,
+            move_threshold=cfg.move_threshold,
+            **_octree_kwargs(cfg.octree),
+        )
     except ValueError as exc:
         raise ConfigError("mapping.octree", str(exc)) from None
 
@@ -103,7 +131,14 @@ def get_submap_map(cfg: MappingConfig, num_classes: int = NUM_CLASSES) -> Submap
 def get_object_map(cfg: MappingConfig, num_classes: int = NUM_CLASSES) -> ObjectMap:
     """An :class:`ObjectMap` from the mapping config."""
     o = cfg.objects
-    return ObjectMap(num_classes, [CLASS_IDS[n] for n in o.classes],
-                     resolution=cfg.octree.resolution, cluster_radius=o.cluster_radius,
-                     min_points=o.min_points, gate_distance=o.gate_distance,
-                     confirm_after=o.confirm_after)
+    return ObjectMap(
+        num_classes,
+        [CLASS_IDS[n] for n in o.classes],
+        resolution=cfg.octree.resolution,
+        cluster_radius=o.cluster_radius,
+        min_points=o.min_points,
+        min_purity=o.min_purity,
+        gate_distance=o.gate_distance,
+        confirm_after=o.confirm_after,
+        structure_classes=[CLASS_IDS[n] for n in sorted(STRUCTURE_CLASSES)],
+    )

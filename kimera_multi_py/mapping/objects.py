@@ -1,9 +1,13 @@
 """Object map: per-keyframe detections, Hungarian data association and landmarks (DESIGN §4.2).
 
 Detections
-    Euclidean clusters (single linkage at ``cluster_radius``, about two voxels) of the end
-    points of one keyframe that share an object class; structure and dynamic classes are not
-    objects. Clusters below ``min_points`` are label noise and dropped.
+    Euclidean clusters of the end points of one keyframe that share an object class
+    (structure and dynamic classes are not objects), linked at ``cluster_radius`` (about two
+    voxels) through *core* points, points with ``min_core`` neighbours (DBSCAN's rule), so a
+    few mislabelled points cannot chain two objects together. A cluster needs ``min_points``
+    points and must hold at least ``min_purity`` of all the points in the voxels it covers:
+    label noise on a large, densely sampled surface can form clusters, but it is always a
+    small minority where it lies.
 
 Association
     Detections and landmarks are compatible when the landmark gives the detection's class a
@@ -12,8 +16,10 @@ Association
     centroid far from the table's). The assignment minimises the total centroid distance
     (``scipy.optimize.linear_sum_assignment``). A detection left over that still gates with a
     matched landmark is a second fragment of it and is absorbed; any other starts a tentative
-    landmark, which is confirmed after ``confirm_after`` sightings. Confirmed landmarks of
-    the same class whose boxes overlap strongly are merged.
+    landmark, which is confirmed after ``confirm_after`` sightings. Same-class landmarks are
+    merged when their boxes overlap strongly or one detection spans both, and, on request
+    (:meth:`ObjectMap.merge_fragments`), when the map shows that only unseen or occupied space
+    separates them (an object split by an occluder in every view).
 
 Landmarks
     Each keeps a Dirichlet class posterior, a running centroid of its points, the voxels its
@@ -23,7 +29,6 @@ Landmarks
     that were seen, the union of views is not. Geometry is stored in the reference frame of
     the submap the landmark was created in, so it re-anchors exactly when that submap moves.
 """
-
 from __future__ import annotations
 
 import logging
@@ -87,9 +92,16 @@ def _core_clusters(P: np.ndarray, radius: float, min_core: int) -> np.ndarray:
     return out
 
 
-def detect_objects(points: np.ndarray, labels: np.ndarray, object_classes: Iterable[int],
-                   cluster_radius: float, min_points: int = 8, min_purity: float = 0.5,
-                   purity_voxel: float | None = None, min_core: int = 3) -> list[Detection]:
+def detect_objects(
+    points: np.ndarray,
+    labels: np.ndarray,
+    object_classes: Iterable[int],
+    cluster_radius: float,
+    min_points: int = 8,
+    min_purity: float = 0.5,
+    purity_voxel: float | None = None,
+    min_core: int = 3,
+) -> list[Detection]:
     """Euclidean clusters of same-class points, one detection per cluster of ``min_points``+.
 
     Clustering links points within ``cluster_radius`` through core points (points with
@@ -101,39 +113,49 @@ def detect_objects(points: np.ndarray, labels: np.ndarray, object_classes: Itera
     but it is always a small minority where it lies.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    lab = np.asarray(labels).reshape(-1)
+    lab = np.asarray(labels).reshape(-1).astype(np.int64)
     if len(pts) != len(lab):
         raise ValueError(f"{len(pts)} points but {len(lab)} labels")
     ok = np.all(np.isfinite(pts), axis=1)
+    pts, lab = pts[ok], lab[ok]
+    classes = np.array(sorted({int(x) for x in object_classes}), dtype=np.int64)
+    sel = np.isin(lab, classes)
+    if sel.sum() < min_points:
+        return []
+    P, L = pts[sel], lab[sel]
+    # one clustering for all classes: classes are moved far apart along x
+    comp = _core_clusters(
+        P + (L * 1.0e4)[:, None] * np.array([1.0, 0.0, 0.0]), cluster_radius, min_core
+    )
+    keep = comp >= 0
+    P, L, comp = P[keep], L[keep], comp[keep]
+    if len(P) == 0:
+        return []
+    order = np.argsort(comp, kind="stable")
+    P, L, comp = P[order], L[order], comp[order]
+    sizes = np.bincount(comp)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    mins = np.minimum.reduceat(P, starts, axis=0)
+    maxs = np.maximum.reduceat(P, starts, axis=0)
+    sums = np.add.reduceat(P, starts, axis=0)
+    # purity: the cluster's points over all points in the voxels it occupies
     voxel = cluster_radius / 2 if purity_voxel is None else purity_voxel
-    all_codes = morton.points_to_codes(pts[ok], voxel)
-    vox, vox_count = np.unique(all_codes, return_counts=True)
-    out: list[Detection] = []
-    for c in sorted(set(int(x) for x in object_classes)):
-        P = pts[ok & (lab == c)]
-        if len(P) < min_points:
-            continue
-        comp = _core_clusters(P, cluster_radius, min_core)
-        keep = comp >= 0
-        P, comp = P[keep], comp[keep]
-        if len(P) == 0:
-            continue
-        sizes = np.bincount(comp)
-        order = np.argsort(comp, kind="stable")
-        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-        Ps = P[order]
-        mins = np.minimum.reduceat(Ps, starts, axis=0)
-        maxs = np.maximum.reduceat(Ps, starts, axis=0)
-        sums = np.add.reduceat(Ps, starts, axis=0)
-        codes = morton.points_to_codes(Ps, voxel)
-        for k in np.flatnonzero(sizes >= min_points):
-            members = Ps[starts[k]: starts[k] + sizes[k]]
-            mine = np.unique(codes[starts[k]: starts[k] + sizes[k]])
-            total = vox_count[np.searchsorted(vox, mine)].sum()
-            if sizes[k] < min_purity * total:
-                continue
-            out.append(Detection(c, members, sums[k] / sizes[k], mins[k], maxs[k]))
-    return out
+    vox, vox_count = np.unique(morton.points_to_codes(pts, voxel), return_counts=True)
+    cells = np.unique(np.stack([comp, morton.points_to_codes(P, voxel)], axis=1), axis=0)
+    total = np.bincount(
+        cells[:, 0], weights=vox_count[np.searchsorted(vox, cells[:, 1])], minlength=len(sizes)
+    )
+    good = (sizes >= min_points) & (sizes >= min_purity * total)
+    return [
+        Detection(
+            int(L[starts[k]]),
+            P[starts[k] : starts[k] + sizes[k]],
+            sums[k] / sizes[k],
+            mins[k],
+            maxs[k],
+        )
+        for k in np.flatnonzero(good)
+    ]
 
 
 @dataclass
@@ -154,10 +176,17 @@ class Landmark:
     T_world_ref: np.ndarray = field(default_factory=lambda: np.eye(4))
     resolution: float = 0.1
     min_voxel_hits: int = 2
+    _cache: dict[str, object] = field(default_factory=dict, repr=False, compare=False)
+
+    def invalidate(self) -> None:
+        """Forget cached derived values after the landmark changed or moved."""
+        self._cache.clear()
 
     @property
     def label(self) -> int:
-        return int(np.argmax(self.class_counts))
+        if "label" not in self._cache:
+            self._cache["label"] = int(np.argmax(self.class_counts))
+        return self._cache["label"]  # type: ignore[return-value]
 
     @property
     def posterior(self) -> np.ndarray:
@@ -171,10 +200,12 @@ class Landmark:
 
     def box_ref(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned box (reference frame) over the centres of well-supported voxels."""
-        keep = self.voxel_hits >= self.min_voxel_hits
-        codes = self.voxels[keep] if keep.any() else self.voxels
-        c = morton.node_centers(codes, np.zeros(len(codes), np.int8), self.resolution)
-        return c.min(0), c.max(0)
+        if "box_ref" not in self._cache:
+            keep = self.voxel_hits >= self.min_voxel_hits
+            codes = self.voxels[keep] if keep.any() else self.voxels
+            c = morton.node_centers(codes, np.zeros(len(codes), np.int8), self.resolution)
+            self._cache["box_ref"] = (c.min(0), c.max(0))
+        return self._cache["box_ref"]  # type: ignore[return-value]
 
     @property
     def position(self) -> np.ndarray:
@@ -190,20 +221,35 @@ class Landmark:
 
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
         """World axis-aligned bounds of the oriented box."""
-        center, size, R = self.box()
-        ext = np.abs(R) @ (size / 2)
-        return center - ext, center + ext
+        if "aabb" not in self._cache:
+            center, size, R = self.box()
+            ext = np.abs(R) @ (size / 2)
+            self._cache["aabb"] = (center - ext, center + ext)
+        return self._cache["aabb"]  # type: ignore[return-value]
 
 
 class ObjectMap:
     """Object landmarks built from per-keyframe detections (see module docstring)."""
 
-    def __init__(self, num_classes: int, object_classes: Iterable[int], *, resolution: float = 0.1,
-                 cluster_radius: float | None = None, min_points: int = 8,
-                 gate_distance: float = 0.5, box_margin: float = 0.1, min_class_prob: float = 0.3,
-                 confirm_after: int = 3, min_voxel_hits: int = 2, merge_iou: float = 0.3,
-                 class_prior: float = 0.5, min_purity: float = 0.5, min_core: int = 3,
-                 structure_classes: Iterable[int] = ()) -> None:
+    def __init__(
+        self,
+        num_classes: int,
+        object_classes: Iterable[int],
+        *,
+        resolution: float = 0.1,
+        cluster_radius: float | None = None,
+        min_points: int = 8,
+        gate_distance: float = 0.5,
+        box_margin: float = 0.1,
+        min_class_prob: float = 0.3,
+        confirm_after: int = 3,
+        min_voxel_hits: int = 2,
+        merge_iou: float = 0.3,
+        class_prior: float = 0.5,
+        min_purity: float = 0.5,
+        min_core: int = 3,
+        structure_classes: Iterable[int] = (),
+    ) -> None:
         self.num_classes = int(num_classes)
         self.object_classes = tuple(sorted({int(c) for c in object_classes}))
         if any(c < 1 or c > self.num_classes for c in self.object_classes):
@@ -211,11 +257,15 @@ class ObjectMap:
         if not resolution > 0:
             raise ValueError(f"resolution must be positive, got {resolution}")
         self.resolution = float(resolution)
-        self.cluster_radius = 2.0 * self.resolution if cluster_radius is None else float(cluster_radius)
+        self.cluster_radius = (
+            2.0 * self.resolution if cluster_radius is None else float(cluster_radius)
+        )
         self.min_points = int(min_points)
         self.min_purity = float(min_purity)
         self.min_core = int(min_core)
-        self.structure_classes = np.array(sorted({int(c) for c in structure_classes}), dtype=np.int64)
+        self.structure_classes = np.array(
+            sorted({int(c) for c in structure_classes}), dtype=np.int64
+        )
         self.gate_distance = float(gate_distance)
         self.box_margin = float(box_margin)
         self.min_class_prob = float(min_class_prob)
@@ -242,6 +292,7 @@ class ObjectMap:
         for lm in self.landmarks.values():
             if lm.submap == submap_id:
                 lm.T_world_ref = C.copy()
+                lm.invalidate()
 
     def _correction(self, submap_id: int) -> np.ndarray:
         if submap_id not in self._submap_ref:
@@ -249,18 +300,27 @@ class ObjectMap:
         return self._submap_pose[submap_id] @ inverse(self._submap_ref[submap_id])
 
     # ---- update ----------------------------------------------------------------------------
-    def update(self, points: np.ndarray, labels: np.ndarray, submap_id: int = 0,
-               stamp: int | None = None) -> list[int]:
+    def update(
+        self, points: np.ndarray, labels: np.ndarray, submap_id: int = 0, stamp: int | None = None
+    ) -> list[int]:
         """Detect objects in one keyframe (world-frame end points) and fold them into the map.
 
         Returns the ids of the landmarks the detections were associated with (new ones too).
         """
-        dets = detect_objects(points, labels, self.object_classes, self.cluster_radius,
-                              self.min_points, self.min_purity, min_core=self.min_core)
+        dets = detect_objects(
+            points,
+            labels,
+            self.object_classes,
+            self.cluster_radius,
+            self.min_points,
+            self.min_purity,
+            min_core=self.min_core,
+        )
         return self.observe(dets, submap_id, stamp)
 
-    def observe(self, detections: list[Detection], submap_id: int = 0,
-                stamp: int | None = None) -> list[int]:
+    def observe(
+        self, detections: list[Detection], submap_id: int = 0, stamp: int | None = None
+    ) -> list[int]:
         """Associate detections with landmarks (Hungarian) and update or create landmarks."""
         self._frame = self._frame + 1 if stamp is None else int(stamp)
         if not detections:
@@ -339,10 +399,22 @@ class ObjectMap:
         vox = self._voxelise(pts)
         counts = self._prior.copy()
         counts[det.label] += 1.0
-        lm = Landmark(lid, submap_id, counts, pts.sum(0), len(pts), vox,
-                      np.ones(len(vox), dtype=np.int32), 1, self._frame, self._frame,
-                      self.confirm_after <= 1, self._correction(submap_id), self.resolution,
-                      self.min_voxel_hits)
+        lm = Landmark(
+            lid,
+            submap_id,
+            counts,
+            pts.sum(0),
+            len(pts),
+            vox,
+            np.ones(len(vox), dtype=np.int32),
+            1,
+            self._frame,
+            self._frame,
+            self.confirm_after <= 1,
+            self._correction(submap_id),
+            self.resolution,
+            self.min_voxel_hits,
+        )
         self.landmarks[lid] = lm
         return lid
 
@@ -352,13 +424,15 @@ class ObjectMap:
         lm.class_counts[det.label] += 1.0
         lm.point_sum = lm.point_sum + pts.sum(0)
         lm.num_points += len(pts)
-        lm.voxels, lm.voxel_hits = _merge_counts(lm.voxels, lm.voxel_hits, vox,
-                                                 np.ones(len(vox), dtype=np.int32))
+        lm.voxels, lm.voxel_hits = _merge_counts(
+            lm.voxels, lm.voxel_hits, vox, np.ones(len(vox), dtype=np.int32)
+        )
         if lm.last_seen != self._frame:
             lm.num_observations += 1
         lm.last_seen = self._frame
         if lm.num_observations >= self.confirm_after:
             lm.confirmed = True
+        lm.invalidate()
 
     def _merge_bridged(self, lid: int, det: Detection) -> None:
         """Merge into ``lid`` the same-class landmarks lying mostly inside this detection's box.
@@ -384,7 +458,9 @@ class ObjectMap:
         if len(ids) < 2:
             return
         lo, hi, labels = self._boxes(ids)
-        inter = np.clip(np.minimum(hi[:, None], hi[None]) - np.maximum(lo[:, None], lo[None]), 0, None)
+        inter = np.clip(
+            np.minimum(hi[:, None], hi[None]) - np.maximum(lo[:, None], lo[None]), 0, None
+        )
         vi = inter.prod(axis=2)
         vol = (hi - lo).prod(axis=1)
         iou = vi / np.maximum(vol[:, None] + vol[None] - vi, 1e-12)
@@ -400,8 +476,11 @@ class ObjectMap:
 
     def _boxes(self, ids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         boxes = [self.landmarks[i].aabb() for i in ids]
-        return (np.array([b[0] for b in boxes]), np.array([b[1] for b in boxes]),
-                np.array([self.landmarks[i].label for i in ids]))
+        return (
+            np.array([b[0] for b in boxes]),
+            np.array([b[1] for b in boxes]),
+            np.array([self.landmarks[i].label for i in ids]),
+        )
 
     def merge_fragments(self, octree: SemanticOctree, max_gap: float = 1.0) -> int:
         """Merge same-class landmarks that are fragments of one object hidden by an occluder.
@@ -431,8 +510,9 @@ class ObjectMap:
                     break
         return merged
 
-    def _hidden_between(self, a: Landmark, b: Landmark, octree: SemanticOctree,
-                        max_gap: float, pairs: int = 8) -> bool:
+    def _hidden_between(
+        self, a: Landmark, b: Landmark, octree: SemanticOctree, max_gap: float, pairs: int = 8
+    ) -> bool:
         """Is some straight gap between two landmarks entirely unseen or filled by objects?
 
         The ``pairs`` closest voxel pairs are tried; a gap qualifies when none of its cells is
@@ -460,8 +540,9 @@ class ObjectMap:
         keep.point_sum = keep.point_sum + centroid_ref * other.num_points
         keep.num_points += other.num_points
         keep.class_counts = keep.class_counts + other.class_counts - self._prior
-        centers = morton.node_centers(other.voxels, np.zeros(len(other.voxels), np.int8),
-                                      self.resolution)
+        centers = morton.node_centers(
+            other.voxels, np.zeros(len(other.voxels), np.int8), self.resolution
+        )
         moved = transform_points(inverse(keep.T_world_ref) @ other.T_world_ref, centers)
         codes = morton.points_to_codes(moved, self.resolution)
         ok = codes >= 0
@@ -473,20 +554,23 @@ class ObjectMap:
         keep.num_observations += other.num_observations
         keep.first_seen = min(keep.first_seen, other.first_seen)
         keep.last_seen = max(keep.last_seen, other.last_seen)
-        keep.confirmed = keep.confirmed or other.confirmed or (
-            keep.num_observations >= self.confirm_after)
+        keep.confirmed = (
+            keep.confirmed or other.confirmed or (keep.num_observations >= self.confirm_after)
+        )
+        keep.invalidate()
 
 
 def _world_voxel_centers(lm: Landmark) -> np.ndarray:
-    """World centres of a landmark's well-supported voxels."""
+    """World centres of a landmark's well-supported voxels (all voxels if none is yet)."""
     keep = lm.voxel_hits >= lm.min_voxel_hits
-    codes = lm.voxels[keep]
+    codes = lm.voxels[keep] if keep.any() else lm.voxels
     c = morton.node_centers(codes, np.zeros(len(codes), np.int8), lm.resolution)
     return transform_points(lm.T_world_ref, c)
 
 
-def _merge_counts(a: np.ndarray, ac: np.ndarray, b: np.ndarray,
-                  bc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _merge_counts(
+    a: np.ndarray, ac: np.ndarray, b: np.ndarray, bc: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Union of two sorted code sets with summed counts."""
     codes = np.concatenate([a, b])
     counts = np.concatenate([ac, bc]).astype(np.int32)

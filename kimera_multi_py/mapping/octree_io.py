@@ -32,7 +32,12 @@ import numpy as np
 
 from kimera_multi_py.errors import MapError
 from kimera_multi_py.mapping import morton
-from kimera_multi_py.mapping.semantic_octree import PRUNE_MAX_LEVEL, SCALE, SemanticOctree, occupied_mask
+from kimera_multi_py.mapping.semantic_octree import (
+    PRUNE_MAX_LEVEL,
+    SCALE,
+    SemanticOctree,
+    occupied_mask,
+)
 
 log = logging.getLogger(__name__)
 
@@ -58,9 +63,16 @@ def octree_to_bytes(tree: SemanticOctree) -> bytes:
     hbytes = json.dumps(header, sort_keys=True).encode("utf-8")
     codes = tree.codes
     deltas = np.diff(codes, prepend=np.int64(0)).astype("<i8")
-    raw = deltas.tobytes() + tree.levels.astype("<i1").tobytes() + tree.values.astype("<i2").tobytes()
+    raw = (
+        deltas.tobytes() + tree.levels.astype("<i1").tobytes() + tree.values.astype("<i2").tobytes()
+    )
     payload = zlib.compress(raw, 6)
-    body = _PREFIX.pack(MAGIC, FORMAT_VERSION, len(hbytes)) + hbytes + _U64.pack(len(payload)) + payload
+    body = (
+        _PREFIX.pack(MAGIC, FORMAT_VERSION, len(hbytes))
+        + hbytes
+        + _U64.pack(len(payload))
+        + payload
+    )
     return body + _U32.pack(zlib.crc32(body))
 
 
@@ -90,7 +102,9 @@ def octree_from_bytes(data: bytes, source: str = "<bytes>") -> SemanticOctree:
     if magic != MAGIC:
         raise MapError(f"{source}: not a kimera-multi-py octree file")
     if version != FORMAT_VERSION:
-        raise MapError(f"{source}: unsupported format version {version} (expected {FORMAT_VERSION})")
+        raise MapError(
+            f"{source}: unsupported format version {version} (expected {FORMAT_VERSION})"
+        )
     (crc,) = _U32.unpack_from(data, len(data) - _U32.size)
     if zlib.crc32(data[: -_U32.size]) != crc:
         raise MapError(f"{source}: checksum mismatch (corrupt or truncated file)")
@@ -98,7 +112,7 @@ def octree_from_bytes(data: bytes, source: str = "<bytes>") -> SemanticOctree:
     if off + hlen + _U64.size > len(data) - _U32.size:
         raise MapError(f"{source}: truncated header")
     try:
-        header = json.loads(data[off: off + hlen].decode("utf-8"))
+        header = json.loads(data[off : off + hlen].decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise MapError(f"{source}: bad header ({exc})") from None
     if not isinstance(header, dict):
@@ -115,7 +129,7 @@ def octree_from_bytes(data: bytes, source: str = "<bytes>") -> SemanticOctree:
     k1 = tree.num_classes + 1
     expected = n * (8 + 1 + 2 * k1)
     try:
-        raw = zlib.decompress(data[off: off + plen])
+        raw = zlib.decompress(data[off : off + plen])
     except zlib.error as exc:
         raise MapError(f"{source}: payload does not decompress ({exc})") from None
     if len(raw) != expected:
@@ -124,7 +138,7 @@ def octree_from_bytes(data: bytes, source: str = "<bytes>") -> SemanticOctree:
     levels = np.frombuffer(raw, dtype="<i1", count=n, offset=8 * n).astype(np.int8)
     values = np.frombuffer(raw, dtype="<i2", offset=9 * n).reshape(n, k1).astype(np.int16)
     _check_structure(tree, codes, levels, values, source)
-    tree._codes, tree._levels, tree._values = codes, levels, values
+    tree._set_arrays(codes, levels, values)
     return tree
 
 
@@ -149,8 +163,9 @@ def _tree_from_header(header: dict[str, Any], source: str) -> SemanticOctree:
         raise MapError(f"{source}: bad parameters ({exc})") from None
 
 
-def _check_structure(tree: SemanticOctree, codes: np.ndarray, levels: np.ndarray,
-                     values: np.ndarray, source: str) -> None:
+def _check_structure(
+    tree: SemanticOctree, codes: np.ndarray, levels: np.ndarray, values: np.ndarray, source: str
+) -> None:
     n = len(codes)
     if n == 0:
         return
@@ -189,9 +204,19 @@ def export_ply(tree: SemanticOctree, path: str | Path) -> int:
     leaves = tree.leaves()
     labels = np.argmax(tree.values[occ], axis=1)
     colors = class_colors(tree.num_classes)[labels]
-    vertex = np.zeros(int(occ.sum()), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                             ("red", "u1"), ("green", "u1"), ("blue", "u1"),
-                                             ("label", "<u2"), ("size", "<f4")])
+    vertex = np.zeros(
+        int(occ.sum()),
+        dtype=[
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("red", "u1"),
+            ("green", "u1"),
+            ("blue", "u1"),
+            ("label", "<u2"),
+            ("size", "<f4"),
+        ],
+    )
     for i, axis in enumerate("xyz"):
         vertex[axis] = leaves.centers[occ, i]
     vertex["red"], vertex["green"], vertex["blue"] = colors[:, 0], colors[:, 1], colors[:, 2]
@@ -212,8 +237,10 @@ def bt_bytes(tree: SemanticOctree) -> tuple[bytes, int]:
     """The ``.bt`` file content and its node count (OctoMap's ``size()``)."""
     inner = tree._inner_nodes()
     size = tree.num_leaves + sum(len(v) for v in inner.values())
-    head = (f"{BT_HEADER}\n# (feel free to add / change comments, but leave the first line as it is!)"
-            f"\n#\nid OcTree\nsize {size}\nres {tree.resolution!r}\ndata\n").encode("ascii")
+    head = (
+        f"{BT_HEADER}\n# (feel free to add / change comments, but leave the first line as it is!)"
+        f"\n#\nid OcTree\nsize {size}\nres {tree.resolution!r}\ndata\n"
+    ).encode("ascii")
     if size == 0:
         return head, 0
     codes, levels = tree.codes, tree.levels.astype(np.int64)

@@ -6,7 +6,9 @@ every ray and axis, all the face crossings at once (``np.repeat`` + a cumulative
 read the voxel entered at each crossing: the crossing axis steps by one, the other two axes
 are ``floor`` of the ray at the crossing parameter. The set of traversed voxels is the start
 voxel plus one voxel per crossing; no sort by ray parameter is needed because a scan update
-only needs the *set* of cells (each cell is updated once per scan, as in OctoMap).
+only needs the *set* of cells (each cell is updated once per scan, as in OctoMap). The
+crossings of all rays are generated together, in slices of about 64k crossings so that the
+temporaries stay in cache; arithmetic is float32 on per-ray arithmetic progressions.
 
 De-duplication uses a dense bitmap over the scan's bounding box (linear time, no sort) and
 falls back to ``np.unique`` when that box is too large. Rules of one scan:
@@ -16,6 +18,13 @@ falls back to ``np.unique`` when that box is too large. Rules of one scan:
 - rays whose label is dynamic (or 0, "no return") update free space only;
 - free voxels are the traversed voxels minus every ray's end voxel (occupied wins over free,
   and the end voxel of a free-only ray is left untouched).
+
+Two optional sensor-model terms (both 0 reproduce OctoMap): ``free_margin`` stops the free
+space of a ray that hit something that far before the hit, so rays grazing a surface do not
+erode the surface cells they skim near their end; ``surface_offset`` bins a hit that far
+behind the measured point, into the matter behind the surface, so that a surface lying on a
+voxel boundary lands in the cell that holds the object rather than, half of the time, in the
+free cell in front of it.
 """
 
 from __future__ import annotations
@@ -45,10 +54,18 @@ class ScanCells:
 
 
 def _mark_axis_crossings(
-    grid: np.ndarray | None, sink: list[np.ndarray], a: int, n_a: np.ndarray, frac: np.ndarray,
-    delta: np.ndarray, lo: np.ndarray, strides: np.ndarray,
+    grid: np.ndarray | None,
+    sink: list[np.ndarray],
+    a: int,
+    n_a: np.ndarray,
+    frac: np.ndarray,
+    delta: np.ndarray,
+    lo: np.ndarray,
+    strides: np.ndarray,
 ) -> None:
     """Mark the voxel entered at every face crossing of axis ``a``, all rays at once.
+
+    ``delta`` is ``(3, n)``: each ray's extent in voxels, one contiguous row per axis.
 
     Linear box indices are set in the bitmap ``grid``, or appended to ``sink`` when the box is
     too large for a bitmap.
@@ -64,14 +81,14 @@ def _mark_axis_crossings(
     if len(rays) == 0:
         return
     counts = n_a[rays]
-    d_a = delta[rays, a]
+    d_a, d_b, d_c = delta[a][rays], delta[b][rays], delta[c][rays]
     inv = 1.0 / np.abs(d_a)
     t0 = ((d_a > 0) - frac[a]) / d_a  # parameter of the first crossing
     step = np.where(d_a > 0, 1, -1)
-    B0 = (frac[b] + 1 - lo[b] + delta[rays, b] * t0).astype(np.float32)
-    B1 = (delta[rays, b] * inv).astype(np.float32)
-    C0 = (frac[c] + 1 - lo[c] + delta[rays, c] * t0).astype(np.float32)
-    C1 = (delta[rays, c] * inv).astype(np.float32)
+    B0 = (frac[b] + 1 - lo[b] + d_b * t0).astype(np.float32)
+    B1 = (d_b * inv).astype(np.float32)
+    C0 = (frac[c] + 1 - lo[c] + d_c * t0).astype(np.float32)
+    C1 = (d_c * inv).astype(np.float32)
     itype = np.int32 if grid is not None else np.int64
     A0 = ((step + 1 - lo[a]) * strides[a]).astype(itype)
     A1 = (step * strides[a]).astype(itype)
@@ -144,48 +161,55 @@ def scan_cells(
     if n == 0:
         return ScanCells(empty, empty, np.zeros((0, num_classes + 1), np.int32), 0)
 
-    # end points, cut at max range; which rays mark their end voxel occupied
-    d = pts - o
+    # per-axis rows (3, n): numpy is slow on (n, 3) element-wise work
+    d = np.ascontiguousarray(pts.T) - o[:, None]
     returned = lab > 0  # something was hit (static or dynamic)
     hit = returned.copy()
     if dynamic_labels:
         hit &= ~np.isin(lab, np.asarray(dynamic_labels, dtype=np.int64))
-    dist = np.sqrt(np.einsum("ij,ij->i", d, d))
-    if max_range > 0:
+    dist = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    if max_range > 0:  # rays cut at max range clear space only
         far = dist > max_range
         if far.any():
-            d[far] *= (max_range / dist[far])[:, None]
+            d[:, far] *= max_range / dist[far]
             dist[far] = max_range
             hit &= ~far
             returned &= ~far
-    occ_d = d[hit]
+    occ_d = d[:, hit]
     if surface_offset > 0:  # bin hits a little behind the measured surface
-        occ_d = occ_d * (1.0 + surface_offset / np.maximum(dist[hit], 1e-12))[:, None]
+        occ_d = occ_d * (1.0 + surface_offset / np.maximum(dist[hit], 1e-12))
     free_d = d
     if free_margin > 0 and returned.any():  # free space stops short of a return
         keep = np.maximum(dist - free_margin, 0.0) / np.maximum(dist, 1e-12)
-        free_d = d * np.where(returned, keep, 1.0)[:, None]
+        free_d = d * np.where(returned, keep, 1.0)
 
     # voxel coordinates relative to the origin's voxel
     u0 = o / resolution
     start = np.floor(u0)
     frac = u0 - start
     delta = free_d / resolution
-    trav_rel = np.floor(frac + delta).astype(np.int64)
-    end_rel = np.floor(frac + d / resolution).astype(np.int64)
-    occ_rel = np.floor(frac + occ_d / resolution).astype(np.int64)
+    f = frac[:, None]
+    trav_rel = np.floor(f + delta).astype(np.int64)
+    end_rel = np.floor(f + d / resolution).astype(np.int64)
+    occ_rel = np.floor(f + occ_d / resolution).astype(np.int64)
     start_key = start.astype(np.int64) + morton.KEY_OFFSET
-    lo = np.minimum(np.minimum(end_rel.min(0), trav_rel.min(0)), 0)
-    hi = np.maximum(np.maximum(end_rel.max(0), trav_rel.max(0)), 0)
-    if len(occ_rel):
-        lo, hi = np.minimum(lo, occ_rel.min(0)), np.maximum(hi, occ_rel.max(0))
+    lo = np.zeros(3, dtype=np.int64)
+    hi = np.zeros(3, dtype=np.int64)
+    for rel in (trav_rel, end_rel, occ_rel):
+        if rel.shape[1]:
+            lo, hi = np.minimum(lo, rel.min(axis=1)), np.maximum(hi, rel.max(axis=1))
     if (start_key + lo).min() < 0 or (start_key + hi).max() > morton.KEY_MAX:
         raise ValueError("scan reaches outside the octree's addressable extent")
     dims = hi - lo + 3  # one voxel of margin on each side
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
     volume = int(dims.prod())
-    end_lin = (end_rel + (1 - lo)) @ strides
-    hit_lin = (occ_rel + (1 - lo)) @ strides
+    shift = (1 - lo) @ strides
+
+    def linear(rel: np.ndarray) -> np.ndarray:
+        return rel[0] * strides[0] + rel[1] * strides[1] + rel[2] + shift
+
+    end_lin = linear(end_rel)
+    hit_lin = linear(occ_rel)
     n_axis = np.abs(trav_rel)
 
     # traverse: mark every voxel entered, then drop all end voxels
@@ -193,8 +217,7 @@ def scan_cells(
     sink: list[np.ndarray] = [np.array([origin_lin], dtype=np.int64)]
     grid = np.zeros(volume, dtype=np.bool_) if volume <= _DENSE_LIMIT else None
     for a in range(3):
-        _mark_axis_crossings(grid, sink, a, np.ascontiguousarray(n_axis[:, a]), frac, delta, lo,
-                             strides)
+        _mark_axis_crossings(grid, sink, a, n_axis[a], frac, delta, lo, strides)
     if grid is not None:
         grid[origin_lin] = True
         grid[end_lin] = False
@@ -216,14 +239,16 @@ def scan_cells(
     base = start_key + lo - 1
     free = _lin_to_codes(free_lin, dims, base)
     occ = _lin_to_codes(occ_lin, dims, base)
-    fo = np.argsort(free, kind="stable")
-    oo = np.argsort(occ, kind="stable")
-    return ScanCells(free[fo], occ[oo], counts[oo], n)
+    oo = np.argsort(occ)  # codes are unique: no need for a stable sort
+    return ScanCells(np.sort(free), occ[oo], counts[oo], n)
 
 
 def _lin_to_codes(lin: np.ndarray, dims: np.ndarray, base: np.ndarray) -> np.ndarray:
     """Morton codes of linear indices into a box of ``dims`` voxels whose first key is ``base``."""
     ix, rem = np.divmod(lin, dims[1] * dims[2])
     iy, iz = np.divmod(rem, dims[2])
-    return (morton.spread(ix + base[0]) | (morton.spread(iy + base[1]) << 1)
-            | (morton.spread(iz + base[2]) << 2))
+    return (
+        morton.spread(ix + base[0])
+        | (morton.spread(iy + base[1]) << 1)
+        | (morton.spread(iz + base[2]) << 2)
+    )

@@ -22,7 +22,7 @@ import numpy as np
 
 from kimera_multi_py.geometry import inverse, transform_points
 from kimera_multi_py.mapping import morton
-from kimera_multi_py.mapping.semantic_octree import SemanticOctree
+from kimera_multi_py.mapping.semantic_octree import _BLOCK_SHIFT, SemanticOctree
 
 log = logging.getLogger(__name__)
 
@@ -65,17 +65,22 @@ class SubmapMap:
     submap must move before :meth:`move_submap` re-integrates it.
     """
 
-    def __init__(self, resolution: float, num_classes: int, *, move_threshold: float | None = None,
-                 **octree_kwargs: object) -> None:
+    def __init__(
+        self,
+        resolution: float,
+        num_classes: int,
+        *,
+        move_threshold: float | None = None,
+        **octree_kwargs: object,
+    ) -> None:
         self.octree = SemanticOctree(resolution, num_classes, **octree_kwargs)  # type: ignore[arg-type]
         self.resolution = self.octree.resolution
         self.num_classes = self.octree.num_classes
-        self.move_threshold = 0.5 * self.resolution if move_threshold is None else float(move_threshold)
+        self.move_threshold = (
+            0.5 * self.resolution if move_threshold is None else float(move_threshold)
+        )
         self.submaps: dict[int, Submap] = {}
-        k1 = self.num_classes + 1
-        self._codes = np.zeros(0, dtype=np.int64)  # fused evidence, sorted world codes
-        self._evidence = np.zeros((0, k1), dtype=np.int32)
-        self._support = np.zeros(0, dtype=np.int32)
+        self._fused = _CellStore(self.num_classes + 1)  # sum of the submaps' world contributions
         m = self.octree.model
         self._span = m.hi - m.lo  # a submap's evidence per cell stays within +-span
 
@@ -85,13 +90,20 @@ class SubmapMap:
         if submap_id in self.submaps:
             raise KeyError(f"submap {submap_id} already exists")
         T = np.asarray(pose, dtype=np.float64).copy()
-        s = Submap(int(submap_id), T.copy(), T,
-                   rows=np.zeros((0, self.num_classes + 1), dtype=np.int32))
+        s = Submap(
+            int(submap_id), T.copy(), T, rows=np.zeros((0, self.num_classes + 1), dtype=np.int32)
+        )
         self.submaps[s.id] = s
         return s
 
-    def integrate(self, submap_id: int, T_submap_sensor: np.ndarray, points_sensor: np.ndarray,
-                  labels: np.ndarray, max_range: float = -1.0) -> int:
+    def integrate(
+        self,
+        submap_id: int,
+        T_submap_sensor: np.ndarray,
+        points_sensor: np.ndarray,
+        labels: np.ndarray,
+        max_range: float = -1.0,
+    ) -> int:
         """Add one scan (sensor-frame end points) taken at ``T_submap_sensor`` in the submap.
 
         The scan is ray-cast on the submap's reference grid, its updates are added to the
@@ -172,8 +184,9 @@ class SubmapMap:
         keys = morton.decode(s.codes)
         lo = (keys.min(0) - morton.KEY_OFFSET) * self.resolution
         hi = (keys.max(0) + 1 - morton.KEY_OFFSET) * self.resolution
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                            for z in (lo[2], hi[2])])
+        corners = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
         C_old = s.correction
         C_new = new_pose @ inverse(s.T_ref)
         d = transform_points(C_new, corners) - transform_points(C_old, corners)
@@ -194,33 +207,89 @@ class SubmapMap:
         uniq, summed, _ = _group_sum(codes, rows.astype(np.int32))
         sup = np.zeros(len(uniq), dtype=np.int32)
         np.add.at(sup, np.searchsorted(uniq, codes), support)
-        pos = np.searchsorted(self._codes, uniq)
-        known = pos < len(self._codes)
-        known[known] = self._codes[pos[known]] == uniq[known]
-        kp = pos[known]
-        self._evidence[kp] += summed[known]
-        self._support[kp] += sup[known]
-        new = ~known
-        if new.any():
-            at = pos[new]
-            self._codes = np.insert(self._codes, at, uniq[new])
-            self._evidence = np.insert(self._evidence, at, summed[new], axis=0)
-            self._support = np.insert(self._support, at, sup[new])
-        # refresh the octree at the touched cells
-        idx = np.searchsorted(self._codes, uniq)
-        alive = self._support[idx] > 0
-        if (~alive).any():
-            self.octree.remove_cells(uniq[~alive])
-            drop = idx[~alive]
-            keep = np.ones(len(self._codes), dtype=np.bool_)
-            keep[drop] = False
-            self._codes, self._evidence = self._codes[keep], self._evidence[keep]
-            self._support = self._support[keep]
-            idx = np.searchsorted(self._codes, uniq[alive])
-        live_codes = uniq[alive]
-        if len(live_codes):
+        live, live_rows, dead = self._fused.add(uniq, summed, sup)
+        self.octree.remove_cells(dead)
+        if len(live):
             m = self.octree.model
-            vals = self._evidence[idx] + m.prior_row.astype(np.int32)
+            vals = live_rows + m.prior_row.astype(np.int32)
             np.clip(vals, m.lo, m.hi, out=vals)
             vals[:, 0] = 0
-            self.octree.set_cells(live_codes, vals.astype(np.int16))
+            self.octree.set_cells(live, vals.astype(np.int16))
+
+    def evidence(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The fused evidence: sorted world codes, int32 rows and support counts."""
+        return self._fused.arrays()
+
+
+class _CellStore:
+    """Sparse int32 rows with support counts per finest-level code, kept per octree block.
+
+    Like the octree's leaves, cells are grouped by their level-``BLOCK_LEVEL`` ancestor so
+    that an update only moves the memory of the blocks it touches.
+    """
+
+    def __init__(self, k1: int) -> None:
+        self.k1 = k1
+        self.blocks: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def add(
+        self, codes: np.ndarray, rows: np.ndarray, support: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Add at sorted unique codes; returns touched live codes, their rows, and dead codes."""
+        bids = codes >> _BLOCK_SHIFT
+        cuts = np.flatnonzero(bids[1:] != bids[:-1]) + 1
+        bounds = [0, *cuts.tolist(), len(codes)]
+        live, live_rows, dead = [], [], []
+        for s, e in zip(bounds[:-1], bounds[1:], strict=True):
+            bid = int(bids[s])
+            c, r, n = self.blocks.get(bid, _empty(self.k1))
+            q, qr, qn = codes[s:e], rows[s:e], support[s:e]
+            pos = np.searchsorted(c, q)
+            known = pos < len(c)
+            known[known] = c[pos[known]] == q[known]
+            kp = pos[known]
+            r[kp] += qr[known]
+            n[kp] += qn[known]
+            new = ~known
+            if new.any():
+                at = pos[new]
+                c = np.insert(c, at, q[new])
+                r = np.insert(r, at, qr[new], axis=0)
+                n = np.insert(n, at, qn[new])
+            idx = np.searchsorted(c, q)
+            alive = n[idx] > 0
+            live.append(q[alive])
+            live_rows.append(r.take(idx[alive], axis=0))
+            if not alive.all():
+                dead.append(q[~alive])
+                keep = np.ones(len(c), dtype=np.bool_)
+                keep[idx[~alive]] = False
+                c, r, n = c[keep], r[keep], n[keep]
+            if len(c):
+                self.blocks[bid] = (c, r, n)
+            else:
+                self.blocks.pop(bid, None)
+        cat = np.concatenate
+        empty = np.zeros(0, dtype=np.int64)
+        return (
+            cat(live) if live else empty,
+            cat(live_rows) if live_rows else np.zeros((0, self.k1), np.int32),
+            cat(dead) if dead else empty,
+        )
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        keys = sorted(self.blocks)
+        if not keys:
+            return _empty(self.k1)
+        return tuple(np.concatenate([self.blocks[k][i] for k in keys]) for i in range(3))  # type: ignore[return-value]
+
+    def __len__(self) -> int:
+        return sum(len(b[0]) for b in self.blocks.values())
+
+
+def _empty(k1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return (
+        np.zeros(0, dtype=np.int64),
+        np.zeros((0, k1), dtype=np.int32),
+        np.zeros(0, dtype=np.int32),
+    )

@@ -20,6 +20,7 @@ them, evaluate against ground truth, write the outputs. Modes:
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,6 +30,7 @@ import numpy as np
 
 from kimera_multi_py.agent.agent import Agent, AgentParams, KeyframeInput
 from kimera_multi_py.agent.node import AgentNode
+from kimera_multi_py.agent.team_graph import joint_graph
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams
 from kimera_multi_py.consensus.runner import run_team
@@ -39,6 +41,7 @@ from kimera_multi_py.eval.metrics import align_se3, ate_rmse
 from kimera_multi_py.eval.results import Results, RobotResult
 from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures
 from kimera_multi_py.geometry import transform_points
+from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.tum import write_tum
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
@@ -243,6 +246,8 @@ class SimRunner:
     def _evaluate_team(self, T_world_team: np.ndarray) -> dict[str, object]:
         """Maps, objects, loop closures and traffic of a team run (agents' estimates in the team frame)."""
         world = self.sim.world
+        for a in self.agents:
+            a.objects.merge_fragments(a.map.octree)
         grid = world.gt_voxel_grid(self.agents[0].map.resolution)
         centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
         maps = {str(a.robot): map_quality(a.map.octree, T_world_team, centers, gt) for a in self.agents}
@@ -317,6 +322,16 @@ class SimRunner:
             est = np.array(self.agents[i].poses) if self.agents else np.array(tr.est)
             write_tum(self.out_dir / f"robot{i}_est.tum", np.array(tr.stamps), est)
             write_tum(self.out_dir / f"robot{i}_gt.tum", np.array(tr.stamps), np.array(tr.true))
+        if self.agents:  # the team's joint graph, for `kimera-multi pgo` and offline study
+            graph, inter = joint_graph(self.agents)
+            write_g2o(self.out_dir / "team_graph.g2o", graph)
+            truth = [np.array(tr.true) for tr in self.tracks]
+            Z = np.array([self.agents[a].inter_edges[(ka, b, kb)][0] for a, ka, b, kb in inter]).reshape(-1, 4, 4)
+            ok = score_closures(Z, np.array([truth[a][ka] for a, ka, _, _ in inter]).reshape(-1, 4, 4),
+                                np.array([truth[b][kb] for _, _, b, kb in inter]).reshape(-1, 4, 4))
+            (self.out_dir / "team_graph_truth.json").write_text(json.dumps(
+                {"inter_robot_edges": [list(e) for e in inter], "true": ok.tolist(),
+                 "note": "inter-robot edges follow the odometry and intra-robot edges in team_graph.g2o"}))
         results.write_json(self.out_dir / "results.json")
 
 

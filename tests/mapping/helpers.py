@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from kimera_multi_py.mapping import morton
+from kimera_multi_py.mapping.semantic_octree import PRUNE_MAX_LEVEL
 
 WALL, FLOOR, CEILING, CHAIR, TABLE, HUMAN = 1, 2, 3, 5, 6, 12
 K = 12
@@ -15,14 +16,20 @@ def sphere_dirs(n: int, rng: np.random.Generator) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def ray_box_exit(origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def ray_box_exit(
+    origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> np.ndarray:
     """Distance along each ray to the inside of an axis-aligned box's boundary (origin inside)."""
     with np.errstate(divide="ignore"):
-        t = np.where(dirs > 0, (hi - origin) / dirs, np.where(dirs < 0, (lo - origin) / dirs, np.inf))
+        t = np.where(
+            dirs > 0, (hi - origin) / dirs, np.where(dirs < 0, (lo - origin) / dirs, np.inf)
+        )
     return t.min(axis=1)
 
 
-def ray_box_entry(origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def ray_box_entry(
+    origin: np.ndarray, dirs: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> np.ndarray:
     """Distance to enter a box from outside (inf if missed)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t1, t2 = (lo - origin) / dirs, (hi - origin) / dirs
@@ -37,8 +44,14 @@ TABLE_LO = np.array([1.05, -0.45, 0.05])
 TABLE_HI = np.array([2.15, 0.25, 0.75])
 
 
-def room_scan(origin: np.ndarray, n: int = 5000, seed: int = 0, table: bool = True,
-              human: np.ndarray | None = None, noise: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def room_scan(
+    origin: np.ndarray,
+    n: int = 5000,
+    seed: int = 0,
+    table: bool = True,
+    human: np.ndarray | None = None,
+    noise: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """End points and labels of rays cast from ``origin`` inside a box room with a table.
 
     Faces: floor (z min), ceiling (z max), walls; ``human`` is an optional (lo, hi) box.
@@ -113,12 +126,14 @@ class ReferenceMap:
             self.cells[c] = np.clip(old + r, self.model.lo, self.model.hi).astype(np.int16)
 
 
-def canonical_leaves(cells: dict[int, np.ndarray], max_level: int = 15) -> dict[tuple[int, int], bytes]:
+def canonical_leaves(
+    cells: dict[int, np.ndarray], max_level: int = PRUNE_MAX_LEVEL
+) -> dict[tuple[int, int], bytes]:
     """Maximal pruning of a voxel dictionary, done naively: ``{(start, level): row bytes}``."""
     nodes = {(c, 0): r.tobytes() for c, r in cells.items()}
     for lev in range(1, max_level + 1):
         groups: dict[int, list[tuple[int, int]]] = {}
-        for (start, level) in nodes:
+        for start, level in nodes:
             if level == lev - 1:
                 groups.setdefault(start >> (3 * lev), []).append((start, level))
         for parent, kids in groups.items():
@@ -132,5 +147,7 @@ def canonical_leaves(cells: dict[int, np.ndarray], max_level: int = 15) -> dict[
 
 
 def tree_leaves(tree) -> dict[tuple[int, int], bytes]:
-    return {(int(c), int(lv)): r.tobytes() for c, lv, r in zip(tree.codes, tree.levels, tree.values,
-                                                                strict=True)}
+    return {
+        (int(c), int(lv)): r.tobytes()
+        for c, lv, r in zip(tree.codes, tree.levels, tree.values, strict=True)
+    }

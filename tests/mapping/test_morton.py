@@ -5,8 +5,9 @@ from hypothesis.extra.numpy import arrays
 
 from kimera_multi_py.mapping import morton
 
-keys16 = arrays(np.int64, st.tuples(st.integers(1, 50), st.just(3)),
-                elements=st.integers(0, morton.KEY_MAX))
+keys16 = arrays(
+    np.int64, st.tuples(st.integers(1, 50), st.just(3)), elements=st.integers(0, morton.KEY_MAX)
+)
 
 
 @given(keys16)
@@ -19,7 +20,11 @@ def test_child_index_is_octomaps(keys):
     """Child index at level l: x bit + 2 * y bit + 4 * z bit (OctoMap's computeChildIdx)."""
     codes = morton.encode(keys)
     for lev in (0, 5, 15):
-        expected = ((keys[:, 0] >> lev) & 1) + 2 * ((keys[:, 1] >> lev) & 1) + 4 * ((keys[:, 2] >> lev) & 1)
+        expected = (
+            ((keys[:, 0] >> lev) & 1)
+            + 2 * ((keys[:, 1] >> lev) & 1)
+            + 4 * ((keys[:, 2] >> lev) & 1)
+        )
         assert np.array_equal((codes >> (3 * lev)) & 7, expected)
 
 
@@ -38,8 +43,9 @@ def test_points_and_centers():
     assert codes[1] == -1 and codes[2] == -1
     centre = morton.node_centers(codes[:1], np.array([0]), 0.1)[0]
     assert np.allclose(centre, [0.05, -0.05, 1.25])
-    big = morton.node_centers(np.array([morton.encode(np.array([[32768, 32768, 32768]]))[0]]),
-                              np.array([3]), 0.1)[0]
+    big = morton.node_centers(
+        np.array([morton.encode(np.array([[32768, 32768, 32768]]))[0]]), np.array([3]), 0.1
+    )[0]
     assert np.allclose(big, [0.4, 0.4, 0.4])
     try:
         morton.points_to_keys(pts[1:2], 0.1)

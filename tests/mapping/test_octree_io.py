@@ -64,7 +64,9 @@ def test_every_truncation_raises_map_error(blob):
             octree_from_bytes(blob[:n])
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(data=st.data())
 def test_fuzzed_files_raise_map_error_only(blob_holder, data):
     blob = blob_holder[0]
@@ -90,15 +92,17 @@ def _forge(header: dict, raw: bytes, version: int = FORMAT_VERSION) -> bytes:
     """A file with a valid checksum around arbitrary content."""
     h = json.dumps(header).encode()
     payload = zlib.compress(raw)
-    body = struct.pack("<8sHI", MAGIC, version, len(h)) + h + struct.pack("<Q", len(payload)) + payload
+    body = (
+        struct.pack("<8sHI", MAGIC, version, len(h)) + h + struct.pack("<Q", len(payload)) + payload
+    )
     return body + struct.pack("<I", zlib.crc32(body))
 
 
 def _parts(blob):
     hlen = struct.unpack_from("<I", blob, 10)[0]
-    header = json.loads(blob[14:14 + hlen])
+    header = json.loads(blob[14 : 14 + hlen])
     plen = struct.unpack_from("<Q", blob, 14 + hlen)[0]
-    raw = zlib.decompress(blob[22 + hlen: 22 + hlen + plen])
+    raw = zlib.decompress(blob[22 + hlen : 22 + hlen + plen])
     return header, raw
 
 
@@ -116,18 +120,23 @@ def test_checksummed_but_inconsistent_files_raise_map_error(tree, blob):
         octree_from_bytes(_forge({k: v for k, v in header.items() if k != "model"}, raw))
     with pytest.raises(MapError):
         octree_from_bytes(_forge({**header, "top_k": "three"}, raw))
+    for key in ("hit", "psi", "h_max"):  # JSON accepts NaN; the model must not
+        with pytest.raises(MapError, match="non-finite"):
+            octree_from_bytes(
+                _forge({**header, "model": {**header["model"], key: float("nan")}}, raw)
+            )
     codes = np.frombuffer(raw, "<i8", n).copy()
     codes[5] = 0  # deltas no longer increasing: unsorted / overlapping leaves
     with pytest.raises(MapError, match="unsorted|overlapping|aligned"):
-        octree_from_bytes(_forge(header, codes.tobytes() + raw[8 * n:]))
+        octree_from_bytes(_forge(header, codes.tobytes() + raw[8 * n :]))
     levels = np.frombuffer(raw, "<i1", n, 8 * n).copy()
     levels[np.argmax(levels == 0)] = 20
     with pytest.raises(MapError, match="level"):
-        octree_from_bytes(_forge(header, raw[:8 * n] + levels.tobytes() + raw[9 * n:]))
+        octree_from_bytes(_forge(header, raw[: 8 * n] + levels.tobytes() + raw[9 * n :]))
     values = np.frombuffer(raw, "<i2", offset=9 * n).reshape(n, k1).copy()
     values[0, 3] = 32000
     with pytest.raises(MapError, match="clamping"):
-        octree_from_bytes(_forge(header, raw[:9 * n] + values.tobytes()))
+        octree_from_bytes(_forge(header, raw[: 9 * n] + values.tobytes()))
     with pytest.raises(MapError):
         octree_from_bytes(_forge(header, b"\x00" * 17))
     with pytest.raises(MapError):
@@ -145,9 +154,19 @@ def test_export_ply(tree, tmp_path):
     data = path.read_bytes()
     head, body = data.split(b"end_header\n", 1)
     assert f"element vertex {n}".encode() in head
-    rec = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"),
-                                     ("green", "u1"), ("blue", "u1"), ("label", "<u2"),
-                                     ("size", "<f4")])
+    rec = np.frombuffer(
+        body,
+        dtype=[
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("red", "u1"),
+            ("green", "u1"),
+            ("blue", "u1"),
+            ("label", "<u2"),
+            ("size", "<f4"),
+        ],
+    )
     occ = tree.occupied_leaves()
     assert len(rec) == n == occ.sum()
     assert np.array_equal(rec["label"], np.argmax(tree.values[occ], axis=1))

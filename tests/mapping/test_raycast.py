@@ -104,3 +104,21 @@ def test_bad_input():
     assert len(cells.occupied) == 1 and cells.num_rays == 1
     empty = scan_cells(o, np.zeros((0, 3)), np.zeros(0, int), RES, K)
     assert empty.num_cells == 0
+
+
+def test_free_margin_and_surface_offset():
+    o = np.array([0.05, 0.05, 0.05])
+    pts = np.array([[2.0, 0.05, 0.05], [0.05, 3.05, 0.05]])  # a hit on a voxel boundary (x = 2.0)
+    lab = np.array([1, 0])  # the second ray has no return: margin does not apply to it
+    plain = scan_cells(o, pts, lab, RES, K)
+    assert (20, 0, 0) in keys_of(plain.occupied)  # floor(2.0 / 0.1) = 20
+    tuned = scan_cells(o, pts, lab, RES, K, free_margin=0.3, surface_offset=0.05)
+    assert keys_of(tuned.occupied) == {(20, 0, 0)}  # 2.05 lands mid-voxel behind the surface
+    free = keys_of(tuned.free)
+    assert (16, 0, 0) in free and not {(17, 0, 0), (18, 0, 0), (19, 0, 0)} & free
+    assert (0, 29, 0) in free  # no return: free up to the end
+    # a measurement just in front of a boundary surface is still binned inside it
+    front = scan_cells(
+        o, np.array([[1.99, 0.05, 0.05]]), np.array([1]), RES, K, surface_offset=0.05
+    )
+    assert keys_of(front.occupied) == {(20, 0, 0)}

@@ -19,8 +19,16 @@ from .helpers import (
 )
 
 RES = 0.1
-ORIGINS = [np.array(p) for p in ([0.0, 0.0, 1.0], [-1.5, 1.0, 1.2], [1.0, -1.2, 0.9],
-                                 [-2.0, -1.5, 1.5], [0.5, 1.5, 1.1])]
+ORIGINS = [
+    np.array(p)
+    for p in (
+        [0.0, 0.0, 1.0],
+        [-1.5, 1.0, 1.2],
+        [1.0, -1.2, 0.9],
+        [-2.0, -1.5, 1.5],
+        [0.5, 1.5, 1.1],
+    )
+]
 
 
 def fill(tree, scans=10, n=4000, noise=0.1, seed=0):
@@ -36,8 +44,13 @@ def test_matches_a_per_voxel_reference_and_prunes_canonically():
     ref = ReferenceMap(tree.model)
     for i in range(8):
         o = ORIGINS[i % 3]
-        p, lab = room_scan(o, 2500, seed=i, noise=0.1,
-                           human=(np.array([-1.0 + 0.3 * i, 0.5, 0.05]), np.array([-0.5 + 0.3 * i, 1.0, 1.8])))
+        p, lab = room_scan(
+            o,
+            2500,
+            seed=i,
+            noise=0.1,
+            human=(np.array([-1.0 + 0.3 * i, 0.5, 0.05]), np.array([-0.5 + 0.3 * i, 1.0, 1.8])),
+        )
         cells = scan_cells(o, p, lab, RES, K, dynamic_labels=(HUMAN,))
         codes, rows = tree.model.deltas(cells)
         ref.add(codes, rows)
@@ -86,10 +99,12 @@ def test_clamping_makes_saturated_cells_identical():
     rows, counts = np.unique(v[wall], axis=0, return_counts=True)
     top = rows[np.argmax(counts)]  # cells at edges keep two classes (their rays see both)
     assert counts.max() > 0.9 * wall.sum()
-    assert top[WALL] == round(3.5 * SCALE) and np.all(np.delete(top, [0, WALL]) == round(-3.0 * SCALE))
+    assert top[WALL] == round(3.5 * SCALE) and np.all(
+        np.delete(top, [0, WALL]) == round(-3.0 * SCALE)
+    )
     # identical saturated cells prune: coarse leaves stand for many voxels
     assert tree.levels.max() >= 3
-    assert (8.0 ** tree.levels).sum() > 2 * tree.num_leaves
+    assert (8.0**tree.levels).sum() > 2 * tree.num_leaves
 
 
 def test_dynamic_classes_never_enter_the_map():
@@ -173,7 +188,7 @@ def test_leaves_counts_and_empty_queries():
     assert np.isnan(empty.occupancy_at(np.zeros((1, 3)))).all()
     tree = fill(SemanticOctree(RES, K), scans=3, n=2000)
     lv = tree.leaves()
-    assert np.allclose(lv.sizes, RES * 2.0 ** tree.levels)
+    assert np.allclose(lv.sizes, RES * 2.0**tree.levels)
     assert len(list(tree.iter_leaves())) == tree.num_leaves
     c, size, h = next(iter(tree.iter_leaves()))
     assert size == lv.sizes[0] and np.allclose(h, lv.logodds[0])
