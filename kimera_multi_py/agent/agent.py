@@ -82,6 +82,7 @@ class AgentParams:
     cloud_voxel: float = 0.2  # downsampling of the semantic cloud kept per keyframe for ICP
     icp_min_overlap: float = 0.1
     icp_max_correction: tuple[float, float] = (0.5, np.deg2rad(10.0))  # larger ICP moves are not trusted
+    team_object_sightings: int = 5  # sightings before a landmark enters the team's object map
     server: int | None = None  # centralised mode: the server's id (odometry streams to it)
     pcm: PcmNoise | None = None  # default: drift from odom_sigmas, closure noise from closure_sigmas
 

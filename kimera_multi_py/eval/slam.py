@@ -22,24 +22,45 @@ def map_quality(octree: object, T_world_map: np.ndarray, centers: np.ndarray,
             "observed_cells": int(np.sum((pred >= 0) & (gt_labels >= 0)))}
 
 
-def merge_objects(classes: np.ndarray, centroids: np.ndarray, radius: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Fuse same-class objects closer than ``radius`` (greedy, by order): ``(classes, centroids)``."""
-    classes = np.asarray(classes)
-    centroids = np.asarray(centroids, dtype=float).reshape(-1, 3)
-    out_c: list[int] = []
-    out_p: list[np.ndarray] = []
-    counts: list[int] = []
-    for c, p in zip(classes, centroids, strict=True):
-        for k, (oc, op) in enumerate(zip(out_c, out_p, strict=True)):
-            if oc == c and np.linalg.norm(op - p) < radius:
-                counts[k] += 1
-                out_p[k] = op + (p - op) / counts[k]
-                break
-        else:
-            out_c.append(int(c))
-            out_p.append(p.copy())
-            counts.append(1)
-    return np.array(out_c, dtype=int), np.array(out_p).reshape(-1, 3)
+def merge_objects(classes: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: float = -0.2
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fuse the team's object boxes: same-class axis-aligned boxes that overlap by more than
+    ``-margin`` along every axis are one object, whose box is their union. Fragments of one
+    object seen by different robots (a long table seen from either end) merge into the whole,
+    while neighbours that merely touch (cabinets side by side) stay apart.
+
+    Returns ``(classes, lo, hi)`` of the fused objects.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    classes = np.asarray(classes).reshape(-1)
+    lo = np.asarray(lo, dtype=float).reshape(-1, 3)
+    hi = np.asarray(hi, dtype=float).reshape(-1, 3)
+    n = len(classes)
+    if n == 0:
+        return classes, lo, hi
+    touch = np.all((lo[:, None] - margin <= hi[None]) & (hi[:, None] + margin >= lo[None]), axis=2)
+    touch &= classes[:, None] == classes[None, :]
+    i, j = np.nonzero(touch)
+    _, comp = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)
+    m = comp.max() + 1
+    out_lo = np.full((m, 3), np.inf)
+    out_hi = np.full((m, 3), -np.inf)
+    np.minimum.at(out_lo, comp, lo)
+    np.maximum.at(out_hi, comp, hi)
+    out_cls = np.zeros(m, dtype=int)
+    out_cls[comp] = classes
+    return out_cls, out_lo, out_hi
+
+
+def world_boxes(T: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounds of boxes ``[lo, hi]`` moved by ``T``."""
+    lo = np.asarray(lo, dtype=float).reshape(-1, 3)
+    hi = np.asarray(hi, dtype=float).reshape(-1, 3)
+    c = transform_points(T, (lo + hi) / 2)
+    ext = (hi - lo) / 2 @ np.abs(T[:3, :3]).T
+    return c - ext, c + ext
 
 
 def object_quality(classes: np.ndarray, centroids: np.ndarray, gt_classes: np.ndarray,

@@ -39,7 +39,7 @@ from kimera_multi_py.consensus.workflow import open_buses
 from kimera_multi_py.errors import ConfigError
 from kimera_multi_py.eval.metrics import align_se3, ate_rmse
 from kimera_multi_py.eval.results import Results, RobotResult
-from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures
+from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures, world_boxes
 from kimera_multi_py.geometry import transform_points
 from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.tum import write_tum
@@ -251,10 +251,13 @@ class SimRunner:
         grid = world.gt_voxel_grid(self.agents[0].map.resolution)
         centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
         maps = {str(a.robot): map_quality(a.map.octree, T_world_team, centers, gt) for a in self.agents}
-        lms = [lm for a in self.agents for lm in a.objects.confirmed()]
-        pos = transform_points(T_world_team, np.array([lm.position for lm in lms]).reshape(-1, 3))
-        cls, cen = merge_objects(np.array([lm.label for lm in lms], dtype=int), pos)
-        objects = object_quality(cls, cen, np.array([o.label for o in world.objects]),
+        lms = [lm for a in self.agents for lm in a.objects.confirmed()
+               if lm.num_observations >= self.params.team_object_sightings]
+        boxes = [lm.aabb() for lm in lms]
+        lo, hi = world_boxes(T_world_team, np.array([b[0] for b in boxes]).reshape(-1, 3),
+                             np.array([b[1] for b in boxes]).reshape(-1, 3))
+        cls, lo, hi = merge_objects(np.array([lm.label for lm in lms], dtype=int), lo, hi)
+        objects = object_quality(cls, (lo + hi) / 2, np.array([o.label for o in world.objects]),
                                  np.array([o.centroid for o in world.objects]))
         objects["landmarks"] = len(lms)
         closures = self._closure_stats()
