@@ -27,6 +27,9 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
 	$(BIN)/python benchmarks/sim_raycast.py --json
+	$(BIN)/python benchmarks/octree_insert.py --json
+	$(BIN)/python benchmarks/comms.py --json
+	$(BIN)/python benchmarks/pgo.py --json
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -28,7 +28,10 @@ DEFAULT_DIR = Path(os.environ.get("KMP_DATASETS", REPO.parent / "shared" / "data
 
 
 def _params(args: argparse.Namespace) -> PgoParams:
-    params = PgoParams(acceleration=not args.no_acceleration)
+    params = PgoParams(acceleration=args.acceleration)
+    if args.over_relaxation is not None:
+        params.over_relaxation = args.over_relaxation
+    params.distributed_init = args.distributed_init
     if args.rel_tol is not None:
         params.rel_tol = args.rel_tol
     return params
@@ -45,7 +48,12 @@ def main() -> None:
     ap.add_argument("--outliers", type=float, default=ROBUST[1])
     ap.add_argument("--data", type=Path, default=DEFAULT_DIR)
     ap.add_argument("--rel-tol", type=float, default=None, help="ready tolerance override")
-    ap.add_argument("--no-acceleration", action="store_true")
+    ap.add_argument("--acceleration", action="store_true",
+                    help="Nesterov momentum instead of the default adaptive block SOR")
+    ap.add_argument("--over-relaxation", type=float, default=None,
+                    help="fixed SOR factor (1.0: plain Gauss-Seidel; default adaptive)")
+    ap.add_argument("--distributed-init", action="store_true",
+                    help="chordal block Gauss-Seidel initialisation before the BCD")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
 

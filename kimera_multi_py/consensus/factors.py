@@ -21,6 +21,14 @@ def noise(information: np.ndarray, weight: float = 1.0) -> gtsam.noiseModel.Base
     return gtsam.noiseModel.Gaussian.Information(info)
 
 
+def sqrt_information(information: np.ndarray, weight: float = 1.0) -> np.ndarray:
+    """``R`` with ``RᵀR`` the (weighted) information, as gtsam's noise model factors it."""
+    model = noise(information, weight)
+    if isinstance(model, gtsam.noiseModel.Diagonal):
+        return np.diag(1.0 / model.sigmas())
+    return np.asarray(model.R())  # type: ignore[attr-defined]  # a Gaussian model here
+
+
 def between(key_i: int, key_j: int, measurement: np.ndarray, information: np.ndarray,
             weight: float = 1.0) -> gtsam.BetweenFactorPose3:
     """``BetweenFactorPose3`` for ``Xᵢ⁻¹ Xⱼ ≈ measurement``."""
@@ -37,10 +45,12 @@ def fixed_neighbour(key: int, own_is_i: bool, neighbour: np.ndarray, measurement
     """
     Z = to_gtsam(measurement)
     if own_is_i:
+        # whiten with R·Ad_{Z⁻¹} (R the square root the between factor would use) rather than
+        # re-factoring Ad ᵀΛ Ad: that Cholesky fails on the singular R'R matrices of cubicle
         prior = to_gtsam(neighbour) * Z.inverse()
         ad = Z.inverse().AdjointMap()
-        info = ad.T @ np.asarray(information) @ ad
-        return gtsam.PriorFactorPose3(int(key), prior, noise(0.5 * (info + info.T), weight))
+        return gtsam.PriorFactorPose3(int(key), prior, gtsam.noiseModel.Gaussian.SqrtInformation(
+            sqrt_information(information, weight) @ ad))
     return gtsam.PriorFactorPose3(int(key), to_gtsam(neighbour) * Z, noise(information, weight))
 
 

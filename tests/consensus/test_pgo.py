@@ -61,9 +61,11 @@ def test_distributed_over_zenoh(datasets_dir: Path) -> None:
     assert abs(res.relative_gap) <= 1e-4
 
 
-def test_robust_with_half_outliers(datasets_dir: Path) -> None:
-    res = run_pgo([pgo(datasets_dir, "smallGrid3D")], robots=3, robust=True, outliers=0.5,
-                  seed=2, max_rounds=600)
+@pytest.mark.parametrize(("robots", "seed"), [(3, 2), (5, 0)])
+def test_robust_with_half_outliers(datasets_dir: Path, robots: int, seed: int) -> None:
+    # (5, 0) is the benchmark's case: two true closures GNC drops come back in the re-check
+    res = run_pgo([pgo(datasets_dir, "smallGrid3D")], robots=robots, robust=True, outliers=0.5,
+                  seed=seed, max_rounds=600)
     assert res.outliers > 0
     assert res.inlier_precision >= 0.95 and res.inlier_recall >= 0.95
     assert res.gap_to_outlier_free <= 1e-2
@@ -112,3 +114,20 @@ def test_cli_writes_json_g2o_and_tum(datasets_dir: Path, tmp_path: Path) -> None
     assert len(stamps) == 3 and poses.shape == (3, 4, 4)
     bad = runner.invoke(app, ["pgo", str(tmp_path / "missing.g2o")])
     assert bad.exit_code == 1 and "no such file" in bad.output
+
+
+def test_distributed_chordal_initialisation_then_bcd(datasets_dir: Path) -> None:
+    params = PgoParams(distributed_init=True)
+    res = run_pgo([pgo(datasets_dir, "smallGrid3D")], robots=4, max_rounds=300, params=params)
+    assert abs(res.relative_gap) <= 1e-4 and res.rounds < 300
+    assert res.bytes_by_topic["pgo/command"] > 0  # the leader's start (and stop)
+
+
+def test_over_relaxation_follows_youngs_estimate(datasets_dir: Path) -> None:
+    agent = PgoAgent(split_local(load_graph([pgo(datasets_dir, "smallGrid3D")], 3))[0])
+    agent.updates_since_weights = 5
+    for k in range(4):  # Gauss-Seidel contracting by 0.9 per update
+        omega = agent._omega(0.9**k)
+    assert omega == pytest.approx(2.0 / (1.0 + np.sqrt(1.0 - 0.9)))
+    fixed = PgoAgent(agent.local, PgoParams(over_relaxation=1.0))
+    assert fixed._omega(1.0) == 1.0
