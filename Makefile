@@ -5,6 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 ROBOTS ?= 3
 SEED ?= 0
+MODE ?= centralized
 
 .PHONY: demo test venv bench lint clean
 
@@ -17,7 +18,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/kimera-multi sim sims/office.toml --robots $(ROBOTS) --seed $(SEED) --mode odometry --out runs/demo --no-rerun
+	$(BIN)/kimera-multi sim sims/office.toml --robots $(ROBOTS) --seed $(SEED) --mode $(MODE) --out runs/demo --no-rerun
 
 test: $(STAMP)
 	$(BIN)/ruff check kimera_multi_py tests benchmarks
