@@ -12,11 +12,11 @@ TOML scalars or arrays, e.g. ``KMP_SENSOR__ROWS=32`` or ``KMP_GROUND_TRUTH__RESO
 from __future__ import annotations
 
 import os
+import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
-import tomllib
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from kimera_multi_py.errors import ConfigError

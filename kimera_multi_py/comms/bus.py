@@ -479,7 +479,7 @@ class BusBase:
 
         try:
             await asyncio.wait_for(wait(), timeout)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             raise TimeoutError(
                 f"robot {self.robot}: peers still {sorted(self._peers)} after {timeout} s"
             ) from None

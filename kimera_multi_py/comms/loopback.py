@@ -204,7 +204,7 @@ class LoopbackNetwork:
         """Wait until no delayed delivery or query is in flight."""
         try:
             await asyncio.wait_for(self._flight.idle.wait(), timeout)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             raise TimeoutError(f"{self._flight.count} deliveries still in flight") from None
 
     # links ----------------------------------------------------------------------------
@@ -330,7 +330,7 @@ class LoopbackBus(BusBase):
 
         try:
             await asyncio.wait_for(wait(), timeout)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             raise TimeoutError(f"no subscriber matched {key!r} within {timeout} s") from None
 
     async def serve(self, key_expr: str, handler: Handler) -> _Served:

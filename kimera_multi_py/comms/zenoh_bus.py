@@ -291,7 +291,7 @@ class ZenohBus(BusBase):
         try:
             if not pub.matching_status:
                 await asyncio.wait_for(matched.wait(), timeout)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             raise TimeoutError(f"no subscriber matched {key!r} within {timeout} s") from None
         finally:
             self._undeclare(listener)
@@ -379,7 +379,7 @@ class ZenohBus(BusBase):
         try:
             # zenoh finishes the query by its own timeout; the margin covers the hand-over
             await asyncio.wait_for(pending.done.wait(), timeout + 1.0)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             log.warning("robot %d: query %s did not finish", self.robot, selector)
         out = []
         for key, data in pending.replies:
