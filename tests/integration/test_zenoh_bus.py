@@ -125,8 +125,9 @@ async def test_another_team_cannot_inject(port: int, wait_until) -> None:
             intruder.session.put(target, data)
         await wait_until(lambda: sum(b.counters.dropped.values()) >= 4, 5)
         assert b.counters.dropped == {"team": 1, "src": 1, "key": 1, "invalid": 1}
+        await a.wait_for_subscribers(a.key(keys.PING), timeout=10)
         await a.publish(a.key(keys.PING), Ping(robot=0, nonce=6, sent_ns=0))
-        assert (await sub.recv(timeout=5)).nonce == 6
+        assert (await sub.recv(timeout=10)).nonce == 6
         assert sub.pending() == 0
         assert b.peers() == {0}  # team t1's robot 0 is not our robot 0... only a's token counts
         await a.close()
