@@ -441,10 +441,18 @@ class Agent:
                 np.array(info).reshape(-1, 6, 6), np.array(odo, dtype=bool))
 
     def local_graph(self) -> LocalGraph:
-        """What this robot contributes to distributed PGO, from its current estimate."""
+        """What this robot contributes to distributed PGO, from its current estimate.
+
+        An inter-robot edge is the lower robot id's measurement, directed lower → higher (as in
+        the joint graph): both robots must hold the same factor. The higher robot's stored copy
+        is the inverse, and the inverse with the same (diagonal) information is a different
+        factor; with it the two block problems disagree and the distributed solve cycles.
+        """
         i, j, Z, info, odo = self.intra_edges()
         edges = sorted(self.inter_edges.items())
         cinfo = self._info(self.params.closure_sigmas)
+        lower = np.array([k[1] < self.robot for k, _ in edges], dtype=bool)
+        meas = np.array([v[0] for _, v in edges]).reshape(-1, 4, 4)
         return LocalGraph(
             robot=self.robot,
             keys=np.array([robot_key(self.robot, k) for k in range(self.num_keyframes)], dtype=np.int64),
@@ -452,10 +460,10 @@ class Agent:
             intra_i=i, intra_j=j, intra_meas=Z, intra_info=info, intra_odometry=odo,
             intra_edge=np.arange(len(i)),
             inter_own=np.array([k[0] for k, _ in edges], dtype=int),
-            inter_own_is_i=np.ones(len(edges), dtype=bool),
+            inter_own_is_i=~lower,
             inter_peer=np.array([k[1] for k, _ in edges], dtype=int),
             inter_peer_key=np.array([robot_key(k[1], k[2]) for k, _ in edges], dtype=np.int64),
-            inter_meas=np.array([v[0] for _, v in edges]).reshape(-1, 4, 4),
+            inter_meas=np.where(lower[:, None, None], inverse(meas), meas),
             inter_info=np.tile(cinfo, (len(edges), 1, 1)),
             inter_edge=np.arange(len(edges)),
             robot_graph=sorted(self.robot_graph), team=self.team,

@@ -122,3 +122,38 @@ def align_frames(own: np.ndarray, neighbour: np.ndarray, measurement: np.ndarray
         log.info("alignment found %d of %d consistent measurements (< %d)",
                  int(inliers.sum()), k, min_inliers)
     return Alignment(make_pose(R, t), inliers, ok)
+
+
+def supported_edges(own: np.ndarray, neighbour: np.ndarray, measurement: np.ndarray,
+                    own_is_i: np.ndarray, rotation_threshold: float = 0.5,
+                    translation_tolerance: float = 1.0, lever_ratio: float = 0.1,
+                    min_support: int = 1) -> np.ndarray:
+    """Inter-robot edges whose frame hypothesis at least ``min_support`` other edges share.
+
+    Edge ``e`` proposes ``T_e`` (team ← own frame). Edge ``f`` supports it when ``T_e`` predicts
+    ``f``'s neighbour pose within ``rotation_threshold`` (rad) and ``translation_tolerance`` plus
+    ``lever_ratio`` times the distance between the two own poses (rotation error and drift
+    grow with it), or the other way round. Unlike :func:`align_frames` this keeps *every*
+    consistent group, not only the largest: aliased closures (identical places) come in
+    mutually consistent groups that can outnumber the true group for one robot pair, and only
+    the joint graph can tell them apart (GNC's job). An unsupported edge agrees with no other:
+    a random outlier.
+    """
+    k = len(own)
+    if k == 0:
+        return np.zeros(0, dtype=bool)
+    P = predicted_neighbours(own, measurement, own_is_i)
+    T = neighbour @ inverse(P)
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    pt = P[:, :3, 3]
+    # rotation: ‖R_e − R_f‖²_F = 6 − 2 tr(R_eᵀ R_f)
+    d_rot = 6.0 - 2.0 * np.einsum("eij,fij->ef", R, R)
+    # translation: T_e applied to f's prediction against f's neighbour
+    pred = np.einsum("eij,fj->efi", R, pt) + t[:, None, :]
+    d_t = np.linalg.norm(pred - neighbour[None, :, :3, 3], axis=2)
+    lever = np.linalg.norm(own[:, None, :3, 3] - own[None, :, :3, 3], axis=2)
+    ok = (d_rot <= chordal_threshold(rotation_threshold)) & (
+        d_t <= translation_tolerance + lever_ratio * lever)
+    ok = ok | ok.T
+    np.fill_diagonal(ok, False)
+    return np.asarray(ok.sum(1) >= min_support)

@@ -29,7 +29,14 @@ relaxation (:mod:`.chordal`) until every robot has settled; the leader then send
 
 Robust mode: GNC-TLS weights (:mod:`.robust`) on loop closures and inter-robot edges (odometry
 is trusted). The lowest robot id is the leader: it sends ``update_weights`` when every robot is
-ready (or after a round cap) and ``stop`` when the team is done. After the GNC schedule, the
+ready (or after a round cap) and ``stop`` when the team is done. GNC runs with *one* ``μ`` for
+the team, as the centralised GNC does: at the first update every robot publishes its ``μ₀``
+(a :class:`GncWeights` to itself, no edges) and all apply the smallest a few rounds later;
+with per-robot ``μ₀`` a robot whose residuals happen to be small starts near-binary and locks
+in aliased closures (structured outliers from identical places, which fit the least-squares
+solution). Inter-robot edges start screened only against random outliers (an edge no other
+edge agrees with); every mutually consistent group, true or aliased, is left to the joint
+GNC, since for one robot pair the aliased group can be as large as the true one. After the GNC schedule, the
 edges are re-decided at the converged solution with the plain TLS threshold (first with
 ``recheck_factor`` slack, since a dropped inlier is biased high while it is left out). An
 inter-robot edge's weight is computed by its lower-id robot and shared in :class:`GncWeights`.
@@ -45,7 +52,7 @@ import networkx as nx
 import numpy as np
 
 from kimera_multi_py.comms.messages import GncWeights, Message, PgoCommand, PgoStatus, PublicPoses
-from kimera_multi_py.consensus.alignment import align_frames
+from kimera_multi_py.consensus.alignment import align_frames, supported_edges
 from kimera_multi_py.consensus.chordal import chordal_block, chordal_poses, edge_weights
 from kimera_multi_py.consensus.factors import between, fixed_neighbour, residuals_sq, to_values
 from kimera_multi_py.consensus.robust import GncSchedule, tls_threshold
@@ -75,6 +82,19 @@ class PgoParams:
     robust: bool = False
     inlier_probability: float = 0.999  # χ²₆ quantile of the TLS threshold c̄² (22.5)
     gnc_round_cap: int = 10  # rounds between weight updates at most
+    # robust: which inter-robot edges start at weight 0 (GNC revisits them): "support" those no
+    # other edge agrees with (random outliers; every consistent group stays for the joint GNC),
+    # "alignment" those outside the alignment's majority hypothesis, "none"
+    screen: str = "support"
+    gnc_mu0_trusted: bool = True  # μ₀ from the largest residual of the current inliers only
+    # one μ for the team: robots propose their μ₀ and apply the smallest this many rounds later
+    gnc_team_mu: bool = True
+    gnc_mu_delay: int = 3
+    # ceiling of μ₀: start at least this convex. μ₀ from the current residuals is too large when
+    # the start already sits in an aliased hypothesis (a warm restart after a wrong solve: the
+    # aliased closures fit, so GNC starts near-binary and keeps them; gtsam's GNC takes μ₀ from
+    # the initial values' residuals, usually far larger). Measured on the office graphs.
+    gnc_mu0_max: float = 1e-3
     gnc_max_steps: int = 40
     gnc_rechecks: int = 2  # after GNC: re-decide every edge at the converged solution (χ² test)
     recheck_factor: float = 3.0  # first re-check admits r² ≤ factor·c̄², the last one r² ≤ c̄²
@@ -220,6 +240,7 @@ class PgoAgent:
         self.gnc = GncSchedule(tls_threshold(p.inlier_probability))
         self.gnc_pending: int | None = None  # round of a pending weight update
         self.gnc_last_round = 0
+        self.mu_proposals: dict[int, float] = {}  # robot -> proposed μ₀ (team-wide GNC)
         self.rechecks = 0
         self.updates = 0
         self.updates_since_weights = 0
@@ -291,10 +312,11 @@ class PgoAgent:
         inliers = np.zeros(len(lg.inter_edge), dtype=bool)
         inliers[np.flatnonzero(known)[res.inliers]] = True
         self.alignment_inliers = inliers
-        if self.params.robust:
-            # edges the alignment rejected start as outliers; GNC revisits them
-            self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
         self.aligned = True
+        if self.params.robust and self.params.screen != "none":
+            # edges the screen rejects start as outliers; GNC revisits them
+            keep = inliers if self.params.screen == "alignment" else self._supported(known)
+            self.inter_weights = np.where(known & ~keep, 0.0, 1.0)
         self.screened = bool(known.all())
         log.info("robot %d aligned with %d/%d inter-robot edges", self.robot,
                  int(inliers.sum()), int(known.sum()))
@@ -310,6 +332,10 @@ class PgoAgent:
         self.wait_rounds += 1
         if not known.any() or (not known.all() and self.wait_rounds < self.params.align_patience):
             return
+        if self.params.screen == "support":
+            self.inter_weights = np.where(known & ~self._supported(known), 0.0, 1.0)
+            self.screened = True
+            return
         nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
         res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
                            lg.inter_own_is_i[known])
@@ -319,6 +345,17 @@ class PgoAgent:
             self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
             self.alignment_inliers = inliers
         self.screened = True
+
+    def _supported(self, known: np.ndarray) -> np.ndarray:
+        """The known inter-robot edges some other known edge agrees with (own poses in the team
+        frame), see :func:`.alignment.supported_edges`."""
+        lg = self.local
+        out = np.zeros(len(lg.inter_edge), dtype=bool)
+        if known.any():
+            nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+            out[known] = supported_edges(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+                                         lg.inter_own_is_i[known])
+        return out
 
     # ---------------------------------------------------------------- messages in
     def handle(self, msg: Message) -> None:
@@ -340,6 +377,9 @@ class PgoAgent:
             elif msg.command == "start" and self.stage == "init" and self.solve_from is None:
                 self.solve_from = msg.round
         elif isinstance(msg, GncWeights):
+            if msg.peer == msg.robot:  # a μ₀ proposal, for the whole team
+                self.mu_proposals[msg.robot] = float(msg.mu)
+                return
             if msg.peer != self.robot:
                 return
             own_keys = self.local.keys[self.local.inter_own]
@@ -365,7 +405,7 @@ class PgoAgent:
                 out.append(self._status(rnd))
                 return out
             out.append(self._public(rnd, self.poses))
-        if self.params.robust and not self.screened:
+        if self.params.robust and not self.screened and self.params.screen != "none":
             self._screen()
         if self.stage == "init" and self.solve_from is not None and rnd >= self.solve_from:
             self._start_solve(rnd)
@@ -577,16 +617,12 @@ class PgoAgent:
     # ---------------------------------------------------------------- robust weights
     def _update_weights(self, rnd: int) -> list[Message]:
         lg = self.local
+        p = self.params
+        if p.gnc_team_mu and self.gnc.steps == 0 and self.robot not in self.mu_proposals:
+            return self._propose_mu(rnd)
         self.gnc_last_round = self.gnc_pending or rnd
         self.gnc_pending = None
-        loop = ~lg.intra_odometry
-        r2_loop = self._intra_r2(np.flatnonzero(loop))
-        owned = lg.inter_peer > self.robot
-        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
-        r2_inter = self._inter_r2(np.flatnonzero(owned & known))
-        trusted = np.concatenate([self.intra_weights[loop] > 0.5,
-                                  self.inter_weights[np.flatnonzero(owned & known)] > 0.5])
-        r2 = np.concatenate([r2_loop, r2_inter])
+        r2, trusted, loop, inter = self._robust_r2()
         if self.gnc.steps >= self.params.gnc_max_steps:
             # GNC is over: the TLS decision at the converged solution (μ → ∞) re-admits inliers
             # that the graduated schedule dropped while the estimate was still off
@@ -597,16 +633,18 @@ class PgoAgent:
             w = (r2 <= factor * self.gnc.barc2).astype(float)
             self.rechecks += 1
         else:
-            w = self.gnc.update(r2, trusted)
-        self.intra_weights[loop] = w[: len(r2_loop)]
-        self.inter_weights[np.flatnonzero(owned & known)] = w[len(r2_loop):]
+            mu0 = (min(self.mu_proposals.values()) if p.gnc_team_mu and self.mu_proposals
+                   else self._initial_mu(r2, trusted))
+            w = self.gnc.update(r2, mu0=mu0)
+        self.intra_weights[loop] = w[: len(loop)]
+        self.inter_weights[inter] = w[len(loop):]
         self._base = None
         self.updates_since_weights = 0
         self.ready = False
         self.gamma = 1.0
         out: list[Message] = []
         for peer in lg.neighbours:
-            sel = np.flatnonzero((lg.inter_peer == peer) & owned & known)
+            sel = inter[lg.inter_peer[inter] == peer]
             if len(sel) == 0:
                 continue
             out.append(GncWeights(robot=self.robot, peer=int(peer), round=rnd,
@@ -614,6 +652,38 @@ class PgoAgent:
                                   keys_b=lg.inter_peer_key[sel],
                                   weights=self.inter_weights[sel], mu=self.gnc.mu))
         return out
+
+    def _robust_r2(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Squared residuals of the robust edges this robot decides (its loop closures and the
+        inter-robot edges it owns, where the other end is known), and which are inliers now:
+        ``(r2, trusted, loop edges, owned inter edges)``."""
+        lg = self.local
+        loop = np.flatnonzero(~lg.intra_odometry)
+        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        inter = np.flatnonzero((lg.inter_peer > self.robot) & known)
+        r2 = np.concatenate([self._intra_r2(loop), self._inter_r2(inter)])
+        trusted = np.concatenate([self.intra_weights[loop] > 0.5, self.inter_weights[inter] > 0.5])
+        return r2, trusted, loop, inter
+
+    def _initial_mu(self, r2: np.ndarray, trusted: np.ndarray) -> float:
+        """This robot's ``μ₀``: from its largest (trusted) residual, at most ``gnc_mu0_max``."""
+        p = self.params
+        return min(self.gnc.initial_mu(r2, trusted if p.gnc_mu0_trusted else None), p.gnc_mu0_max)
+
+    def _propose_mu(self, rnd: int) -> list[Message]:
+        """First GNC step, team-wide ``μ₀``: publish this robot's ``μ₀`` (from its largest
+        residual) and apply the team's smallest proposal ``gnc_mu_delay`` rounds later.
+
+        Per-robot ``μ₀`` breaks GNC: a robot whose own residuals are small starts almost binary
+        and locks in the (outlier-biased) least-squares decisions (measured on the office
+        graph: 35 aliased closures kept; with one team ``μ`` none)."""
+        r2, trusted, _, _ = self._robust_r2()
+        mu0 = self._initial_mu(r2, trusted)
+        self.mu_proposals[self.robot] = mu0
+        self.gnc_pending = rnd + self.params.gnc_mu_delay
+        empty_k = np.zeros(0, dtype=np.int64)
+        return [GncWeights(robot=self.robot, peer=self.robot, round=rnd, keys_a=empty_k,
+                           keys_b=empty_k, weights=np.zeros(0), mu=mu0)]
 
     def _intra_r2(self, edges: np.ndarray) -> np.ndarray:
         lg = self.local

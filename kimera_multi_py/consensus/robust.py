@@ -47,21 +47,30 @@ class GncSchedule:
     steps: int = 0
     mu_step: float = MU_STEP
 
-    def update(self, r2: np.ndarray, trusted: np.ndarray | None = None) -> np.ndarray:
+    def update(self, r2: np.ndarray, trusted: np.ndarray | None = None,
+               mu0: float | None = None) -> np.ndarray:
         """New weights for ``r2`` at the current ``μ``, then ``μ ← mu_step·μ``.
 
-        ``μ₀`` comes from the largest residual among the ``trusted`` edges (default: all). When
-        the estimate is already robustly initialised, passing the current inliers keeps GNC from
-        starting so convex that every closure is nearly switched off.
+        ``μ₀`` is ``mu0`` when given (a team-wide value: distributed GNC needs one ``μ`` for the
+        whole team), else it comes from the largest residual among the ``trusted`` edges
+        (default: all). When the estimate is already robustly initialised, passing the current
+        inliers keeps GNC from starting so convex that every closure is nearly switched off.
         """
         r2 = np.asarray(r2, dtype=float)
-        if self.steps == 0:
-            pool = r2 if trusted is None or not np.any(trusted) else r2[np.asarray(trusted, bool)]
-            self.mu = initial_mu(float(pool.max()) if len(pool) else 0.0, self.barc2)
+        if self.steps == 0 and mu0 is not None:
+            self.mu = float(mu0)
+        elif self.steps == 0:
+            self.mu = self.initial_mu(r2, trusted)
         w = tls_weights(r2, self.mu, self.barc2)
         self.mu *= self.mu_step
         self.steps += 1
         return w
+
+    def initial_mu(self, r2: np.ndarray, trusted: np.ndarray | None = None) -> float:
+        """``μ₀`` from the largest of ``r2`` (over the ``trusted`` edges when any is)."""
+        r2 = np.asarray(r2, dtype=float)
+        pool = r2 if trusted is None or not np.any(trusted) else r2[np.asarray(trusted, bool)]
+        return initial_mu(float(pool.max()) if len(pool) else 0.0, self.barc2)
 
     @staticmethod
     def binary(weights: np.ndarray, tol: float = 1e-4) -> bool:

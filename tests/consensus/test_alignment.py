@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kimera_multi_py.consensus.alignment import align_frames, gnc_rotation_average
+from kimera_multi_py.consensus.alignment import align_frames, gnc_rotation_average, supported_edges
 from kimera_multi_py.geometry import inverse, make_pose, se3_exp, so3_exp
 
 
@@ -53,3 +53,14 @@ def test_rotation_average_rejects_outliers() -> None:
     assert np.all(w[:12] > 0.5) and np.all(w[12:] < 0.5)
     assert np.linalg.norm(est - R) < 0.02
     assert make_pose(est).shape == (4, 4)
+
+
+def test_support_screen_keeps_every_consistent_group() -> None:
+    # 20 true edges, 10 random outliers, then 12 aliased edges: one consistent group 6 m off
+    own, nb, Z, own_is_i, _, outlier = scene(30, 1 / 3, seed=1)
+    own2, nb2, Z2, own_is_i2, _, _ = scene(12, 0.0, seed=2)
+    nb2 = make_pose(np.eye(3), np.array([6.0, 0.0, 0.0])) @ nb2  # the identical room, elsewhere
+    keep = supported_edges(np.concatenate([own, own2]), np.concatenate([nb, nb2]),
+                           np.concatenate([Z, Z2]), np.concatenate([own_is_i, own_is_i2]))
+    assert np.array_equal(keep[:30], ~outlier)  # random outliers agree with nothing
+    assert keep[30:].all()  # the aliased group is left to the joint GNC
