@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 ROBOTS ?= 3
 SEED ?= 0
-MODE ?= centralized
+MODE ?= distributed
 
 .PHONY: demo test venv bench lint clean
 
