@@ -31,6 +31,13 @@ OBJECT_CLASSES: tuple[str, ...] = tuple(
     n for n in CLASS_NAMES[1:] if n not in STRUCTURE_CLASSES and n not in DYNAMIC_CLASSES
 )
 
+# Largest horizontal extent (m) an object of a class plausibly has: object-map merges that would
+# exceed it are refused (two cabinets side by side are two cabinets, not one fused box).
+MAX_OBJECT_EXTENT: dict[str, float] = {
+    "door": 1.6, "chair": 1.4, "table": 3.8, "sofa": 3.0, "cabinet": 1.8, "monitor": 1.6,
+    "plant": 1.5, "bed": 3.0,
+}
+
 # RGB colours (uint8) per class id, for PLY export and Rerun.
 CLASS_COLORS: np.ndarray = np.array(
     [

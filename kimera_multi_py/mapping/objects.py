@@ -44,10 +44,19 @@ from scipy.spatial import cKDTree
 from kimera_multi_py.geometry import inverse, transform_points
 from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
+from kimera_multi_py.semantics import CLASS_NAMES, MAX_OBJECT_EXTENT
 
 log = logging.getLogger(__name__)
 
 _INFEASIBLE = 1e9
+
+
+def _max_extent(labels: np.ndarray) -> np.ndarray:
+    """Largest plausible horizontal extent per class id (``inf`` for classes without a prior)."""
+    table = np.full(len(CLASS_NAMES), np.inf)
+    for name, ext in MAX_OBJECT_EXTENT.items():
+        table[CLASS_NAMES.index(name)] = ext
+    return table[np.asarray(labels, dtype=int)]
 
 
 @dataclass
@@ -501,6 +510,8 @@ class ObjectMap:
             lo, hi, labels = self._boxes(ids)
             gap = np.max(np.maximum(lo[:, None] - hi[None], lo[None] - hi[:, None]), axis=2)
             cand = (labels[:, None] == labels[None]) & (gap <= max_gap)
+            union = np.maximum(hi[:, None], hi[None]) - np.minimum(lo[:, None], lo[None])
+            cand &= union[..., :2].max(axis=2) <= _max_extent(labels)[:, None]
             for a, b in zip(*np.nonzero(np.triu(cand, 1)), strict=True):
                 A, B = self.landmarks[ids[a]], self.landmarks[ids[b]]
                 if self._hidden_between(A, B, octree, max_gap):
