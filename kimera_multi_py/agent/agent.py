@@ -46,7 +46,7 @@ from kimera_multi_py.comms.messages import (
 from kimera_multi_py.consensus.pcm import PcmNoise, odometry_consistent, pcm
 from kimera_multi_py.consensus.pgo import LocalGraph
 from kimera_multi_py.geometry import inverse, so3_log, transform_points
-from kimera_multi_py.io.pose_graph import robot_key
+from kimera_multi_py.io.pose_graph import robot_key, split_key
 from kimera_multi_py.mapping.config import MappingConfig, get_object_map, get_submap_map
 from kimera_multi_py.semantics import NUM_CLASSES, OBJECT_CLASSES, class_id
 
@@ -140,8 +140,6 @@ class LoopClosureStats:
     candidates: int = 0  # verification requests sent (inter) or attempted (intra)
     verified: int = 0  # passed geometric verification
     rejected_verification: int = 0
-    rejected_pcm: int = 0
-    accepted: int = 0
 
 
 class Agent:
@@ -383,7 +381,7 @@ class Agent:
             return []
         if msg.robot == self.params.server and self.params.server is not None:
             if isinstance(msg, PublicPoses):
-                own = np.array([(int(k) >> 56) - ord("a") == self.robot for k in msg.keys.tolist()], dtype=bool)
+                own = np.array([split_key(k)[0] == self.robot for k in msg.keys.tolist()], dtype=bool)
                 if own.any():
                     self.apply_poses(np.array(msg.poses[own]))
             return []
@@ -411,8 +409,8 @@ class Agent:
                 return []
             self.inter_edges = {k: v for k, v in self.inter_edges.items() if k[1] != msg.robot}
             for ka, kb, Z, n in zip(msg.keys_a, msg.keys_b, msg.poses, msg.inliers, strict=True):
-                own_kf = int(kb) & ((1 << 56) - 1)
-                peer_kf = int(ka) & ((1 << 56) - 1)
+                own_kf = split_key(kb)[1]
+                peer_kf = split_key(ka)[1]
                 if own_kf < self.num_keyframes:
                     self.inter_edges[(own_kf, msg.robot, peer_kf)] = (inverse(np.array(Z)), int(n))
             return [LoopClosuresAck(robot=self.robot, peer=msg.robot, batch=msg.batch)]

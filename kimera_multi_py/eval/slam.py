@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from kimera_multi_py.eval.metrics import object_precision_recall, occupancy_f1, semantic_miou
@@ -76,12 +74,6 @@ def object_quality(classes: np.ndarray, centroids: np.ndarray, gt_classes: np.nd
                    gt_centroids: np.ndarray) -> dict[str, float]:
     res = object_precision_recall(classes, centroids, gt_classes, gt_centroids, max_distance=0.5)
     return {k: float(v) for k, v in res.items()}
-
-
-@dataclass(frozen=True)
-class ClosureTruth:
-    true: int
-    false: int
 
 
 def score_closures(Z: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, max_trans: float = 1.0,

@@ -42,6 +42,7 @@ from kimera_multi_py.eval.results import Results, RobotResult
 from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures, world_boxes
 from kimera_multi_py.geometry import transform_points
 from kimera_multi_py.io.g2o import write_g2o
+from kimera_multi_py.io.pose_graph import split_key
 from kimera_multi_py.io.tum import write_tum
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
@@ -273,7 +274,7 @@ class SimRunner:
         for a, p in zip(self.agents, getattr(self, "pgo", []), strict=False):
             lg = p.local
             for e in range(len(lg.inter_own)):
-                peer_kf = int(lg.inter_peer_key[e]) & ((1 << 56) - 1)
+                peer_kf = split_key(lg.inter_peer_key[e])[1]
                 out[(a.robot, int(lg.inter_own[e]), int(lg.inter_peer[e]), peer_kf)] = float(p.inter_weights[e])
             for e_ in np.flatnonzero(~lg.intra_odometry).tolist():
                 out[(a.robot, int(lg.intra_i[e_]), a.robot, int(lg.intra_j[e_]))] = float(p.intra_weights[e_])
