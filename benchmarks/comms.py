@@ -209,6 +209,8 @@ async def measure(args: argparse.Namespace) -> dict[str, Any]:
             await _wait_raw_ready(parent)
             results = {}
             for label, size in SIZES.items():
+                if args.sizes and label not in args.sizes:
+                    continue
                 n_thr = args.thr_1k if size < 10_000 else args.thr_100k
                 results[label] = await _one_size(parent, size, n_thr, args)
                 results[label]["wire_bytes"] = {
@@ -323,6 +325,7 @@ def main() -> None:
     p.add_argument("--thr-1k", type=int, default=20_000, help="1 KB messages per repeat")
     p.add_argument("--thr-100k", type=int, default=2_000, help="100 KB messages per repeat")
     p.add_argument("--repeat", type=int, default=5, help="throughput runs per side")
+    p.add_argument("--sizes", nargs="*", choices=list(SIZES), help="only these payload sizes")
     p.add_argument("--loop", choices=runtime.LOOPS, default="auto",
                    help="event loop: uvloop when installed (auto), or force one")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)

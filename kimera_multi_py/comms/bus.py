@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar, runtime_checkable
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.codec import Codec, CodecError, Envelope
+from kimera_multi_py.comms.codec import Codec, CodecError, Envelope, Group
 from kimera_multi_py.comms.messages import Message
 from kimera_multi_py.errors import KimeraMultiError, MessageError
 
@@ -105,6 +105,12 @@ class TrafficCounters:
 def share(nbytes: int, n: int, i: int) -> int:
     """Message ``i``'s share of a payload of ``nbytes`` carrying ``n`` messages (sums exactly)."""
     return nbytes // n + (i < nbytes % n)
+
+
+def share_range(nbytes: int, n: int, i: int, k: int) -> int:
+    """``sum(share(nbytes, n, j) for j in range(i, i + k))`` in O(1)."""
+    r = nbytes % n
+    return k * (nbytes // n) + max(0, min(i + k, r) - i)
 
 
 def _table(table: dict[str, TopicCount]) -> dict[str, dict[str, int]]:
@@ -238,8 +244,18 @@ class Subscription(Stream[Message]):
         if self.closed:
             return
         key, data = item
-        for env in self._bus.accept_batch(key, data):
-            super().push(env.msg)
+        msgs = self._bus.accept_batch(key, data)
+        if not msgs:
+            return
+        room = self._maxsize - len(self._items)
+        if room < len(msgs):
+            for _ in range(len(msgs) - max(room, 0)):
+                if self._on_overflow is not None:
+                    self._on_overflow()
+            msgs = msgs[:max(room, 0)]
+        self._items.extend(msgs)
+        for _ in range(min(len(msgs), len(self._waiters))):
+            self._wake()
 
 
 @dataclass(frozen=True)
@@ -368,34 +384,45 @@ class BusBase:
         self.counters.count_received(key, len(data))
         return env
 
-    def accept_batch(self, key: str, data: bytes, from_owner: bool = True) -> list[Envelope]:
+    def accept_batch(self, key: str, data: bytes, from_owner: bool = True) -> list[Message]:
         """:meth:`accept` for a payload holding one message or a batch (same checks per message).
 
-        Each message of a batch is validated, counted and dropped on its own, exactly as if it
-        had come alone; its share of the payload bytes is what the counters attribute to it.
+        Returns the accepted messages in order. Each envelope of a batch is validated, counted
+        and dropped on its own, exactly as if it had come alone (a columnar batch envelope is
+        accepted or dropped as a whole); a message's share of the payload bytes is what the
+        counters attribute to it.
         """
         try:
-            items = self.codec.decode_batch(data)
+            items = self.codec.decode_groups(data)
         except MessageError as exc:  # the batch as a whole is malformed
             self._reject(key, exc)
             return []
         team_error, owner = self._key_verdict(key)
-        out: list[Envelope] = []
-        nbytes = 0
-        n = len(items)
-        for i, item in enumerate(items):
-            if isinstance(item, MessageError):
-                self._reject(key, item)
-            elif team_error is not None:
-                self._reject(key, team_error)
-            elif from_owner and owner != item.src:
-                self._reject(key, owner if isinstance(owner, MessageError) else CodecError(
-                    "key", f"key {key!r} does not belong to sender {item.src}"))
+        out: list[Message] = []
+        n = 0  # messages in the payload (a dropped columnar batch counts as one)
+        accepted: list[tuple[int, int]] = []  # (first index, count) of accepted messages
+        for item in items:
+            if item.__class__ is Group:
+                msgs = item.msgs  # type: ignore[union-attr]
+            elif item.__class__ is Envelope:
+                msgs = [item.msg]  # type: ignore[union-attr]
             else:
-                out.append(item)
-                nbytes += share(len(data), n, i)
+                self._reject(key, item)  # type: ignore[arg-type]
+                n += 1
+                continue
+            if team_error is not None:
+                self._reject(key, team_error)
+            elif from_owner and owner != item.src:  # type: ignore[union-attr]
+                self._reject(key, owner if isinstance(owner, MessageError) else CodecError(
+                    "key", f"key {key!r} does not belong to sender {item.src}"))  # type: ignore[union-attr]
+            else:
+                out.extend(msgs)
+                accepted.append((n, len(msgs)))
+            n += len(msgs)
         if out:
-            self.counters.count_received(key, nbytes, len(out))
+            size = len(data)
+            self.counters.count_received(
+                key, sum(share_range(size, n, i, k) for i, k in accepted), len(out))
         return out
 
     def _key_verdict(self, key: str) -> tuple[CodecError | None, int | MessageError]:
@@ -425,6 +452,11 @@ class BusBase:
 
     def encode_for(self, key: str, msg: Message) -> bytes:
         """Encode ``msg`` for sending on ``key``; refuse keys of other teams or robots."""
+        self.check_sender(key, msg)
+        return self.codec.encode(msg)
+
+    def check_sender(self, key: str, msg: Message) -> None:
+        """Raise ``MessageError`` unless this robot may send ``msg`` on ``key`` (bus open)."""
         self._check_open()
         if key not in self._own_keys:
             parsed = keys.parse_key(key)
@@ -434,7 +466,10 @@ class BusBase:
                 )
             if len(self._own_keys) < 10_000:
                 self._own_keys.add(key)
-        return self.codec.encode(msg)
+        if not isinstance(msg, Message):
+            raise CodecError("body", f"not a message: {type(msg).__name__}")
+        if msg.robot != self.robot:
+            raise CodecError("src", f"message robot {msg.robot} is not the sender {self.robot}")
 
     # presence --------------------------------------------------------------------------
     def _set_alive(self, robot: int, alive: bool) -> None:

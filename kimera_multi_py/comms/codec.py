@@ -32,6 +32,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from kimera_multi_py.comms.columnar import BATCH_TYPE, from_columns, to_columns
 from kimera_multi_py.comms.keys import check_team
 from kimera_multi_py.comms.messages import (
     INT64_MAX,
@@ -216,13 +217,17 @@ def decode(
         raise CodecError("payload", f"expected bytes, got {type(data).__name__}")
     if len(data) > max_bytes:
         raise CodecError("size", f"{len(data)} bytes exceeds the limit of {max_bytes}")
+    return _check_envelope(_unpack(data), team, robots)
+
+
+def _unpack(data: bytes | bytearray | memoryview) -> Any:
+    """msgpack -> Python objects (arrays as read-only views); only :class:`MessageError` escapes."""
     try:
-        env = msgpack.unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=True)
+        return msgpack.unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=True)
     except MessageError:
         raise
     except Exception as exc:  # noqa: BLE001 - msgpack raises many types on hostile input
         raise CodecError("payload", f"not valid msgpack ({type(exc).__name__}: {exc})") from exc
-    return _check_envelope(env, team, robots)
 
 
 def decode_batch(
@@ -236,16 +241,47 @@ def decode_batch(
 
     Returns one item per message, in order: its :class:`Envelope`, or the :class:`MessageError`
     that :func:`decode` would raise for that message alone (each envelope is validated exactly as
-    :func:`decode` validates a single one). A batch as a whole (size, msgpack, a non-empty array
-    of at most :data:`MAX_BATCH` items) is checked first; a failure there raises.
+    :func:`decode` validates a single one; a columnar batch envelope stands for its messages, or
+    for one error). A batch as a whole (size, msgpack, a non-empty array of at most
+    :data:`MAX_BATCH` items) is checked first; a failure there raises.
     """
+    out: list[Envelope | MessageError] = []
+    for item in decode_groups(data, team=team, robots=robots, max_bytes=max_bytes):
+        if item.__class__ is Group:
+            g: Group = item  # type: ignore[assignment]
+            out.extend(_envelope(m.TYPE, g.team, g.src, g.seq + i, g.stamp, m)
+                       for i, m in enumerate(g.msgs))
+        else:
+            out.append(item)  # type: ignore[arg-type]
+    return out
+
+
+@dataclass(frozen=True)
+class Group:
+    """The messages of one columnar batch envelope: message ``i`` has sequence ``seq + i``."""
+
+    team: str
+    src: int
+    seq: int
+    stamp: float
+    msgs: list[Message]
+
+
+def decode_groups(
+    data: bytes | bytearray | memoryview,
+    *,
+    team: str | None = None,
+    robots: Collection[int] | None = None,
+    max_bytes: int = MAX_MESSAGE_BYTES,
+) -> list[Envelope | Group | MessageError]:
+    """:func:`decode_batch` without expanding columnar batches: one item per envelope."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise CodecError("payload", f"expected bytes, got {type(data).__name__}")
     if len(data) > max_bytes:
         raise CodecError("size", f"{len(data)} bytes exceeds the limit of {max_bytes}")
     if not len(data) or not _is_batch_head(data[0]):
         try:
-            return [decode(data, team=team, robots=robots, max_bytes=max_bytes)]
+            return [_check_item(_unpack(data), team, robots)]
         except MessageError as exc:
             return [exc]
     try:
@@ -257,10 +293,10 @@ def decode_batch(
         raise CodecError("payload", f"not valid msgpack ({type(exc).__name__}: {exc})") from exc
     if not isinstance(items, list) or not 1 <= len(items) <= MAX_BATCH:
         raise CodecError("batch", f"expected 1 to {MAX_BATCH} envelopes")
-    out: list[Envelope | MessageError] = []
+    out: list[Envelope | Group | MessageError] = []
     for env in items:
         try:
-            out.append(_check_envelope(env, team, robots))
+            out.append(_check_item(env, team, robots))
         except MessageError as exc:
             out.append(exc)
     return out
@@ -268,8 +304,8 @@ def decode_batch(
 
 def _decode_each(
     data: bytes | bytearray | memoryview, team: str | None, robots: Collection[int] | None
-) -> list[Envelope | MessageError]:
-    """Slow path of :func:`decode_batch` when an element's arrays are malformed."""
+) -> list[Envelope | Group | MessageError]:
+    """Slow path of :func:`decode_groups` when an element's arrays are malformed."""
     unpacker = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=len(data) + 1)
     unpacker.feed(data)
     try:
@@ -278,7 +314,7 @@ def _decode_each(
         raise CodecError("payload", f"not valid msgpack ({type(exc).__name__}: {exc})") from exc
     if not 1 <= n <= MAX_BATCH:
         raise CodecError("batch", f"expected 1 to {MAX_BATCH} envelopes")
-    out: list[Envelope | MessageError] = []
+    out: list[Envelope | Group | MessageError] = []
     for _ in range(n):
         start = unpacker.tell()
         try:
@@ -287,7 +323,7 @@ def _decode_each(
             raise CodecError("payload", f"not valid msgpack ({type(exc).__name__}: {exc})") \
                 from exc
         try:
-            out.append(decode(bytes(data[start:unpacker.tell()]), team=team, robots=robots))
+            out.append(_check_item(_unpack(bytes(data[start:unpacker.tell()])), team, robots))
         except MessageError as exc:
             out.append(exc)
     if unpacker.tell() != len(data):
@@ -353,6 +389,20 @@ def _envelope(type_name: str, team: str, src: int, seq: int, stamp: float, msg: 
 
 def _check_envelope_slow(env: Any, team: str | None, robots: Collection[int] | None) -> Envelope:
     """The reference envelope check: what :func:`decode` accepts, raises or names."""
+    cls, env_team, src, seq, stamp = _check_header(env, team, robots)
+    if cls is None:
+        raise CodecError("type", f"a columnar {BATCH_TYPE}: decode it with decode_batch")
+    msg = cls.from_wire(env["body"])
+    if msg.robot != src:
+        raise CodecError("src", f"sender {src} differs from {cls.TYPE}.robot={msg.robot}")
+    return Envelope(SCHEMA_VERSION, cls.TYPE, env_team, src, seq, stamp, msg)
+
+
+def _check_header(
+    env: Any, team: str | None, robots: Collection[int] | None
+) -> tuple[type[Message] | None, str, int, int, float]:
+    """Check every envelope field but the body: (message class or None for a batch, team, src,
+    seq, stamp); raise :class:`CodecError` naming the first bad field."""
     if not isinstance(env, dict):
         raise CodecError("envelope", f"expected a map, got {type(env).__name__}")
     for name in ENVELOPE_FIELDS:
@@ -364,9 +414,9 @@ def _check_envelope_slow(env: Any, team: str | None, robots: Collection[int] | N
     v = env["v"]
     if isinstance(v, bool) or not isinstance(v, int) or v != SCHEMA_VERSION:
         raise CodecError("v", f"schema version {v!r}, expected {SCHEMA_VERSION}")
-    cls = message_type(env["type"]) if isinstance(env["type"], str) else None
-    if cls is None:
+    if not isinstance(env["type"], str):
         raise CodecError("type", "message type must be a string")
+    cls = None if env["type"] == BATCH_TYPE else message_type(env["type"])
     env_team = env["team"]
     if not isinstance(env_team, str):
         raise CodecError("team", "team must be a string")
@@ -387,10 +437,19 @@ def _check_envelope_slow(env: Any, team: str | None, robots: Collection[int] | N
     stamp = env["stamp"]
     if not isinstance(stamp, float) or not math.isfinite(stamp) or stamp < 0:
         raise CodecError("stamp", f"invalid stamp {stamp!r}")
-    msg = cls.from_wire(env["body"])
-    if msg.robot != src:
-        raise CodecError("src", f"sender {src} differs from {cls.TYPE}.robot={msg.robot}")
-    return Envelope(SCHEMA_VERSION, cls.TYPE, env_team, src, seq, stamp, msg)
+    return cls, env_team, src, seq, stamp
+
+
+def _check_item(env: Any, team: str | None, robots: Collection[int] | None) -> Envelope | Group:
+    """Validate one decoded envelope: an :class:`Envelope`, or a columnar batch's :class:`Group`."""
+    kind = env.get("type") if env.__class__ is dict else None
+    if kind.__class__ is str and kind == BATCH_TYPE:
+        _, env_team, src, seq, stamp = _check_header(env, team, robots)
+        msgs = from_columns(env["body"], src, MAX_BATCH)
+        if seq + len(msgs) - 1 > INT64_MAX:
+            raise CodecError("seq", f"sequence numbers of the batch overflow from {seq}")
+        return Group(env_team, src, seq, stamp, msgs)
+    return _check_envelope(env, team, robots)
 
 
 class Codec:
@@ -426,8 +485,35 @@ class Codec:
             raise CodecError("size", f"{len(data)} bytes exceeds the limit of {self.max_bytes}")
         return data
 
+    def encode_many(self, msgs: list[Message]) -> bytes | None:
+        """One columnar batch envelope for ``msgs`` (see :mod:`columnar`), or None when they do
+        not qualify (fewer than two, mixed types, or array shapes that differ)."""
+        if len(msgs) > MAX_BATCH:
+            raise CodecError("batch", f"{len(msgs)} messages, at most {MAX_BATCH} per batch")
+        body = to_columns(msgs)
+        if body is None:
+            return None
+        robot = self.robot
+        for m in msgs:
+            if m.robot != robot:
+                raise CodecError("src", f"message robot {m.robot} is not the sender {robot}")
+        seq = self._seq
+        seq0 = next(seq)
+        for _ in range(len(msgs) - 1):  # messages get seq0, seq0 + 1, ... (one sender thread)
+            next(seq)
+        data = _packb({"v": SCHEMA_VERSION, "type": BATCH_TYPE, "team": self.team,
+                       "src": robot, "seq": seq0, "stamp": time.time(), "body": body})
+        if len(data) > self.max_bytes:
+            raise CodecError("size", f"{len(data)} bytes exceeds the limit of {self.max_bytes}")
+        return data
+
     def decode(self, data: bytes | bytearray | memoryview) -> Envelope:
         return decode(data, team=self.team, robots=self.robots, max_bytes=self.max_bytes)
 
     def decode_batch(self, data: bytes | bytearray | memoryview) -> list[Envelope | MessageError]:
         return decode_batch(data, team=self.team, robots=self.robots, max_bytes=self.max_bytes)
+
+    def decode_groups(
+        self, data: bytes | bytearray | memoryview
+    ) -> list[Envelope | Group | MessageError]:
+        return decode_groups(data, team=self.team, robots=self.robots, max_bytes=self.max_bytes)

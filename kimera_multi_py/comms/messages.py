@@ -177,6 +177,10 @@ class Message:
 
     __hash__ = None  # type: ignore[assignment]
 
+    def size_hint(self) -> int:
+        """A quick upper-ish estimate of the encoded size in bytes (compiled per class)."""
+        return self.nbytes() + 16 * len(self.SPECS) + 64
+
     def nbytes(self) -> int:
         """Bytes held in the message's arrays (a quick size estimate)."""
         return sum(v.nbytes for v in self.to_wire().values() if isinstance(v, np.ndarray))
@@ -198,10 +202,43 @@ def message(type_name: str, topic: str) -> Callable[[M], M]:
         dc.TOPIC = topic
         dc.SPECS = {f.name: f.metadata["spec"] for f in dataclasses.fields(dc)}
         _compile_checks(dc)
+        _compile_init(dc)
         MESSAGE_TYPES[type_name] = dc
         return dc
 
     return wrap
+
+
+def _compile_init(cls: type[Message]) -> None:
+    """Replace the frozen dataclass's ``__init__`` (one ``object.__setattr__`` call per field)
+    by one that fills ``__dict__`` at once: same signature, defaults and validation."""
+    env: dict[str, Any] = {"MISSING": dataclasses.MISSING}
+    params, factories = [], []
+    for i, f in enumerate(dataclasses.fields(cls)):
+        if f.default is not dataclasses.MISSING:
+            env[f"d{i}"] = f.default
+            params.append(f"{f.name}=d{i}")
+        elif f.default_factory is not dataclasses.MISSING:
+            env[f"f{i}"] = f.default_factory
+            params.append(f"{f.name}=MISSING")
+            factories.append(f"    if {f.name} is MISSING:\n        {f.name} = f{i}()")
+        else:
+            params.append(f.name)
+    fill = ", ".join(f"{n!r}: {n}" for n in cls.SPECS)
+    src = f"""
+def __init__(self, {", ".join(params)}):
+{chr(10).join(factories)}
+    d = self.__dict__
+    d.update({{{fill}}})
+    if not fast_ok(d):
+        self._validate_slow()
+"""
+    env["fast_ok"] = cls._fast_ok
+    exec(compile(src, f"<{cls.TYPE} init>", "exec"), env)  # noqa: S102 - generated from fields
+    init = env["__init__"]
+    init.__qualname__ = f"{cls.__qualname__}.__init__"
+    init.__doc__ = cls.__init__.__doc__
+    cls.__init__ = init  # type: ignore[method-assign]
 
 
 # ---------------------------------------------------------------------------- compiled checks
@@ -272,6 +309,11 @@ def _compile_checks(cls: type[Message]) -> None:
     all_loose = " and\n            ".join(tests + loose) or "True"
     body = ", ".join(f"{n!r}: pack_array(d[{n!r}])" if isinstance(cls.SPECS[n], Array)
                      else f"{n!r}: d[{n!r}]" for n in names)
+    sized = " + ".join([f"d[{n!r}].nbytes" for n in names if isinstance(cls.SPECS[n], Array)]
+                       + [f"len(d[{n!r}])" for n in names if isinstance(cls.SPECS[n], Str)]
+                       + [str(16 * len(names) + 64)])
+    cols = ", ".join(f"c{i}" for i in range(len(names)))
+    vals = ", ".join(f"v{i}" for i in range(len(names))) + ("," if len(names) == 1 else "")
     src = f"""
 def from_wire(body):
     d = body
@@ -291,6 +333,19 @@ def wire_body(self, pack_array):
     d = self.__dict__
     return {{{body}}}
 
+def size_hint(self):
+    d = self.__dict__
+    return {sized}
+
+def from_rows({cols}):
+    out = []
+    append = out.append
+    for {vals} in zip({cols}):
+        msg = new(cls)
+        msg.__dict__.update({{{fill}}})
+        append(msg)
+    return out
+
 def fast_ok(d):
     try:
 {loads}
@@ -302,6 +357,8 @@ def fast_ok(d):
     cls.from_wire = staticmethod(env["from_wire"])  # type: ignore[method-assign,assignment]
     cls._fast_ok = staticmethod(env["fast_ok"])  # type: ignore[method-assign]
     cls._wire_body = env["wire_body"]  # type: ignore[method-assign]
+    cls.size_hint = env["size_hint"]  # type: ignore[method-assign]
+    cls._from_rows = staticmethod(env["from_rows"])  # type: ignore[attr-defined]
     cls._checks_source = src  # type: ignore[attr-defined]
 
 

@@ -152,7 +152,7 @@ class ZenohBus(BusBase):
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._batch_bytes = batch_bytes
         self._burst = False  # a message went out in this loop iteration: coalesce the next ones
-        self._runs: list[tuple[str, list[bytes]]] = []  # pending batches, in publication order
+        self._runs: list[tuple[str, list[Message]]] = []  # pending runs, in publication order
         self._pending_bytes = 0
         self._pending_msgs = 0
         self._subs: dict[Subscription, Any] = {}
@@ -189,32 +189,40 @@ class ZenohBus(BusBase):
 
     # publish / subscribe -----------------------------------------------------------------
     async def publish(self, key: str, msg: Message) -> None:
-        """Encode ``msg`` now; put it now, or (within a burst) in a batch before the loop idles.
+        """Send ``msg`` now or, within a burst, in a batch put before the loop idles.
 
-        The first message of an event-loop iteration goes out at once, so a lone message waits
-        for nothing. Messages published after it in the same iteration (a burst: no ``await``
-        yielded to the loop in between) are coalesced, in publication order, into batch payloads
-        of at most ``batch_bytes`` per key, each one Zenoh put; whatever is pending is put when
-        the loop next runs its callbacks, i.e. as soon as the publishing task yields. Order
-        across keys is kept: pending batches are put in the order their messages were published.
+        The first message of an event-loop iteration is encoded and put at once, so a lone
+        message waits for nothing. Messages published after it in the same iteration (a burst:
+        no ``await`` yielded to the loop in between) are coalesced, in publication order, into
+        payloads of at most ``batch_bytes`` per key, one Zenoh put each; a run of same-type
+        messages becomes one columnar batch envelope (:mod:`~kimera_multi_py.comms.columnar`).
+        Whatever is pending is put when the loop next runs its callbacks, i.e. as soon as the
+        publishing task yields. Order across keys is kept: pending payloads are put in the order
+        their messages were published. Messages of ``batch_bytes`` or more are never coalesced.
+        The key and the sender are checked here (raising ``MessageError``); an encoding failure
+        of a deferred batch is logged and counted (``dropped["publish_error"]``).
         """
-        data = self.encode_for(key, msg)
         if not self._burst:  # first in this loop iteration: send now
+            data = self.encode_for(key, msg)
             self._burst = True
             self._loop.call_soon(self._end_burst)
-            self._put(key, [data])
+            self._put(key, data, 1)
             return
-        if self._batch_bytes <= 0:  # coalescing off
-            self._put(key, [data])
+        self.check_sender(key, msg)
+        size = msg.size_hint()
+        if self._batch_bytes <= 0 or size >= self._batch_bytes:  # coalescing off / too large
+            data = self.codec.encode(msg)
+            self._flush()  # keep publication order
+            self._put(key, data, 1)
             return
-        if self._pending_bytes + len(data) > self._batch_bytes or self._pending_msgs >= MAX_BATCH:
+        if self._pending_bytes + size > self._batch_bytes or self._pending_msgs >= MAX_BATCH:
             self._flush()
         runs = self._runs
         if runs and runs[-1][0] == key:
-            runs[-1][1].append(data)
+            runs[-1][1].append(msg)
         else:
-            runs.append((key, [data]))
-        self._pending_bytes += len(data)
+            runs.append((key, [msg]))
+        self._pending_bytes += size
         self._pending_msgs += 1
 
     def _end_burst(self) -> None:
@@ -222,25 +230,46 @@ class ZenohBus(BusBase):
         self._flush()
 
     def _flush(self) -> None:
-        """Put every pending batch, in publication order (errors are logged and counted)."""
+        """Encode and put every pending run, in publication order (errors logged and counted)."""
         runs = self._runs
+        if not runs:
+            return
         self._runs = []
         self._pending_bytes = self._pending_msgs = 0
-        for key, parts in runs:
+        for key, msgs in runs:
             try:
-                self._put(key, parts)
+                parts = self._encode_run(msgs)
+                data = parts[0] if len(parts) == 1 else batch_header(len(parts)) + b"".join(parts)
+                self._put(key, data, len(msgs))
             except MessageError as exc:
                 self.counters.count_dropped("publish_error")
                 log.warning("robot %d: %s", self.robot, exc)
 
-    def _put(self, key: str, parts: list[bytes]) -> None:
-        """One Zenoh put of one envelope, or of a batch (msgpack array) of several."""
-        data = parts[0] if len(parts) == 1 else batch_header(len(parts)) + b"".join(parts)
+    def _encode_run(self, msgs: list[Message]) -> list[bytes]:
+        """Envelopes for a run of messages on one key: columnar batches for same-type stretches."""
+        codec = self.codec
+        parts: list[bytes] = []
+        i, n = 0, len(msgs)
+        while i < n:
+            cls = msgs[i].__class__
+            j = i + 1
+            while j < n and msgs[j].__class__ is cls:
+                j += 1
+            data = codec.encode_many(msgs[i:j]) if j - i > 1 else None
+            if data is None:
+                parts.extend(codec.encode(m) for m in msgs[i:j])
+            else:
+                parts.append(data)
+            i = j
+        return parts
+
+    def _put(self, key: str, data: bytes, messages: int) -> None:
+        """One Zenoh put of a payload carrying ``messages`` messages."""
         try:
             self._publisher(key).put(data)
         except zenoh.ZError as exc:
             raise MessageError(f"key: zenoh refused to publish on {key!r}: {exc}") from exc
-        self.counters.count_sent(key, len(data), len(parts))
+        self.counters.count_sent(key, len(data), messages)
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         pub = self._publishers.get(key)
