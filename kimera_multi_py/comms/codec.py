@@ -22,12 +22,13 @@ from __future__ import annotations
 
 import math
 import struct
+import threading
 import time
 from collections.abc import Collection
 from dataclasses import dataclass
 from functools import lru_cache
 from itertools import count
-from typing import Any
+from typing import Any, NamedTuple
 
 import msgpack
 import numpy as np
@@ -48,6 +49,7 @@ EXT_NDARRAY = 1
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 MAX_NDIM = 8
 MAX_BATCH = 4096
+LARGE_BYTES = 64 * 1024  # from this size on, encode/decode with comms.largemsg (fewer copies)
 ENVELOPE_FIELDS = ("v", "type", "team", "src", "seq", "stamp", "body")
 _N_FIELDS = len(ENVELOPE_FIELDS)
 _isfinite = math.isfinite
@@ -81,9 +83,8 @@ class CodecError(MessageError):
         super().__init__(f"{field}: {problem}")
 
 
-@dataclass(frozen=True)
-class Envelope:
-    """A decoded message with its envelope."""
+class Envelope(NamedTuple):
+    """A decoded message with its envelope (a named tuple: cheap to build on the hot path)."""
 
     v: int
     type: str
@@ -198,7 +199,20 @@ def encode(msg: Message, *, team: str, src: int, seq: int, stamp: float | None =
 
 
 def _packb(obj: Any) -> bytes:
-    return msgpack.packb(obj, default=_default, use_bin_type=True)  # a Packer per call: thread-safe
+    """``msgpack.packb(obj, default=_default, use_bin_type=True)`` with one Packer per thread.
+
+    ``msgpack.packb`` builds a Packer, and mallocs its 256 KiB buffer, on every call: for a
+    stream of messages that allocation churn (and its page faults) costs more than the packing.
+    A Packer resets its buffer after each ``pack`` (also when it raises).
+    """
+    try:
+        packer = _local.packer
+    except AttributeError:
+        packer = _local.packer = msgpack.Packer(default=_default, use_bin_type=True)
+    return packer.pack(obj)  # type: ignore[no-any-return]
+
+
+_local = threading.local()
 
 
 def decode(
@@ -221,7 +235,15 @@ def decode(
 
 
 def _unpack(data: bytes | bytearray | memoryview) -> Any:
-    """msgpack -> Python objects (arrays as read-only views); only :class:`MessageError` escapes."""
+    """msgpack -> Python objects (arrays as read-only views); only :class:`MessageError` escapes.
+
+    Payloads of :data:`LARGE_BYTES` or more are read by :func:`largemsg.unpack`, whose arrays are
+    views into ``data`` itself (no copy, no allocation per array), when it takes them.
+    """
+    if len(data) >= LARGE_BYTES and data.__class__ is bytes:
+        env = largemsg.unpack(data)  # type: ignore[arg-type]
+        if env is not None:
+            return env
     try:
         return msgpack.unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=True)
     except MessageError:
@@ -275,12 +297,13 @@ def decode_groups(
     max_bytes: int = MAX_MESSAGE_BYTES,
 ) -> list[Envelope | Group | MessageError]:
     """:func:`decode_batch` without expanding columnar batches: one item per envelope."""
-    if not isinstance(data, bytes | bytearray | memoryview):
+    if data.__class__ is not bytes and not isinstance(data, bytearray | memoryview):
         raise CodecError("payload", f"expected bytes, got {type(data).__name__}")
-    if len(data) > max_bytes:
-        raise CodecError("size", f"{len(data)} bytes exceeds the limit of {max_bytes}")
-    if not len(data) or not _is_batch_head(data[0]):
-        try:
+    size = len(data)
+    if size > max_bytes:
+        raise CodecError("size", f"{size} bytes exceeds the limit of {max_bytes}")
+    if not size or not 0x90 <= data[0] <= 0x9F and data[0] != 0xDC and data[0] != 0xDD:
+        try:  # one envelope
             return [_check_item(_unpack(data), team, robots)]
         except MessageError as exc:
             return [exc]
@@ -380,11 +403,11 @@ def _team_ok(team: str) -> bool:
 
 
 def _envelope(type_name: str, team: str, src: int, seq: int, stamp: float, msg: Message) -> Envelope:
-    """An :class:`Envelope` of validated fields, without the frozen dataclass's setattr calls."""
-    env = _new(Envelope)
-    env.__dict__.update(v=SCHEMA_VERSION, type=type_name, team=team, src=src, seq=seq,
-                        stamp=stamp, msg=msg)
-    return env
+    """An :class:`Envelope` of validated fields."""
+    return _tuple_new(Envelope, (SCHEMA_VERSION, type_name, team, src, seq, stamp, msg))
+
+
+_tuple_new = tuple.__new__
 
 
 def _check_envelope_slow(env: Any, team: str | None, robots: Collection[int] | None) -> Envelope:
@@ -478,9 +501,14 @@ class Codec:
         if msg.robot != self.robot:
             raise CodecError("src", f"message robot {msg.robot} is not the sender {self.robot}")
         # the team was checked once in __init__ and seq comes from our own counter
-        data = _packb({"v": SCHEMA_VERSION, "type": msg.TYPE, "team": self.team,
-                       "src": self.robot, "seq": next(self._seq), "stamp": time.time(),
-                       "body": msg._wire_body(ext_of)})
+        if msg.size_hint() < LARGE_BYTES:
+            data = _packb({"v": SCHEMA_VERSION, "type": msg.TYPE, "team": self.team,
+                           "src": self.robot, "seq": next(self._seq), "stamp": time.time(),
+                           "body": msg._wire_body(ext_of)})
+        else:  # the same bytes, with one copy of the arrays instead of three
+            data = largemsg.pack({"v": SCHEMA_VERSION, "type": msg.TYPE, "team": self.team,
+                                  "src": self.robot, "seq": next(self._seq), "stamp": time.time(),
+                                  "body": msg.to_wire()})
         if len(data) > self.max_bytes:
             raise CodecError("size", f"{len(data)} bytes exceeds the limit of {self.max_bytes}")
         return data
@@ -517,3 +545,6 @@ class Codec:
         self, data: bytes | bytearray | memoryview
     ) -> list[Envelope | Group | MessageError]:
         return decode_groups(data, team=self.team, robots=self.robots, max_bytes=self.max_bytes)
+
+
+from kimera_multi_py.comms import largemsg  # noqa: E402 - largemsg builds on this module

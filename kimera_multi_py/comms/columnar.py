@@ -24,6 +24,9 @@ naming ``Batch.<field>``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import cache
+from operator import itemgetter
 from typing import Any
 
 import numpy as np
@@ -43,37 +46,47 @@ from kimera_multi_py.errors import MessageError
 
 BATCH_TYPE = "Batch"
 MIN_COLUMNAR = 2  # shorter runs go as ordinary envelopes
+_SCALAR_DTYPES = {Int: np.dtype(np.int64), Float: np.dtype(np.float64), Bool: np.dtype(np.bool_)}
 
 
 def to_columns(msgs: list[Message]) -> dict[str, Any] | None:
     """The batch body of ``msgs`` (one type, >= 2), or None when they cannot share columns."""
-    cls = msgs[0].__class__
     n = len(msgs)
     if n < MIN_COLUMNAR:
         return None
-    dicts = [m.__dict__ for m in msgs]
+    cls = msgs[0].__class__
+    if not issubclass(cls, Message) or MESSAGE_TYPES.get(cls.TYPE) is not cls:
+        from kimera_multi_py.comms.codec import CodecError  # codec imports this module
+
+        raise CodecError("body", f"not a message: {cls.__name__}")
     for m in msgs:
         if m.__class__ is not cls:
             return None
+    specs = cls.SPECS
+    # transpose in C: one tuple of field values per message, then one tuple per field
+    columns = zip(*map(_getter(cls), [m.__dict__ for m in msgs]), strict=True)
     cols: dict[str, Any] = {}
-    for name, spec in cls.SPECS.items():
-        values = [d[name] for d in dicts]
-        if spec.__class__ is Array:
+    for (name, spec), values in zip(specs.items(), columns, strict=True):
+        kind = spec.__class__
+        if kind is Array:
             shape = values[0].shape
             for v in values:
                 if v.shape != shape:
                     return None
             # concatenate + reshape: a C loop, where np.stack slices every array in Python
             cols[name] = np.concatenate(values).reshape((n, *shape)) if shape else np.stack(values)
-        elif spec.__class__ is Int:
-            cols[name] = np.array(values, dtype=np.int64)
-        elif spec.__class__ is Float:
-            cols[name] = np.array(values, dtype=np.float64)
-        elif spec.__class__ is Bool:
-            cols[name] = np.array(values, dtype=np.bool_)
+        elif kind is Str:
+            cols[name] = list(values)
         else:
-            cols[name] = values
+            cols[name] = np.array(values, dtype=_SCALAR_DTYPES[kind])
     return {"type": cls.TYPE, "n": n, "cols": cols}
+
+
+@cache
+def _getter(cls: type[Message]) -> Callable[[dict[str, Any]], tuple[Any, ...]]:
+    names = list(cls.SPECS)
+    get = itemgetter(*names)
+    return get if len(names) > 1 else lambda d: (get(d),)
 
 
 def from_columns(body: Any, src: int, max_batch: int) -> list[Message]:
@@ -119,9 +132,6 @@ def _from_columns(body: Any, src: int, max_batch: int) -> list[Message]:
     if robots.count(src) != n:
         raise _err("robot", f"messages of another robot than the sender {src}")
     return cls._from_rows(*rows)  # type: ignore[attr-defined, no-any-return]
-
-
-_SCALAR_DTYPES = {Int: np.dtype(np.int64), Float: np.dtype(np.float64), Bool: np.dtype(np.bool_)}
 
 
 def _scalar_column(where: str, spec: Any, col: Any, n: int) -> np.ndarray:

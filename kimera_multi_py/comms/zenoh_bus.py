@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 MODES = ("peer", "client", "router")
 DEFAULT_BATCH_BYTES = 60_000  # below Zenoh's 64 KiB transport batch: one batch, no fragments
 INDIRECT_CALLBACKS = True  # run data callbacks on zenoh-python's callback thread
+EXPRESS = False
 
 
 def zenoh_config(
@@ -147,7 +148,7 @@ class ZenohBus(BusBase):
         self._congestion = (
             zenoh.CongestionControl.BLOCK if block_on_congestion else zenoh.CongestionControl.DROP
         )
-        self._inbox: deque[tuple[Subscription, str, bytes]] = deque()
+        self._inbox: deque[tuple[Subscription, str, zenoh.ZBytes]] = deque()
         self._drain_scheduled = False
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._batch_bytes = batch_bytes
@@ -274,7 +275,7 @@ class ZenohBus(BusBase):
     def _publisher(self, key: str) -> zenoh.Publisher:
         pub = self._publishers.get(key)
         if pub is None:
-            pub = self.session.declare_publisher(key, congestion_control=self._congestion)
+            pub = self.session.declare_publisher(key, congestion_control=self._congestion, express=EXPRESS)
             self._publishers[key] = pub
         return pub
 
@@ -285,7 +286,8 @@ class ZenohBus(BusBase):
         inbox = self._inbox
 
         def on_sample(sample: zenoh.Sample) -> None:
-            inbox.append((sub, str(sample.key_expr), sample.payload.to_bytes()))
+            # the payload is copied out on the loop thread (see _drain), not here
+            inbox.append((sub, str(sample.key_expr), sample.payload))
             if not self._drain_scheduled:
                 self._drain_scheduled = True
                 self._hand_over(self._drain)
@@ -296,12 +298,17 @@ class ZenohBus(BusBase):
         return sub
 
     def _drain(self) -> None:
-        """On the loop: move every sample handed over so far into its subscription."""
+        """On the loop: move every sample handed over so far into its subscription.
+
+        The payload bytes are copied out of Zenoh here, on the loop thread that also frees them:
+        a buffer malloc'ed on the callback thread and freed on the loop thread bounces between
+        glibc arenas (trim, then page faults on the next one), which cut 100 KB throughput by 4x.
+        """
         self._drain_scheduled = False
         inbox = self._inbox
         while inbox:
-            sub, key, data = inbox.popleft()
-            sub.push((key, data))
+            sub, key, payload = inbox.popleft()
+            sub.push((key, payload.to_bytes()))
 
     def _unsubscribe(self, sub: Stream[Message]) -> None:
         self._undeclare(self._subs.pop(sub, None))  # type: ignore[call-overload]
