@@ -247,8 +247,11 @@ class Subscription(Stream[Message]):
         if self.closed:
             return
         key, data = item
-        msgs = self._bus.accept_batch(key, data)
-        if not msgs:
+        self.push_messages(self._bus.accept_batch(key, data))
+
+    def push_messages(self, msgs: list[Message]) -> None:
+        """Queue messages already accepted by the bus (on the event-loop thread)."""
+        if self.closed or not msgs:
             return
         room = self._maxsize - len(self._items)
         if room < len(msgs):

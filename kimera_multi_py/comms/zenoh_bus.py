@@ -46,7 +46,6 @@ log = logging.getLogger(__name__)
 MODES = ("peer", "client", "router")
 DEFAULT_BATCH_BYTES = 60_000  # below Zenoh's 64 KiB transport batch: one batch, no fragments
 INDIRECT_CALLBACKS = True  # run data callbacks on zenoh-python's callback thread
-EXPRESS = False
 
 
 def zenoh_config(
@@ -275,7 +274,7 @@ class ZenohBus(BusBase):
     def _publisher(self, key: str) -> zenoh.Publisher:
         pub = self._publishers.get(key)
         if pub is None:
-            pub = self.session.declare_publisher(key, congestion_control=self._congestion, express=EXPRESS)
+            pub = self.session.declare_publisher(key, congestion_control=self._congestion)
             self._publishers[key] = pub
         return pub
 
@@ -286,8 +285,7 @@ class ZenohBus(BusBase):
         inbox = self._inbox
 
         def on_sample(sample: zenoh.Sample) -> None:
-            # the payload is copied out on the loop thread (see _drain), not here
-            inbox.append((sub, str(sample.key_expr), sample.payload))
+            inbox.append((sub, str(sample.key_expr), sample.payload))  # copied out in _drain
             if not self._drain_scheduled:
                 self._drain_scheduled = True
                 self._hand_over(self._drain)
@@ -300,9 +298,9 @@ class ZenohBus(BusBase):
     def _drain(self) -> None:
         """On the loop: move every sample handed over so far into its subscription.
 
-        The payload bytes are copied out of Zenoh here, on the loop thread that also frees them:
-        a buffer malloc'ed on the callback thread and freed on the loop thread bounces between
-        glibc arenas (trim, then page faults on the next one), which cut 100 KB throughput by 4x.
+        The payload bytes are copied out of Zenoh here, on the loop thread that also frees them
+        (a buffer malloc'ed on the callback thread and freed on the loop thread bounces between
+        glibc arenas: see :func:`runtime.tune_allocator`).
         """
         self._drain_scheduled = False
         inbox = self._inbox
