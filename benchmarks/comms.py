@@ -55,6 +55,12 @@ REPO = Path(__file__).resolve().parents[1]
 TEAM = "bench"
 RAW_LAT, RAW_LAT_ECHO = "bench_raw/lat", "bench_raw/lat_echo"
 RAW_THR, RAW_THR_DONE = "bench_raw/thr", "bench_raw/thr_done"
+# decomposition baselines (reported, not the target's basis): what the bus's architecture costs
+# before any of its own work. "copy": the receiving callback copies the payload out of Zenoh
+# (what any consumer of the bytes needs); "hop": the callback hands the payload to the asyncio
+# loop (call_soon_threadsafe, one drain per burst, as ZenohBus does), which copies it and counts
+# (or echoes it, for latency; the echo comes back through the same hop).
+FLOORS = ("copy", "hop")
 BULK = "diag/bulk"
 SIZES = {"1KB": 1024, "100KB": 100 * 1024}
 
@@ -81,13 +87,13 @@ async def child(connect: str, queue_size: int) -> None:
                                              congestion_control=zenoh.CongestionControl.BLOCK)
         done_pub = session.declare_publisher(RAW_THR_DONE,
                                              congestion_control=zenoh.CongestionControl.BLOCK)
-        count = [0, 0]  # messages, first arrival (ns)
+        loop = asyncio.get_running_loop()
+        # (messages, first arrival in ns) per counting mode
+        counts = {mode: [0, 0] for mode in ("raw", *FLOORS)}
 
-        def on_lat(sample: zenoh.Sample) -> None:
-            echo_pub.put(sample.payload)
-
-        def on_thr(sample: zenoh.Sample) -> None:
-            if len(sample.payload) <= 8:  # end marker: report count and receiver-side time
+        def arrived(mode: str, n: int) -> None:
+            count = counts[mode]
+            if n <= 8:  # end marker: report count and receiver-side time
                 elapsed = time.perf_counter_ns() - count[1]
                 done_pub.put(count[0].to_bytes(8, "little") + elapsed.to_bytes(8, "little"))
                 count[0] = 0
@@ -96,8 +102,44 @@ async def child(connect: str, queue_size: int) -> None:
                     count[1] = time.perf_counter_ns()
                 count[0] += 1
 
+        def on_lat(sample: zenoh.Sample) -> None:
+            echo_pub.put(sample.payload)
+
+        def on_thr(sample: zenoh.Sample) -> None:
+            arrived("raw", len(sample.payload))
+
+        def on_copy(sample: zenoh.Sample) -> None:
+            arrived("copy", len(sample.payload.to_bytes()))
+
+        hop_inbox: list[Any] = []
+        hop_pending = [False]
+        hop_echo = session.declare_publisher(f"{RAW_LAT}_hop_echo",
+                                             congestion_control=zenoh.CongestionControl.BLOCK)
+
+        def hop_drain() -> None:
+            hop_pending[0] = False
+            items = hop_inbox[:]
+            hop_inbox.clear()
+            for kind, payload in items:
+                data = payload.to_bytes()
+                if kind == "lat":
+                    hop_echo.put(data)
+                else:
+                    arrived("hop", len(data))
+
+        def hop(kind: str) -> Any:
+            def on_sample(sample: zenoh.Sample) -> None:
+                hop_inbox.append((kind, sample.payload))
+                if not hop_pending[0]:
+                    hop_pending[0] = True
+                    loop.call_soon_threadsafe(hop_drain)
+            return on_sample
+
         raw_subs = [session.declare_subscriber(RAW_LAT, on_lat),
-                    session.declare_subscriber(RAW_THR, on_thr)]
+                    session.declare_subscriber(RAW_THR, on_thr),
+                    session.declare_subscriber(f"{RAW_THR}_copy", on_copy),
+                    session.declare_subscriber(f"{RAW_THR}_hop", hop("thr")),
+                    session.declare_subscriber(f"{RAW_LAT}_hop", hop("lat"))]
         # bus: echo pings, count bulk messages (the same work as the raw callbacks)
         pings = bus.subscribe(keys.topic_key(TEAM, 0, keys.PING))
         bulk = bus.subscribe(keys.topic_key(TEAM, 0, BULK))
@@ -127,6 +169,7 @@ async def child(connect: str, queue_size: int) -> None:
             t.cancel()
         for s in raw_subs:
             s.undeclare()
+        hop_echo.undeclare()
 
 
 # ---------------------------------------------------------------------------- parent (measuring)
@@ -138,6 +181,17 @@ class Parent:
         self.raw_lat_pub = s.declare_publisher(RAW_LAT, congestion_control=block)
         self.raw_thr_pub = s.declare_publisher(RAW_THR, congestion_control=block)
         self.raw_echo = s.declare_subscriber(RAW_LAT_ECHO, zenoh.handlers.FifoChannel(1024))
+        self.floor_thr_pubs = {mode: s.declare_publisher(f"{RAW_THR}_{mode}", congestion_control=block)
+                               for mode in FLOORS}
+        self.hop_lat_pub = s.declare_publisher(f"{RAW_LAT}_hop", congestion_control=block)
+        self._hop_waiter: asyncio.Future[None] | None = None
+        loop = asyncio.get_running_loop()
+
+        def on_hop_echo(sample: zenoh.Sample) -> None:  # the parent's side of the hop
+            payload = sample.payload
+            loop.call_soon_threadsafe(self._hop_echoed, payload)
+
+        self.hop_echo = s.declare_subscriber(f"{RAW_LAT}_hop_echo", on_hop_echo)
         self.raw_done = s.declare_subscriber(RAW_THR_DONE, zenoh.handlers.FifoChannel(16))
         self.echoes = bus.subscribe(keys.topic_key(TEAM, 1, keys.PING))
         self.counts = bus.subscribe(keys.topic_key(TEAM, 1, BULK))
@@ -152,11 +206,30 @@ class Parent:
             out.append(time.perf_counter_ns() - t0)
         return out
 
-    def raw_throughput(self, payload: bytes, n: int) -> dict[str, float]:
+    def _hop_echoed(self, payload: zenoh.ZBytes) -> None:
+        payload.to_bytes()
+        waiter, self._hop_waiter = self._hop_waiter, None
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+    async def hop_latency(self, payload: bytes, n: int) -> list[int]:
+        """Round trips through an asyncio hop on each side (no codec, no validation)."""
+        loop = asyncio.get_running_loop()
+        out = []
+        for _ in range(n):
+            t0 = time.perf_counter_ns()
+            waiter = self._hop_waiter = loop.create_future()
+            self.hop_lat_pub.put(payload)
+            await asyncio.wait_for(waiter, 10)
+            out.append(time.perf_counter_ns() - t0)
+        return out
+
+    def raw_throughput(self, payload: bytes, n: int, mode: str = "raw") -> dict[str, float]:
+        pub = self.raw_thr_pub if mode == "raw" else self.floor_thr_pubs[mode]
         t0 = time.perf_counter_ns()
         for _ in range(n):
-            self.raw_thr_pub.put(payload)
-        self.raw_thr_pub.put(b"end")
+            pub.put(payload)
+        pub.put(b"end")
         report = self.raw_done.recv().payload.to_bytes()
         return _rates(int.from_bytes(report[:8], "little"), int.from_bytes(report[8:], "little"),
                       time.perf_counter_ns() - t0)
@@ -290,15 +363,33 @@ async def _one_size(parent: Parent, size: int, n_thr: int, args: argparse.Namesp
         raw_lat += parent.raw_latency(raw_payload, args.lat_block)
         bus_lat += await parent.bus_latency(bus_payload, args.lat_block)
     raw_runs, bus_runs = [], []
+    floor_runs: dict[str, list[dict[str, float]]] = {mode: [] for mode in FLOORS}
     for _ in range(args.repeat):
         raw_runs.append(parent.raw_throughput(raw_payload, n_thr))
         bus_runs.append(await parent.bus_throughput(bus_payload, n_thr))
+        if args.floors:
+            for mode in FLOORS:
+                floor_runs[mode].append(parent.raw_throughput(raw_payload, n_thr, mode))
     raw = _side(raw_lat, raw_runs, n_thr, size)
     bus = _side(bus_lat, bus_runs, n_thr, size)
+    floors: dict[str, Any] = {}
+    if args.floors:
+        await parent.hop_latency(raw_payload, args.warmup)
+        hop_lat: list[int] = []
+        for _ in range(args.lat_blocks // 3 or 1):
+            hop_lat += await parent.hop_latency(raw_payload, args.lat_block)
+        hop_p50 = percentiles(hop_lat)["p50_us"]
+        for mode in FLOORS:
+            rate = statistics.median(r["receiver_msgs_s"] for r in floor_runs[mode])
+            floors[mode] = {"throughput_msgs_s": rate,
+                            "throughput_ratio": rate / raw["throughput_msgs_s"]}
+        floors["hop"]["latency_rtt"] = percentiles(hop_lat)
+        floors["hop"]["p50_latency_ratio"] = hop_p50 / raw["latency_rtt"]["p50_us"]
     return {
         "payload_bytes": size,
         "raw": raw,
         "bus": bus,
+        "floors": floors,
         "throughput_ratio": bus["throughput_msgs_s"] / raw["throughput_msgs_s"],
         "end_to_end_throughput_ratio": bus["end_to_end_msgs_s"] / raw["end_to_end_msgs_s"],
         "p50_latency_ratio": bus["latency_rtt"]["p50_us"] / raw["latency_rtt"]["p50_us"],
@@ -325,6 +416,8 @@ def main() -> None:
     p.add_argument("--thr-1k", type=int, default=20_000, help="1 KB messages per repeat")
     p.add_argument("--thr-100k", type=int, default=2_000, help="100 KB messages per repeat")
     p.add_argument("--repeat", type=int, default=5, help="throughput runs per side")
+    p.add_argument("--no-floors", dest="floors", action="store_false",
+                   help="skip the decomposition baselines (raw + copy, raw + asyncio hop)")
     p.add_argument("--sizes", nargs="*", choices=list(SIZES), help="only these payload sizes")
     p.add_argument("--loop", choices=runtime.LOOPS, default="auto",
                    help="event loop: uvloop when installed (auto), or force one")
@@ -344,6 +437,11 @@ def main() -> None:
               f"{r['raw']['throughput_msgs_s']:.0f} msg/s ({r['throughput_ratio']:.2f}x), "
               f"p50 rtt bus/raw = {r['bus']['latency_rtt']['p50_us']:.0f}/"
               f"{r['raw']['latency_rtt']['p50_us']:.0f} us ({r['p50_latency_ratio']:.2f}x)")
+        if r["floors"]:
+            f = r["floors"]
+            print(f"{'':8}floors: raw+copy {f['copy']['throughput_ratio']:.2f}x, raw+hop "
+                  f"{f['hop']['throughput_ratio']:.2f}x throughput; raw+hop p50 rtt "
+                  f"{f['hop']['latency_rtt']['p50_us']:.0f} us ({f['hop']['p50_latency_ratio']:.2f}x)")
     print("targets met" if result["targets"]["met"] else "targets NOT met")
 
 

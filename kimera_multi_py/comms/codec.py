@@ -105,7 +105,8 @@ def _pack_array(a: np.ndarray) -> msgpack.ExtType:
         raise CodecError("array", f"more than {MAX_NDIM} dimensions")
     a = np.ascontiguousarray(a, dtype=dt)
     head = _HEAD.pack(code, a.ndim) + _SHAPES[a.ndim].pack(*a.shape)
-    return msgpack.ExtType(EXT_NDARRAY, b"".join((head, memoryview(a))))  # one copy
+    # ndarray is a Buffer at runtime; numpy declares __buffer__ only for Python >= 3.12
+    return msgpack.ExtType(EXT_NDARRAY, b"".join((head, memoryview(a))))  # type: ignore[arg-type]  # one copy
 
 
 def _unpack_array(data: bytes) -> np.ndarray:
@@ -162,7 +163,7 @@ def ext_of(a: np.ndarray) -> msgpack.ExtType:
             if head is not None:
                 # the fields are valid by construction: skip ExtType.__new__'s type checks
                 return _ext_new(msgpack.ExtType, (EXT_NDARRAY, b"".join(
-                    (head, _SHAPES[a.ndim].pack(*a.shape), memoryview(a)))))
+                    (head, _SHAPES[a.ndim].pack(*a.shape), memoryview(a)))))  # type: ignore[arg-type]
     return _pack_array(a)
 
 

@@ -64,7 +64,8 @@ def to_columns(msgs: list[Message]) -> dict[str, Any] | None:
             return None
     specs = cls.SPECS
     # transpose in C: one tuple of field values per message, then one tuple per field
-    columns = zip(*map(_getter(cls), [m.__dict__ for m in msgs]), strict=True)
+    # (classes are hashable; mypy reads Message.__hash__ = None as the class object's hash)
+    columns = zip(*map(_getter(cls), [m.__dict__ for m in msgs]), strict=True)  # type: ignore[arg-type]
     cols: dict[str, Any] = {}
     for (name, spec), values in zip(specs.items(), columns, strict=True):
         kind = spec.__class__

@@ -158,7 +158,7 @@ class LoopbackNetwork:
         self._partitions: list[Partition] = list(self.faults.partitions)
         self._flight = _Flight()
         self._flight.idle.set()
-        self._heap: list[tuple[float, int, Callable[[], None]]] = []
+        self._heap: list[tuple[float, int, Callable[[], object]]] = []
         self._order = itertools.count()
         self._tick: float | None = None
         self._subs_changed = asyncio.Event()
@@ -237,7 +237,7 @@ class LoopbackNetwork:
         self.stats.delivered += 1
         return delays
 
-    def _after(self, delay: float, fn: Callable[[], None]) -> None:
+    def _after(self, delay: float, fn: Callable[[], object]) -> None:
         """Run ``fn`` after ``delay`` s. Deliveries run in (due time, schedule order) order, and
         every delivery scheduled in one event-loop step shares that step's start time, so the
         order does not depend on how fast the publishing code runs."""
@@ -271,7 +271,8 @@ class LoopbackNetwork:
             if not subs:
                 continue
             for d in self._link_delays(sender.robot, robot):
-                self._after(d, lambda subs=subs: [s.push((key, data)) for s in subs])
+                # (mypy cannot infer lambdas whose parameters bind defaults)
+                self._after(d, lambda subs=subs: [s.push((key, data)) for s in subs])  # type: ignore[misc]
 
     def _set_alive(self, bus: LoopbackBus, alive: bool) -> None:
         ident = (bus.team, bus.robot)
@@ -308,7 +309,8 @@ class LoopbackBus(BusBase):
 
     def subscribe(self, key_expr: str) -> Subscription:
         self._check_open()
-        sub = Subscription(self, key_expr, self.queue_size, on_close=self._subs.remove)
+        # the stream passes itself to on_close, and it is this Subscription
+        sub = Subscription(self, key_expr, self.queue_size, on_close=self._subs.remove)  # type: ignore[arg-type]
         self._subs.append(sub)
         self.network._subs_changed.set()
         self.network._subs_changed = asyncio.Event()
@@ -360,7 +362,7 @@ class LoopbackBus(BusBase):
             futures.append(fut)
             delays = net._link_delays(self.robot, served.bus.robot)[:1]
             for d in delays:
-                net._after(d, lambda s=served, f=fut: loop.create_task(
+                net._after(d, lambda s=served, f=fut: loop.create_task(  # type: ignore[misc]
                     self._answer(s, selector, request, f)))
         if not futures:
             return []
@@ -406,7 +408,7 @@ class LoopbackBus(BusBase):
                 good.append(env.msg)
         delays = net._link_delays(server.robot, self.robot)[:1]
         for d in delays:
-            net._after(d, lambda: fut.done() or fut.set_result(good))
+            net._after(d, lambda: fut.done() or fut.set_result(good))  # type: ignore[func-returns-value]
 
     async def announce(self) -> None:
         self._check_open()

@@ -24,7 +24,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, TypeVar, dataclass_transform
 
 import numpy as np
 
@@ -110,6 +110,8 @@ class Message:
     TYPE: ClassVar[str] = ""
     TOPIC: ClassVar[str] = ""
     SPECS: ClassVar[dict[str, Spec]] = {}
+    if TYPE_CHECKING:  # every registered subclass is a dataclass (see :func:`message`)
+        __dataclass_fields__: ClassVar[dict[str, dataclasses.Field[Any]]]
 
     robot: int
 
@@ -188,13 +190,17 @@ class Message:
 
 MESSAGE_TYPES: dict[str, type[Message]] = {}
 
-M = TypeVar("M", bound=type[Message])
+M = TypeVar("M", bound=Message)
 
 
-def message(type_name: str, topic: str) -> Callable[[M], M]:
+# for type checkers: decorated classes are frozen dataclasses whose fields come from the helpers
+@dataclass_transform(
+    eq_default=False, frozen_default=True, field_specifiers=(dataclasses.field, _f, robot_id, count, arr)
+)
+def message(type_name: str, topic: str) -> Callable[[type[M]], type[M]]:
     """Class decorator: make a frozen dataclass, collect its specs and register its type name."""
 
-    def wrap(cls: M) -> M:
+    def wrap(cls: type[M]) -> type[M]:
         if type_name in MESSAGE_TYPES:
             raise ValueError(f"duplicate message type {type_name!r}")
         dc = dataclass(frozen=True, eq=False)(cls)

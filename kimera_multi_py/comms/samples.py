@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import string
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +23,7 @@ def random_message(
 ) -> Message:
     """A valid random ``cls`` sent by ``robot``; symbolic dimensions are drawn in [0, max_len]."""
     dims: dict[str, int] = {}
-    values = {}
+    values: dict[str, Any] = {}
     for name, spec in cls.SPECS.items():
         if name == "robot":
             values[name] = robot
@@ -30,9 +31,9 @@ def random_message(
             lo, hi = max(spec.lo, -(2**40)), min(spec.hi, 2**40)
             values[name] = int(rng.integers(lo, hi, endpoint=True))
         elif isinstance(spec, Float):
-            lo = spec.lo if np.isfinite(spec.lo) else -1e3
-            hi = spec.hi if np.isfinite(spec.hi) else lo + 2e3
-            values[name] = float(rng.uniform(lo, hi))
+            flo = spec.lo if np.isfinite(spec.lo) else -1e3
+            fhi = spec.hi if np.isfinite(spec.hi) else flo + 2e3
+            values[name] = float(rng.uniform(flo, fhi))
         elif isinstance(spec, Bool):
             values[name] = bool(rng.integers(2))
         elif isinstance(spec, Str):
