@@ -50,6 +50,7 @@ MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 MAX_NDIM = 8
 MAX_BATCH = 4096
 LARGE_BYTES = 64 * 1024  # from this size on, encode/decode with comms.largemsg (fewer copies)
+LARGE_BATCH_BYTES = 16 * 1024  # columnar batches with this many array bytes: encode with largemsg
 ENVELOPE_FIELDS = ("v", "type", "team", "src", "seq", "stamp", "body")
 _N_FIELDS = len(ENVELOPE_FIELDS)
 _isfinite = math.isfinite
@@ -530,8 +531,11 @@ class Codec:
         seq0 = next(seq)
         for _ in range(len(msgs) - 1):  # messages get seq0, seq0 + 1, ... (one sender thread)
             next(seq)
-        data = _packb({"v": SCHEMA_VERSION, "type": BATCH_TYPE, "team": self.team,
-                       "src": robot, "seq": seq0, "stamp": time.time(), "body": body})
+        env = {"v": SCHEMA_VERSION, "type": BATCH_TYPE, "team": self.team,
+               "src": robot, "seq": seq0, "stamp": time.time(), "body": body}
+        # stacked columns of a burst are big: largemsg copies them once, the Packer three times
+        big = sum(c.nbytes for c in body["cols"].values() if c.__class__ is np.ndarray)
+        data = largemsg.pack(env) if big >= LARGE_BATCH_BYTES else _packb(env)
         if len(data) > self.max_bytes:
             raise CodecError("size", f"{len(data)} bytes exceeds the limit of {self.max_bytes}")
         return data

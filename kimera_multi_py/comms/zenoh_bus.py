@@ -38,12 +38,13 @@ import zenoh
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import DEFAULT_QUEUE_SIZE, BusBase, Handler, Stream, Subscription
 from kimera_multi_py.comms.codec import MAX_BATCH, batch_header
-from kimera_multi_py.comms.messages import Message
+from kimera_multi_py.comms.messages import MESSAGE_TYPES, Message
 from kimera_multi_py.errors import ConfigError, MessageError
 
 log = logging.getLogger(__name__)
 
 MODES = ("peer", "client", "router")
+_TYPES = frozenset(MESSAGE_TYPES.values())
 DEFAULT_BATCH_BYTES = 60_000  # below Zenoh's 64 KiB transport batch: one batch, no fragments
 INDIRECT_CALLBACKS = True  # run data callbacks on zenoh-python's callback thread
 
@@ -208,7 +209,9 @@ class ZenohBus(BusBase):
             self._loop.call_soon(self._end_burst)
             self._put(key, data, 1)
             return
-        self.check_sender(key, msg)
+        if self.closed or key not in self._own_keys or msg.__class__ not in _TYPES \
+                or msg.robot != self.robot:  # the common case is checked inline
+            self.check_sender(key, msg)
         size = msg.size_hint()
         if self._batch_bytes <= 0 or size >= self._batch_bytes:  # coalescing off / too large
             data = self.codec.encode(msg)
