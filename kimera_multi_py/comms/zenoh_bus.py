@@ -45,7 +45,11 @@ log = logging.getLogger(__name__)
 
 MODES = ("peer", "client", "router")
 _TYPES = frozenset(MESSAGE_TYPES.values())
-DEFAULT_BATCH_BYTES = 60_000  # below Zenoh's 64 KiB transport batch: one batch, no fragments
+# Coalesced payloads of up to 250 kB: bigger batches amortise the per-put and per-batch costs
+# (benchmarks/comms.py, 1 KB messages: 60 kB batches 0.40-0.53x raw throughput, 250 kB
+# 0.66-0.71x; 500 kB and 1 MB were no better); Zenoh fragments them on the wire.
+DEFAULT_BATCH_BYTES = 250_000
+SOLO_BYTES = 16 * 1024  # messages this big are put on their own: coalescing would only copy them
 INDIRECT_CALLBACKS = True  # run data callbacks on zenoh-python's callback thread
 
 
@@ -199,7 +203,7 @@ class ZenohBus(BusBase):
         messages becomes one columnar batch envelope (:mod:`~kimera_multi_py.comms.columnar`).
         Whatever is pending is put when the loop next runs its callbacks, i.e. as soon as the
         publishing task yields. Order across keys is kept: pending payloads are put in the order
-        their messages were published. Messages of ``batch_bytes`` or more are never coalesced.
+        their messages were published. Messages of :data:`SOLO_BYTES` or more are never coalesced.
         The key and the sender are checked here (raising ``MessageError``); an encoding failure
         of a deferred batch is logged and counted (``dropped["publish_error"]``).
         """
@@ -213,7 +217,7 @@ class ZenohBus(BusBase):
                 or msg.robot != self.robot:  # the common case is checked inline
             self.check_sender(key, msg)
         size = msg.size_hint()
-        if self._batch_bytes <= 0 or size >= self._batch_bytes:  # coalescing off / too large
+        if size >= SOLO_BYTES or size >= self._batch_bytes:  # large, or coalescing off
             data = self.codec.encode(msg)
             self._flush()  # keep publication order
             self._put(key, data, 1)
