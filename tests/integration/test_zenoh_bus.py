@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zenoh
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, BusClosedError
@@ -122,7 +123,8 @@ async def test_another_team_cannot_inject(port: int, wait_until) -> None:
             "invalid": b"\x81\xa1v\x01",
         }
         for data in forged.values():
-            intruder.session.put(target, data)
+            # BLOCK: the default congestion control (DROP) may drop these on a loaded machine
+            intruder.session.put(target, data, congestion_control=zenoh.CongestionControl.BLOCK)
         await wait_until(lambda: sum(b.counters.dropped.values()) >= 4, 5)
         assert b.counters.dropped == {"team": 1, "src": 1, "key": 1, "invalid": 1}
         await a.wait_for_subscribers(a.key(keys.PING), timeout=10)
@@ -225,7 +227,7 @@ async def test_a_forged_batch_element_is_dropped_alone(port: int, wait_until) ->
         parts = [c0.encode(Heartbeat(robot=0, keyframes=1)),
                  c2.encode(Heartbeat(robot=2, keyframes=2)),  # r2 posing as r0
                  c0.encode(Heartbeat(robot=0, keyframes=3))]
-        a.session.put(target, codec_batch(parts))
+        a.session.put(target, codec_batch(parts), congestion_control=zenoh.CongestionControl.BLOCK)
         assert [(await sub.recv(timeout=5)).keyframes for _ in range(2)] == [1, 3]
         await wait_until(lambda: b.counters.dropped == {"key": 1}, 5)
         assert b.counters.received["heartbeat"].messages == 2
