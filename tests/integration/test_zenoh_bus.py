@@ -22,13 +22,19 @@ pytestmark = pytest.mark.integration
 TEAM = "t0"
 
 
+def probe(bus: ZenohBus, key: str, robot: int = 0, team: str = TEAM):
+    """A put of one valid Ping from ``robot`` on ``key`` straight into ``bus``'s session."""
+    data = Codec(team, robot).encode(Ping(robot=robot, nonce=2**40, sent_ns=0))
+    return lambda: bus.session.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
+
+
 def pair(port: int, **kw) -> tuple[ZenohBus, ZenohBus]:
     a = ZenohBus(TEAM, 0, listen=[f"tcp/127.0.0.1:{port}"], **kw)
     b = ZenohBus(TEAM, 1, connect=[f"tcp/127.0.0.1:{port}"], **kw)
     return a, b
 
 
-async def test_pub_sub_delivers_every_type_and_counters_agree(port: int, wait_until) -> None:
+async def test_pub_sub_delivers_every_type_and_counters_agree(port: int, route_ready) -> None:
     a, b = pair(port, robots=range(3))
     async with a, b:
         assert isinstance(a, Bus)
@@ -36,6 +42,7 @@ async def test_pub_sub_delivers_every_type_and_counters_agree(port: int, wait_un
         msgs = all_random_messages(seed=1, robot=0)
         for msg in msgs:
             await a.wait_for_subscribers(a.key(msg.TOPIC), timeout=5)
+            await route_ready(probe(a, a.key(msg.TOPIC)), sub, reset=(a, b))
         for msg in msgs:
             await a.publish(a.key(msg.TOPIC), msg)
         got = [await sub.recv(timeout=5) for _ in msgs]
@@ -100,7 +107,7 @@ async def test_presence_appears_and_disappears_after_close(port: int) -> None:
     assert events.closed
 
 
-async def test_another_team_cannot_inject(port: int, wait_until) -> None:
+async def test_another_team_cannot_inject(port: int, wait_until, route_ready) -> None:
     a, b = pair(port, robots=range(3))
     intruder = ZenohBus("t1", 0, connect=[f"tcp/127.0.0.1:{port}"])
     async with a, b, intruder:
@@ -110,6 +117,7 @@ async def test_another_team_cannot_inject(port: int, wait_until) -> None:
         sub = b.subscribe(keys.team_all(TEAM))
         target = keys.topic_key(TEAM, 0, keys.PING)
         await intruder.wait_for_subscribers(target, timeout=5)
+        await route_ready(probe(intruder, target), sub, reset=(b,))
         # the API refuses to address another team's keys
         with pytest.raises(MessageError):
             await intruder.publish(target, Ping(robot=0, nonce=1, sent_ns=0))
@@ -128,6 +136,7 @@ async def test_another_team_cannot_inject(port: int, wait_until) -> None:
         await wait_until(lambda: sum(b.counters.dropped.values()) >= 4, 5)
         assert b.counters.dropped == {"team": 1, "src": 1, "key": 1, "invalid": 1}
         await a.wait_for_subscribers(a.key(keys.PING), timeout=10)
+        await route_ready(probe(a, a.key(keys.PING)), sub)
         await a.publish(a.key(keys.PING), Ping(robot=0, nonce=6, sent_ns=0))
         assert (await sub.recv(timeout=10)).nonce == 6
         assert sub.pending() == 0
@@ -165,7 +174,7 @@ def test_needs_a_running_loop() -> None:
         ZenohBus(TEAM, 0)
 
 
-async def test_client_mode_through_a_router(port: int) -> None:
+async def test_client_mode_through_a_router(port: int, route_ready) -> None:
     """Two robots in client mode reach each other only through a router (zenohd's role)."""
     router = ZenohBus("infra", 0, mode="router", listen=[f"tcp/127.0.0.1:{port}"])
     async with router:
@@ -177,12 +186,13 @@ async def test_client_mode_through_a_router(port: int) -> None:
             await b.wait_for_peers({0}, timeout=5)
             sub = b.subscribe(keys.topic_all(TEAM, keys.HEARTBEAT))
             await a.wait_for_subscribers(a.key(keys.HEARTBEAT), timeout=5)
+            await route_ready(probe(a, a.key(keys.HEARTBEAT)), sub)
             await a.publish(a.key(keys.HEARTBEAT), Heartbeat(robot=0, keyframes=9))
             assert (await sub.recv(timeout=5)).keyframes == 9
             assert router.peers() == frozenset()  # another team: invisible to the router's bus
 
 
-async def test_bursts_are_coalesced_in_order_and_counted_per_message(port: int) -> None:
+async def test_bursts_are_coalesced_in_order_and_counted_per_message(port: int, route_ready) -> None:
     """A burst (no await yielding between publishes) goes out as few batch puts; every message
     arrives validated, in publication order across keys, and the byte counters still agree."""
     a, b = pair(port, robots=range(3), block_on_congestion=True)
@@ -190,6 +200,7 @@ async def test_bursts_are_coalesced_in_order_and_counted_per_message(port: int) 
         sub = b.subscribe(keys.team_all(TEAM))
         for topic in (keys.PING, keys.HEARTBEAT):
             await a.wait_for_subscribers(a.key(topic), timeout=5)
+            await route_ready(probe(a, a.key(topic)), sub, reset=(a, b))
         puts = []
         real_put = a._put
         a._put = lambda key, data, n: (puts.append(n), real_put(key, data, n))  # type: ignore
@@ -217,12 +228,13 @@ async def test_bursts_are_coalesced_in_order_and_counted_per_message(port: int) 
         assert (await sub.recv(timeout=5)).nonce == 1
 
 
-async def test_a_forged_batch_element_is_dropped_alone(port: int, wait_until) -> None:
+async def test_a_forged_batch_element_is_dropped_alone(port: int, wait_until, route_ready) -> None:
     a, b = pair(port, robots=range(3))
     async with a, b:
         sub = b.subscribe(keys.team_all(TEAM))
         target = a.key(keys.HEARTBEAT)
         await a.wait_for_subscribers(target, timeout=5)
+        await route_ready(probe(a, target), sub, reset=(b,))
         c0, c2 = Codec(TEAM, 0), Codec(TEAM, 2)
         parts = [c0.encode(Heartbeat(robot=0, keyframes=1)),
                  c2.encode(Heartbeat(robot=2, keyframes=2)),  # r2 posing as r0

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from kimera_multi_py.comms import keys
+from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.messages import Heartbeat
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.errors import ConfigError
@@ -32,7 +33,7 @@ def write_config(
 
 
 async def test_tls_sessions_talk_and_a_stranger_cannot_join(
-    tmp_path: Path, port: int, pki, rogue_pki, wait_until
+    tmp_path: Path, port: int, pki, rogue_pki, wait_until, route_ready
 ) -> None:
     endpoint = f"tls/localhost:{port}"
     listener = write_config(tmp_path / "listener.json5", "peer", {"listen": [endpoint]}, {
@@ -56,6 +57,8 @@ async def test_tls_sessions_talk_and_a_stranger_cannot_join(
         await b.wait_for_peers({0}, timeout=5)
         sub = b.subscribe(keys.topic_all(TEAM, keys.HEARTBEAT))
         await a.wait_for_subscribers(a.key(keys.HEARTBEAT), timeout=5)
+        probe = Codec(TEAM, 0).encode(Heartbeat(robot=0, keyframes=0, status="probe"))
+        await route_ready(lambda: a.session.put(a.key(keys.HEARTBEAT), probe), sub)
         await a.publish(a.key(keys.HEARTBEAT), Heartbeat(robot=0, keyframes=5, status="tls"))
         got = await sub.recv(timeout=5)
         assert (got.robot, got.keyframes, got.status) == (0, 5, "tls")
