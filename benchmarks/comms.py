@@ -280,6 +280,7 @@ async def measure(args: argparse.Namespace) -> dict[str, Any]:
             for key in (bus.key(keys.PING), bus.key(BULK)):
                 await bus.wait_for_subscribers(key, timeout=30)
             await _wait_raw_ready(parent)
+            await _wait_bus_ready(parent)
             results = {}
             for label, size in SIZES.items():
                 if args.sizes and label not in args.sizes:
@@ -347,6 +348,28 @@ async def _wait_raw_ready(parent: Parent) -> None:
     await asyncio.sleep(0.3)  # let late echoes of earlier pings arrive, then discard them
     while parent.raw_echo.try_recv() is not None:
         pass
+
+
+async def _wait_bus_ready(parent: Parent) -> None:
+    """Make both bus routes carry a message before measuring: Zenoh can lose the first
+    publications on a fresh route even after the publisher sees a matching subscriber."""
+    bus = parent.bus
+    for key, sub, probe in (
+        (bus.key(keys.PING), parent.echoes, lambda: Ping(robot=0, nonce=0, sent_ns=0)),
+        (bus.key(BULK), parent.counts, lambda: Heartbeat(robot=0, keyframes=0, status="end")),
+    ):
+        deadline = time.monotonic() + 30
+        while True:
+            await bus.publish(key, probe())
+            try:
+                await sub.recv(timeout=0.2)
+                break
+            except TimeoutError:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"the bus echo never answered on {key}") from None
+        await asyncio.sleep(0.3)  # late answers to earlier probes
+        while sub.pending():
+            await sub.recv()
 
 
 async def _one_size(parent: Parent, size: int, n_thr: int, args: argparse.Namespace) -> dict:
