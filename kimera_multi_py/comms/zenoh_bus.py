@@ -7,11 +7,19 @@ endpoints and multicast scouting off (the defaults here), client mode to a ``zen
 authentication go. Explicit arguments override the file.
 
 Threading: Zenoh calls our callbacks on its own threads. They never block and never call
-Zenoh: they copy the payload and hand it to the event loop with
+Zenoh: they hand the sample's payload (a ``ZBytes``, not yet copied) to the event loop with
 ``loop.call_soon_threadsafe(...)``. Samples are handed over in batches: a callback appends to
 an inbox and schedules one drain unless one is already pending, so a burst costs one loop
-wake-up instead of one per sample. Decoding, validation, handlers and replies run on the
-asyncio thread. Presence comes from liveliness tokens at ``kmp/{team}/alive/r{robot}``.
+wake-up instead of one per sample. Copying the payload out, decoding, validation, handlers and
+replies run on the asyncio thread. Presence comes from liveliness tokens at
+``kmp/{team}/alive/r{robot}``.
+
+Sending: a message published alone goes out at once; a burst (publishes with no ``await`` that
+yields in between) is coalesced into payloads of up to ``batch_bytes``, and each run of
+same-type messages in it becomes one columnar batch envelope
+(:mod:`~kimera_multi_py.comms.columnar`): one envelope and one column per field instead of one
+envelope per message. Messages of 16 KiB or more always go alone, encoded with one copy of
+their arrays (:mod:`~kimera_multi_py.comms.largemsg`).
 
 Construct inside a running event loop and close it (or use ``async with``)::
 
