@@ -88,8 +88,7 @@ class AgentNode:
         """Handle every message queued now; return how many."""
         assert self._sub is not None, "start() first"
         n = 0
-        while self._sub.pending():
-            msg = await self._sub.recv(timeout=0)
+        while (msg := self._sub.try_recv()) is not None:
             await self.send(self._handle(msg))
             n += 1
         return n

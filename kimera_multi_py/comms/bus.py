@@ -200,6 +200,10 @@ class Stream(Generic[T]):
         """Items queued and not yet consumed."""
         return len(self._items)
 
+    def try_recv(self) -> T | None:
+        """The next queued item without waiting, or None when nothing is queued (or closed)."""
+        return self._items.popleft() if self._items else None
+
     def close(self) -> None:
         """Stop the stream: pending and future iterations end. Idempotent."""
         if self.closed:

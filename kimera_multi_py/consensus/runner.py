@@ -123,11 +123,8 @@ async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, 
         agent.handle(msg)
 
     async def drain() -> None:
-        while sub.pending():
-            try:
-                absorb(await sub.recv(timeout=0.01))
-            except TimeoutError:
-                break
+        while (msg := sub.try_recv()) is not None:
+            absorb(msg)
 
     try:
         for rnd in range(max_rounds):

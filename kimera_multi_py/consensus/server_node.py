@@ -140,8 +140,7 @@ class ServerNode:
     async def drain(self) -> int:
         assert self._sub is not None, "start() first"
         n = 0
-        while self._sub.pending():
-            msg = await self._sub.recv(timeout=0)
+        while (msg := self._sub.try_recv()) is not None:
             try:
                 self.server.handle(msg)
             except ValueError as exc:

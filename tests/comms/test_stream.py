@@ -57,3 +57,14 @@ async def test_close_ends_waiters_and_iteration() -> None:
     assert [x async for x in s] == []
     s.push(2)
     assert s.pending() == 0
+
+
+async def test_try_recv_never_waits() -> None:
+    s: Stream[int] = Stream(maxsize=4)
+    assert s.try_recv() is None
+    s.push(1)
+    s.push(2)
+    assert [s.try_recv(), s.try_recv(), s.try_recv()] == [1, 2, None]
+    s.push(3)
+    s.close()
+    assert s.try_recv() is None  # closing discards what was pending
