@@ -478,7 +478,11 @@ def _check_item(env: Any, team: str | None, robots: Collection[int] | None) -> E
 
 
 class Codec:
-    """Encoder/decoder bound to one sender: stamps team, id and a thread-safe sequence number."""
+    """Encoder/decoder bound to one sender: stamps team, id and increasing sequence numbers.
+
+    :meth:`encode` takes its number atomically (safe from any thread); :meth:`encode_many` takes
+    a contiguous range, which is contiguous only while one thread encodes with this codec.
+    """
 
     def __init__(
         self,
