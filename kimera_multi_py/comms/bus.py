@@ -379,17 +379,13 @@ class BusBase:
         """
         try:
             env = self.codec.decode(data)
-            chunks = key.split("/")
-            if len(chunks) < 3 or chunks[0] != keys.ROOT or chunks[1] != self.team:
-                raise CodecError("team", f"key {key!r} is not of team {self.team!r}")
-            if from_owner and keys.parse_key(key).robot != env.src:
-                raise CodecError("key", f"key {key!r} does not belong to sender {env.src}")
         except MessageError as exc:
-            reason = exc.field if isinstance(exc, CodecError) else "invalid"
-            if reason not in ("team", "src", "key", "size"):
-                reason = "invalid"
-            self.counters.count_dropped(reason)
-            log.debug("robot %d dropped a message on %s: %s", self.robot, key, exc)
+            self._reject(key, exc)
+            return None
+        team_error, owner = self._key_verdict(key)
+        error = team_error or (self._owner_error(key, owner, env.src) if from_owner else None)
+        if error is not None:
+            self._reject(key, error)
             return None
         self.counters.count_received(key, len(data))
         return env
@@ -429,8 +425,7 @@ class BusBase:
             if team_error is not None:
                 self._reject(key, team_error)
             elif from_owner and owner != item.src:  # type: ignore[union-attr]
-                self._reject(key, owner if isinstance(owner, MessageError) else CodecError(
-                    "key", f"key {key!r} does not belong to sender {item.src}"))  # type: ignore[union-attr]
+                self._reject(key, self._owner_error(key, owner, item.src))  # type: ignore[arg-type, union-attr]
             else:
                 out.extend(msgs)
                 accepted.append((n, len(msgs)))
@@ -458,6 +453,15 @@ class BusBase:
             if len(self._key_verdicts) < 10_000:
                 self._key_verdicts[key] = verdict
         return verdict
+
+    @staticmethod
+    def _owner_error(key: str, owner: int | MessageError, src: int) -> MessageError | None:
+        """Why a message from ``src`` may not arrive on ``key`` (owned by ``owner``), if not."""
+        if owner == src:
+            return None
+        if isinstance(owner, MessageError):
+            return owner
+        return CodecError("key", f"key {key!r} does not belong to sender {src}")
 
     def _reject(self, key: str, exc: MessageError) -> None:
         reason = exc.field if isinstance(exc, CodecError) else "invalid"
@@ -541,6 +545,32 @@ class BusBase:
             stream.close()
 
     # queries ---------------------------------------------------------------------------
+    async def answer(
+        self, served: Any, key: str, request: bytes | None
+    ) -> tuple[str, list[Message]] | None:
+        """Serve one query that reached ``served`` (``key_expr``, ``handler``, ``closed``) on
+        ``key``: validate the request bytes, pick the concrete reply key, run the handler.
+
+        Returns ``(reply key, replies)``, or None when nothing is to be sent (an invalid request
+        is dropped and counted, a closed queryable or bus stays silent, a failing handler is
+        logged and counted as ``handler_error``).
+        """
+        msg = None
+        if request:
+            env = self.accept(key, request, from_owner=False)
+            if env is None:
+                return None
+            msg = env.msg
+        reply_key = key if keys.is_concrete(key) else served.key_expr
+        if served.closed or self.closed or not keys.is_concrete(reply_key):
+            return None
+        try:
+            return reply_key, await self.run_handler(served.handler, reply_key, msg)
+        except Exception:
+            self.counters.count_dropped("handler_error")
+            log.exception("robot %d: query handler for %s failed", self.robot, reply_key)
+            return None
+
     @staticmethod
     async def run_handler(handler: Handler, key: str, request: Message | None) -> list[Message]:
         """Call a sync or async handler and normalise its result to a list of messages."""

@@ -414,59 +414,7 @@ def _map(data: bytes, p: int, end: int, n: int, depth: int) -> tuple[dict[str, A
             p = q
         else:
             k, p = _key(data, p, end)
-        # the value: the envelope's usual types inline
-        b = data[p]
-        if b < 0x80:
-            d[k] = b
-            p += 1
-        elif b & 0xE0 == 0xA0:
-            q = p + 1 + (b & 0x1F)
-            if q > end:
-                raise _Unsupported
-            d[k] = data[p + 1:q].decode()
-            p = q
-        elif b == 0xCB:
-            d[k] = _ud(data, p + 1)[0]
-            p += 9
-        elif b == 0xC9:
-            size, code = _uIb(data, p + 1)
-            p += 6
-            if p + size > end:
-                raise _Unsupported
-            d[k] = _ext_value(data, p, size, code)
-            p += size
-        elif b == 0xC8:
-            size, code = _uHb(data, p + 1)
-            p += 4
-            if p + size > end:
-                raise _Unsupported
-            d[k] = _ext_value(data, p, size, code)
-            p += size
-        elif b & 0xF0 == 0x80:  # fixmap: the body
-            if depth >= _MAX_DEPTH:
-                raise _Unsupported
-            d[k], p = _map(data, p + 1, end, b & 0x0F, depth + 1)
-        elif 0xCC <= b <= 0xCF:  # uint 8/16/32/64
-            if b == 0xCF:
-                d[k] = _uQ(data, p + 1)[0]
-                p += 9
-            elif b == 0xCE:
-                d[k] = _uI(data, p + 1)[0]
-                p += 5
-            elif b == 0xCD:
-                d[k] = _uH(data, p + 1)[0]
-                p += 3
-            else:
-                d[k] = data[p + 1]
-                p += 2
-        elif b == 0xC2:
-            d[k] = False
-            p += 1
-        elif b == 0xC3:
-            d[k] = True
-            p += 1
-        else:
-            d[k], p = _value(data, p, end, depth)
+        d[k], p = _value(data, p, end, depth)
     return d, p
 
 

@@ -380,21 +380,10 @@ class LoopbackBus(BusBase):
     ) -> None:
         """Run ``served``'s handler for one query and route the replies back with link faults."""
         server, net = served.bus, self.network
-        req_msg = None
-        if request is not None:
-            env = server.accept(selector, request, from_owner=False)
-            if env is None:
-                return
-            req_msg = env.msg
-        reply_key = selector if keys.is_concrete(selector) else served.key_expr
-        if served.closed or server.closed or not keys.is_concrete(reply_key):
+        answered = await server.answer(served, selector, request)
+        if answered is None:
             return
-        try:
-            replies = await BusBase.run_handler(served.handler, reply_key, req_msg)
-        except Exception:
-            server.counters.count_dropped("handler_error")
-            log.exception("robot %d: query handler for %s failed", server.robot, reply_key)
-            return
+        reply_key, replies = answered
         good: list[Message] = []
         for reply in replies:
             try:

@@ -368,22 +368,10 @@ class ZenohBus(BusBase):
 
     async def _answer(self, served: _Served, query: zenoh.Query, data: bytes | None) -> None:
         try:
-            key = str(query.key_expr)
-            request = None
-            if data:
-                env = self.accept(key, data, from_owner=False)
-                if env is None:
-                    return
-                request = env.msg
-            reply_key = key if keys.is_concrete(key) else served.key_expr
-            if served.closed or self.closed or not keys.is_concrete(reply_key):
+            answered = await self.answer(served, str(query.key_expr), data)
+            if answered is None:
                 return
-            try:
-                replies = await self.run_handler(served.handler, reply_key, request)
-            except Exception:
-                self.counters.count_dropped("handler_error")
-                log.exception("robot %d: query handler for %s failed", self.robot, reply_key)
-                return
+            reply_key, replies = answered
             for reply in replies:
                 try:
                     out = self.encode_for(reply_key, reply)
