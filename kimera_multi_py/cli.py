@@ -58,6 +58,20 @@ def _results_table(res: dict) -> Table:
     return table
 
 
+def _summary(res: dict) -> None:
+    """Loop closures, objects and bytes of a team run, in two lines."""
+    if "loop_closures" not in res:
+        return
+    lc, ob = res["loop_closures"], res["objects"]
+    console.print(
+        f"loop closures: {lc['candidates']} candidates, {lc['verified']} verified, "
+        f"{lc['accepted_inter']} inter-robot accepted ({lc['true_accepted_inter']} true, "
+        f"{lc['false_accepted_inter']} false; PCM rejected {lc['rejected_pcm_false_inter']} false, "
+        f"GNC rejected {lc['rejected_gnc_false_inter']} false)")
+    console.print(f"objects: precision {ob['precision']:.2f}, recall {ob['recall']:.2f}, "
+                  f"centroid error {ob['mean_error']:.2f} m; bytes sent {res['bytes_sent']['total']:,}")
+
+
 @app.command()
 def sim(
     scenario: Annotated[Path, typer.Argument(help="Scenario TOML file.")] = DEFAULT_SCENARIO,
@@ -89,23 +103,17 @@ def sim(
         raise fail(exc) from None
     res = results.to_dict()
     console.print(_results_table(res))
-    if "loop_closures" in res:
-        lc, ob = res["loop_closures"], res["objects"]
-        console.print(
-            f"loop closures: {lc['candidates']} candidates, {lc['verified']} verified, "
-            f"{lc['accepted_inter']} inter-robot accepted ({lc['true_accepted_inter']} true, "
-            f"{lc['false_accepted_inter']} false; PCM rejected {lc['rejected_pcm_false_inter']} false, "
-            f"GNC rejected {lc['rejected_gnc_false_inter']} false)")
-        console.print(f"objects: precision {ob['precision']:.2f}, recall {ob['recall']:.2f}, "
-                      f"centroid error {ob['mean_error']:.2f} m; bytes sent {res['bytes_sent']['total']:,}")
+    _summary(res)
     console.print(f"sim {res['sim_seconds']:.1f} s in {res['wall_s']:.2f} s wall "
                   f"(x{res['realtime_factor']:.1f} real time); wrote {out / 'results.json'}")
 
 
 def _register_commands() -> None:
     from kimera_multi_py.consensus.cli_pgo import register
+    from kimera_multi_py.team import cli_team
 
     register(app)
+    cli_team.register(app)
 
 
 _register_commands()
