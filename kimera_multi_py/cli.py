@@ -11,7 +11,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from kimera_multi_py.errors import KimeraMultiError
+from kimera_multi_py.errors import ConfigError, KimeraMultiError
 
 DEFAULT_SCENARIO = Path("sims/office.toml")
 
@@ -58,6 +58,15 @@ def _results_table(res: dict) -> Table:
     return table
 
 
+def _robot_at(spec: str, option: str) -> tuple[int, float]:
+    """``I@T`` as ``(robot, seconds)``."""
+    try:
+        robot, at = spec.split("@")
+        return int(robot), float(at)
+    except ValueError:
+        raise ConfigError(option, f"expected I@T (robot@seconds), got {spec!r}") from None
+
+
 def _summary(res: dict) -> None:
     """Loop closures, objects and bytes of a team run, in two lines."""
     if "loop_closures" not in res:
@@ -82,6 +91,8 @@ def sim(
     = "loopback",
     out: Annotated[Path, typer.Option(help="Run folder for results.json and trajectories.")] = Path("runs/sim"),
     rerun: Annotated[bool, typer.Option("--rerun/--no-rerun", help="Write OUT/recording.rrd.")] = True,
+    join: Annotated[list[str] | None, typer.Option("--join", help="I@T: robot I joins T s after the others "
+                                                                   "(repeatable).")] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Run the multi-robot simulation and evaluate it against ground truth."""
@@ -97,6 +108,7 @@ def sim(
                       TimeElapsedColumn(), console=err_console, transient=False) as progress:
             task = progress.add_task(f"{cfg.name} x{len(cfg.robots)}", total=None)
             runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz, transport=transport,
+                               join=dict(_robot_at(j, "join") for j in join or []),
                                on_progress=lambda done, total: progress.update(task, completed=done, total=total))
             results = runner.run()
     except KimeraMultiError as exc:

@@ -214,7 +214,8 @@ class AgentNode:
 
     async def drain(self) -> int:
         """Handle every message and presence event queued now; return how many."""
-        assert self._sub is not None and self._presence is not None, "start() first"
+        if self._sub is None or self._presence is None:
+            return 0  # not started (a robot that has not joined yet)
         n = 0
         while (event := self._presence.try_recv()) is not None:
             await self._on_presence(event)
@@ -227,6 +228,8 @@ class AgentNode:
     # ------------------------------------------------------------------ the clock
     async def tick(self, wall: float | None = None, force: bool = False) -> int:
         """Timers: state, re-sends, the PGO schedule. Returns how many messages went out."""
+        if self._sub is None:
+            return 0
         now = self.clock()
         wall = time.monotonic() if wall is None else wall
         out: list[Message] = []

@@ -67,6 +67,7 @@ class Session:
     seen: dict[int, int] = field(default_factory=dict)  # robot -> latest status round
     stopped: set[int] = field(default_factory=set)
     deadline: float | None = None
+    began: float = 0.0  # team time
 
 
 @dataclass
@@ -107,6 +108,8 @@ class TeamPgo:
         self._finished_since: float | None = None
         self._absent_since: dict[int, float] = {}
         self._final_members: frozenset[int] = frozenset()
+        self._now = 0.0
+        self.history: list[tuple[int, tuple[int, ...], bool, float]] = []  # completed: epoch, members, final, began
 
     # ------------------------------------------------------------------ messages in
     def handle(self, msg: Message, alive: Collection[int]) -> None:
@@ -159,7 +162,7 @@ class TeamPgo:
         leader = min(members)
         depends = set(members if self.robot == leader else local.neighbours) & set(members)
         depends.discard(self.robot)
-        self.session = Session(msg.epoch, members, bool(msg.final), pgo, depends, keyframes)
+        self.session = Session(msg.epoch, members, bool(msg.final), pgo, depends, keyframes, began=self._now)
         future, self._future = self._future, []
         for m in future:
             epoch, rnd = divmod(m.round, EPOCH_ROUNDS)
@@ -195,6 +198,7 @@ class TeamPgo:
         self.completed = s.epoch
         self.session = None
         self.stats.epochs += 1
+        self.history.append((s.epoch, s.members, s.final, s.began))
         if s.final:
             self.final_done = True
             self._final_members = frozenset(s.members)
@@ -205,6 +209,7 @@ class TeamPgo:
         """Advance: maybe open an epoch (leader), maybe run a round. ``now`` is team time
         (stream seconds), ``wall`` a monotonic wall clock, ``alive`` the robots present,
         ``finished`` whether this robot's stream ended; ``force`` ends a round's wait."""
+        self._now = now
         out = self._lead(now, wall, set(alive), finished)
         s = self.session
         if s is None:

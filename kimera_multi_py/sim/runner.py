@@ -24,9 +24,11 @@ seed always gives the same results, whatever the machine's load.
 from __future__ import annotations
 
 import asyncio
+import heapq
 import json
+import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -96,7 +98,7 @@ class SimRunner:
                  out_dir: str | Path | None = None, viz: Viz | None = None,
                  on_progress: Progress | None = None, transport: str = "loopback",
                  pgo_period: float = 60.0, params: AgentParams | None = None,
-                 pgo_params: PgoParams | None = None) -> None:
+                 pgo_params: PgoParams | None = None, join: dict[int, float] | None = None) -> None:
         if mode not in MODES:
             raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
         if transport not in TRANSPORTS:
@@ -113,6 +115,11 @@ class SimRunner:
         # over Zenoh a round waits on the wall clock; over loopback until the network is quiet
         self.schedule = ScheduleParams(period=pgo_period, round_timeout=0.5 if transport == "zenoh" else None)
         self.clock = _SimClock()
+        # robot -> seconds after the others that it joins (its whole stream is shifted by that)
+        self.join = {int(r): float(t) for r, t in (join or {}).items()}
+        for r, t in self.join.items():
+            if not 0 <= r < self.sim.num_robots or not (math.isfinite(t) and t >= 0):
+                raise ConfigError("join", f"robot {r} at {t} s: needs a robot of the team and a time >= 0")
         self.tracks: list[_Track] = []
         self.nodes: list[AgentNode] = []
         self.server: ServerNode | None = None
@@ -167,11 +174,14 @@ class SimRunner:
                                          buses[-1], self.schedule, clock=self.clock.now)
                 nodes.append(self.server)
             for node in nodes:
-                await node.start()
+                if node.robot not in self.join:
+                    await node.start()
             epochs = 0
-            for done, kf in enumerate(self.sim.stream(), 1):
+            for done, kf in enumerate(self._stream(), 1):
                 self.clock.t = kf.stamp
                 node = self.nodes[kf.robot]
+                if kf.index == 0 and kf.robot in self.join:
+                    await node.start()
                 await node.process_keyframe(keyframe_input(kf))
                 await self._settle(nodes, buses)
                 self.tracks[kf.robot].add(kf)
@@ -190,6 +200,18 @@ class SimRunner:
             for node in nodes:
                 await node.close()
         self.viz.close()
+
+    def _stream(self) -> Iterator[Keyframe]:
+        """Every robot's keyframes in time order, a late joiner's shifted by its delay."""
+        if not self.join:
+            return self.sim.stream()
+
+        def shifted(r: int) -> Iterator[Keyframe]:
+            dt = self.join.get(r, 0.0)
+            for kf in self.sim.keyframes(r):
+                yield replace(kf, stamp=kf.stamp + dt)
+
+        return heapq.merge(*(shifted(r) for r in range(self.sim.num_robots)), key=lambda kf: (kf.stamp, kf.robot))
 
     def _epochs(self) -> int:
         if self.server is not None:
@@ -268,7 +290,7 @@ class SimRunner:
             extra["pgo_runs"] = self._epochs()
             extra["transport"] = self.transport
         return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
-                       sim_seconds=self.sim.duration, wall_s=wall_s, extra=extra)
+                       sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
 
     def _write_results(self, results: Results) -> None:
         if self.out_dir is None:
