@@ -53,8 +53,8 @@ class NodeParams:
     """The node's own knobs (the agent's and the solver's are separate)."""
 
     query_timeout: float = 2.0  # wall s for a constellation query
-    state_period: float = 5.0  # team-time s between AgentState messages
-    resend_period: float = 5.0  # team-time s between re-sends of unacknowledged closures
+    state_period: float = 5.0  # clock s between AgentState messages (the tick's ``wall`` clock)
+    resend_period: float = 5.0  # clock s between re-sends of unacknowledged closures
     server: int | None = None  # centralised mode: the server's id (then no team PGO)
 
 
@@ -146,7 +146,7 @@ class AgentNode:
             self._count_closures(msg)
             if isinstance(msg, LoopClosures) and msg.peer != self.robot:
                 self._unacked[msg.peer] = msg
-                self._sent_at[msg.peer] = self.clock()
+                self._sent_at.pop(msg.peer, None)  # the re-send timer starts at the next tick
             await self._publish(msg)
 
     async def _publish(self, msg: Message) -> None:
@@ -184,10 +184,11 @@ class AgentNode:
             if pending is not None and msg.batch >= pending.batch:
                 del self._unacked[msg.robot]
         if self.params.server is not None and msg.robot == self.params.server:
-            if isinstance(msg, PgoEpoch) and msg.final and self.finished:
+            await self.send(self._handle_agent(msg))
+            if isinstance(msg, PgoEpoch) and msg.final and self.finished and not self.complete:
                 self.complete = True
                 self.epochs_seen += 1
-            await self.send(self._handle_agent(msg))
+                await self._publish_state()
             return
         if self.pgo is not None:
             try:
@@ -208,7 +209,7 @@ class AgentNode:
         if event.robot in self.agent.closures and event.robot != self.robot:
             latest = self.agent.closures_message(event.robot)
             self._unacked[event.robot] = latest
-            self._sent_at[event.robot] = self.clock()
+            self._sent_at.pop(event.robot, None)
             await self._publish(latest)
         await self._publish_state()
 
@@ -233,11 +234,12 @@ class AgentNode:
         now = self.clock()
         wall = time.monotonic() if wall is None else wall
         out: list[Message] = []
-        if now - self._state_at >= self.params.state_period:
+        if wall - self._state_at >= self.params.state_period:
+            self._state_at = wall
             out.append(self._state())
         for peer, msg in sorted(self._unacked.items()):
-            if now - self._sent_at.get(peer, now) >= self.params.resend_period:
-                self._sent_at[peer] = now
+            if wall - self._sent_at.setdefault(peer, wall) >= self.params.resend_period:
+                self._sent_at[peer] = wall
                 out.append(msg)
         if self.pgo is not None:
             before = self.pgo.completed
@@ -255,7 +257,6 @@ class AgentNode:
         return self.pgo is not None and self.pgo.blocked()
 
     def _state(self) -> AgentState:
-        self._state_at = self.clock()
         completed = self.pgo.completed if self.pgo is not None else 0
         stamp = self.agent.stamps[-1] if self.agent.stamps else 0.0
         rounds = self.pgo.stats.rounds if self.pgo is not None else 0

@@ -149,6 +149,7 @@ class ServerNode:
         self._absent_since: dict[int, float] = {}
         self._finished_since: float | None = None
         self._final_keyframes: dict[int, int] = {}
+        self._final: PgoEpoch | None = None
 
     @property
     def robot(self) -> int:
@@ -188,9 +189,10 @@ class ServerNode:
                 return 0
             self._final_keyframes = counts
             await self.optimise()
-            await self.bus.publish(self.bus.key(PgoEpoch.TOPIC), PgoEpoch(
-                robot=self.robot, epoch=self.server.round, members=np.array(sorted(self.states), dtype=np.int64),
-                pairs=np.zeros((0, 2), np.int64), final=True))
+            self._final = PgoEpoch(robot=self.robot, epoch=self.server.round,
+                                   members=np.array(sorted(self.states), dtype=np.int64),
+                                   pairs=np.zeros((0, 2), np.int64), final=True)
+            await self.bus.publish(self.bus.key(PgoEpoch.TOPIC), self._final)
             self.complete = True
             return 1
         if now - self._solved_at >= self.schedule.period and self.server.odometry:
@@ -224,13 +226,19 @@ class ServerNode:
         for msg in self.server.optimise():
             await self.bus.publish(self.bus.key(msg.TOPIC), msg)
 
-    async def run(self, tick_s: float = 0.005, linger: float = 2.0) -> None:
-        """Serve until the final solve is published (then ``linger`` s more)."""
+    async def run(self, tick_s: float = 0.005, linger: float = 30.0) -> None:
+        """Serve until the final solve is published, then repeat its announcement until every
+        agent reports it complete (at most ``linger`` s): a lost announcement must not strand one."""
         while not self.complete:
             await self.drain()
             await self.tick()
             await asyncio.sleep(tick_s)
-        await asyncio.sleep(linger)
+        end = time.monotonic() + linger
+        while time.monotonic() < end and not all(s.complete for s in self.states.values()):
+            await self.drain()
+            if self._final is not None:
+                await self.bus.publish(self.bus.key(PgoEpoch.TOPIC), self._final)
+            await asyncio.sleep(0.5)
 
     async def close(self) -> None:
         if self._sub is not None:

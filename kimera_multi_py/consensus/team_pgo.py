@@ -39,6 +39,7 @@ from kimera_multi_py.consensus.pgo import LocalGraph, PgoAgent, PgoParams
 log = logging.getLogger(__name__)
 
 EPOCH_ROUNDS = 1_000_000
+EPOCH_RESEND = 25  # the leader repeats an epoch's opening every this many rounds
 _PGO_MESSAGES = (PublicPoses, PgoStatus, PgoCommand, GncWeights)
 
 
@@ -109,6 +110,7 @@ class TeamPgo:
         self._absent_since: dict[int, float] = {}
         self._final_members: frozenset[int] = frozenset()
         self._now = 0.0
+        self._epoch_msg: PgoEpoch | None = None  # the last epoch this robot opened
         self.history: list[tuple[int, tuple[int, ...], bool, float]] = []  # completed: epoch, members, final, began
 
     # ------------------------------------------------------------------ messages in
@@ -225,7 +227,10 @@ class TeamPgo:
             if not force and (timeout is None or s.deadline is None or wall < s.deadline):
                 return out
             self.stats.timeouts += 1
-        msgs = [] if pgo.done else pgo.step(s.rnd)
+        msgs: list[Message] = [] if pgo.done else pgo.step(s.rnd)
+        if self._epoch_msg is not None and self._epoch_msg.epoch == s.epoch and s.rnd % EPOCH_RESEND == 0 \
+                and s.rnd > 0:
+            out.append(self._epoch_msg)  # the leader repeats the opening for a member that lost it
         self.stats.rounds += 0 if pgo.done else 1
         s.rnd += 1
         if self.schedule.round_timeout is not None:
@@ -264,6 +269,7 @@ class TeamPgo:
         msg = PgoEpoch(robot=self.robot, epoch=self.epoch + 1, members=np.array(members, dtype=np.int64),
                        pairs=np.array(pairs, dtype=np.int64).reshape(-1, 2), final=final)
         self.stats.opened += 1
+        self._epoch_msg = msg
         self._begin(msg, alive)
         return [msg]
 

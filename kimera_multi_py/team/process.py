@@ -96,7 +96,7 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     schedule = ScheduleParams(period=job.pgo_period, round_timeout=0.5, final_grace=2.0)
     bus = job.connection.bus(job.robot)
     node = AgentNode(agent, bus, PgoParams(robust=True, max_rounds=300), schedule,
-                     NodeParams(server=params.server))
+                     NodeParams(server=params.server, state_period=1.0))
     if node.pgo is not None:
         node.pgo.epoch = node.pgo.completed = int(extra.get("epoch", 0))
     last = time.monotonic()
