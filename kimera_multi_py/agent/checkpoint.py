@@ -169,7 +169,7 @@ def _sorted(items: set[Any] | frozenset[Any]) -> list[Any]:
         return list(items)
 
 
-def _import(name: str, path: str, allowed: frozenset[str]) -> type:
+def _import(name: str, path: str, allowed: frozenset[str]) -> Any:
     if name not in allowed:
         raise StateError(f"{path}: class {name!r} is not on the checkpoint allowlist")
     module, _, qual = name.rpartition(".")  # allowlisted names are all ``module.Class``

@@ -160,19 +160,24 @@ def _check_scans(where: str, points: np.ndarray, labels: np.ndarray, hit: np.nda
         raise DatasetError(f"{where}: labels outside 0..{NUM_CLASSES}")
 
 
-def _check_poses(where: str, what: str, T: np.ndarray) -> None:
-    """(m, 4, 4) finite rigid transforms."""
+def _check_poses(where: str, what: str, T: np.ndarray, first: int | None = None) -> None:
+    """(m, 4, 4) finite rigid transforms; ``first`` is the keyframe index of entry 0 (for messages)."""
     if T.ndim != 3 or T.shape[1:] != (4, 4) or T.dtype.kind != "f":
         raise DatasetError(f"{where}: {what} have shape {T.shape} and dtype {T.dtype}, expected float (m, 4, 4)")
+
+    def at(bad: np.ndarray) -> str:
+        j = int(np.argmax(bad))
+        return f"entry {j}" if first is None else f"keyframe {first + j}"
+
     bad = ~np.isfinite(T).all(axis=(1, 2))
     if bad.any():
-        raise DatasetError(f"{where}: non-finite {what} (NaN or inf) at entry {int(np.argmax(bad))}")
+        raise DatasetError(f"{where}: non-finite {what} (NaN or inf) at {at(bad)}")
     R = T[:, :3, :3]
     err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2))
     bottom = np.abs(T[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
     bad = (err > 1e-6) | (bottom > 0) | (np.linalg.det(R) < 0)
     if bad.any():
-        raise DatasetError(f"{where}: {what} entry {int(np.argmax(bad))} is not a rigid transform")
+        raise DatasetError(f"{where}: {what} at {at(bad)} is not a rigid transform")
 
 
 def _check_stamps(where: str, stamps: np.ndarray, previous: float) -> None:
@@ -351,6 +356,14 @@ def read_manifest(folder: str | Path) -> dict[str, Any]:
     return doc
 
 
+def _npz(path: Path) -> Any:
+    """``np.load`` of an ``.npz`` (never pickle); anything that is not a zip archive is refused first."""
+    with path.open("rb") as fh:
+        if fh.read(4) != b"PK\x03\x04":
+            raise ValueError("not an npz (zip) file")
+    return np.load(path, allow_pickle=False)
+
+
 class RecordedSource:
     """Robot ``robot``'s keyframes from a recording folder, from ``start`` on (an iterator)."""
 
@@ -396,7 +409,7 @@ class RecordedSource:
         """Read and check one chunk file."""
         path = self.dir / chunk["file"]
         try:
-            with np.load(path, allow_pickle=False) as npz:
+            with _npz(path) as npz:
                 missing = [k for k in CHUNK_ARRAYS if k not in npz.files]
                 if missing:
                     raise DatasetError(f"{path}: missing arrays {', '.join(missing)}")
@@ -414,7 +427,7 @@ class RecordedSource:
             gap = int(np.argmax(a["index"] != np.arange(first, first + m)))
             raise DatasetError(f"{path}: keyframe {first + gap} is missing (found index {a['index'][gap]})")
         _check_stamps(str(path), a["stamp"].astype(np.float64), self._last_stamp if first == self._next else -np.inf)
-        _check_poses(str(path), "odometry", a["odometry"])
+        _check_poses(str(path), "odometry", a["odometry"], first)
         _check_scans(str(path), a["points"], a["labels"], a["hit"])
         off = a["offsets"]
         if off[0] != 0 or off[-1] != len(a["points"]) or np.any(np.diff(off) < 0):
@@ -453,7 +466,7 @@ def read_ground_truth(folder: str | Path) -> GroundTruth:
     path = tdir / "poses.npz"
     poses, stamps = {}, {}
     try:
-        with np.load(path, allow_pickle=False) as npz:
+        with _npz(path) as npz:
             for r, n in counts.items():
                 if f"robot{r}_poses" not in npz.files or f"robot{r}_stamps" not in npz.files:
                     raise DatasetError(f"{path}: no true poses of robot {r}")

@@ -185,7 +185,8 @@ def test_fuzzed_payloads_with_a_valid_crc_load_or_raise_checkpoint_error(tmp_pat
             p = p[: int(rng.integers(0, len(p)))]
         body = bytes(p)
         path = tmp_path / "f.ckpt"
-        path.write_bytes(MAGIC + struct.pack("<IIQQI", FORMAT_VERSION, 0, len(body), len(body), zlib.crc32(body)) + body)
+        header = struct.pack("<IIQQI", FORMAT_VERSION, 0, len(body), len(body), zlib.crc32(body))
+        path.write_bytes(MAGIC + header + body)
         try:
             load_checkpoint(path)
             outcomes["loaded"] += 1
