@@ -5,10 +5,13 @@ dict of plain data (the node's own state: next keyframe, PGO epoch, counters, ..
 pickled; the file is::
 
     magic   b"KMPCKPT\\n"          8 bytes
-    header  <u4 version, <u4 flags (bit 0: zlib), <u8 stored length, <u8 raw length,
-            <u4 CRC-32 of the stored payload
-    payload msgpack {"format": ..., "version": ..., "agent": <state>, "extra": <state>},
-            zlib-compressed (level 1) when flag bit 0 is set
+    header  <u4 version, <u4 flags (bit 0: zlib), <u8 tree length, <u8 raw body length,
+            <u8 stored body length, <u4 CRC-32 of the stored body
+    body    tree: msgpack {"format", "version", "writer", "agent": <state>, "extra": <state>}
+            then the array section: every array's C-order bytes, back to back;
+            the whole body is zlib-compressed (level 1) when flag bit 0 is set
+
+Arrays stay out of the msgpack so that writing streams them from the agent's own memory.
 
 ``<state>`` is a tree written by a generic codec that walks objects' ``__dict__`` and
 ``__slots__``. Plain scalars (None, bool, int, float, str, bytes) are written as themselves;
@@ -21,7 +24,8 @@ LIST       ``[0, ref, [items]]``
 TUPLE      ``[1, [items]]``
 DICT       ``[2, ref, [k0, v0, k1, v1, ...]]`` (keys of any encodable type: ints, tuples, ...)
 SET        ``[3, ref, [items]]``; FROZENSET ``[4, [items]]``; COUNTER ``[10, ref, [k0, n0, ...]]``
-NDARRAY    ``[5, ref, dtype.str, shape, raw bytes]`` (numeric and bool dtypes only, C order)
+NDARRAY    ``[5, ref, dtype.str, shape, offset]``: C-order data at ``offset`` in the array section
+           (numeric and bool dtypes only)
 SCALAR     ``[6, dtype.str, raw bytes]`` (numpy scalars keep their type: float64 is not float)
 OBJECT     ``[7, ref, "module.QualName", {attribute: state}]``
 MODEL      ``[8, "module.QualName", state of model_dump()]`` (pydantic; rebuilt by validation)
@@ -40,12 +44,16 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import io
+import math
 import os
 import struct
+import threading
 import zlib
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import msgpack
 import numpy as np
@@ -57,7 +65,7 @@ from kimera_multi_py.errors import CheckpointError
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
 FORMAT_VERSION = 1
-_HEADER = struct.Struct("<IIQQI")
+_HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
 
 LIST, TUPLE, DICT, SET, FROZENSET, NDARRAY, SCALAR, OBJECT, MODEL, REF, COUNTER = range(11)
@@ -107,9 +115,12 @@ def _attributes(obj: object) -> dict[str, Any]:
 
 
 class _Encoder:
-    def __init__(self, allowed: frozenset[str]) -> None:
+    def __init__(self, allowed: frozenset[str], copy: bool) -> None:
         self.allowed = allowed
+        self.copy = copy
         self.refs: dict[int, int] = {}
+        self.arrays: list[np.ndarray] = []  # C-contiguous uint8 views (or copies), in offset order
+        self.size = 0
 
     def _ref(self, obj: object) -> int | None:
         """The reference of an object already written, or None after registering it."""
@@ -140,7 +151,10 @@ class _Encoder:
         if t is np.ndarray:
             if obj.dtype.kind not in _ARRAY_KINDS:
                 raise StateError(f"{path}: array of dtype {obj.dtype} is not allowed")
-            return [NDARRAY, me, obj.dtype.str, list(obj.shape), np.ascontiguousarray(obj).tobytes()]
+            data = np.ascontiguousarray(obj).reshape(-1).view(np.uint8)
+            self.arrays.append(data.copy() if self.copy else data)
+            self.size += data.nbytes
+            return [NDARRAY, me, obj.dtype.str, list(obj.shape), self.size - data.nbytes]
         if t is list:
             return [LIST, me, [self.encode(v, f"{path}[{i}]") for i, v in enumerate(obj)]]
         if t is dict or t is Counter:
@@ -180,8 +194,9 @@ def _import(name: str, path: str, allowed: frozenset[str]) -> Any:
 
 
 class _Decoder:
-    def __init__(self, allowed: frozenset[str]) -> None:
+    def __init__(self, allowed: frozenset[str], data: memoryview) -> None:
         self.allowed = allowed
+        self.data = data
         self.refs: dict[int, Any] = {}
 
     def _register(self, ref: Any, obj: Any, path: str) -> None:
@@ -231,13 +246,14 @@ class _Decoder:
             return cls.model_validate(self.decode(data, path))  # type: ignore[attr-defined]
         ref = rest[0]
         if tag == NDARRAY:
-            _, dtype, shape, raw = rest
+            _, dtype, shape, offset = rest
             dt = _dtype(dtype, path)
-            if type(shape) is not list or not all(type(s) is int and s >= 0 for s in shape):
+            if type(shape) is not list or not all(type(n) is int and n >= 0 for n in shape):
                 raise StateError(f"{path}: bad array shape {shape!r}")
-            if type(raw) is not bytes or len(raw) != int(np.prod(shape, dtype=np.int64)) * dt.itemsize:
-                raise StateError(f"{path}: array data does not match dtype {dt} and shape {tuple(shape)}")
-            arr = np.frombuffer(raw, dtype=dt).reshape(shape).copy()
+            count = math.prod(shape)
+            if type(offset) is not int or offset < 0 or offset + count * dt.itemsize > len(self.data):
+                raise StateError(f"{path}: array data outside the file (offset {offset!r}, {count} x {dt})")
+            arr = np.frombuffer(self.data, dtype=dt, count=count, offset=offset).reshape(shape).copy()
             self._register(ref, arr, path)
             return arr
         if tag == LIST:
@@ -288,22 +304,81 @@ def _dtype(s: Any, path: str) -> np.dtype[Any]:
     return dt
 
 
-def encode_state(obj: Any, allowed: frozenset[str] = ALLOWED_CLASSES, path: str = "state") -> Any:
-    """The msgpack-ready state tree of ``obj`` (see the module docstring); raises StateError."""
-    return _Encoder(allowed).encode(obj, path)
+def encode_state(obj: Any, allowed: frozenset[str] = ALLOWED_CLASSES, path: str = "state",
+                 copy: bool = False) -> tuple[Any, list[np.ndarray]]:
+    """``(tree, arrays)``: the msgpack-ready state tree of ``obj`` and the uint8 data of its arrays,
+    whose concatenation is the array section the tree's offsets point into. ``copy`` copies the
+    arrays (the snapshot then no longer changes with ``obj``). Raises StateError."""
+    enc = _Encoder(allowed, copy)
+    return enc.encode(obj, path), enc.arrays
 
 
-def decode_state(tree: Any, allowed: frozenset[str] = ALLOWED_CLASSES, path: str = "state") -> Any:
+def decode_state(tree: Any, arrays: bytes | memoryview = b"", allowed: frozenset[str] = ALLOWED_CLASSES,
+                 path: str = "state") -> Any:
     """Rebuild what :func:`encode_state` wrote; raises StateError on anything unexpected."""
-    return _Decoder(allowed).decode(tree, path)
+    return _Decoder(allowed, memoryview(arrays)).decode(tree, path)
 
 
 # ---- files --------------------------------------------------------------------------------
-def checkpoint_bytes(agent: object, extra: dict[str, Any] | None = None, compress: bool = True) -> bytes:
-    """The whole checkpoint file's bytes for ``agent`` and the caller's plain-data ``extra``.
+@dataclass
+class Snapshot:
+    """An agent's encoded state, detached from the agent when taken with ``copy=True``.
 
-    The map's evidence (int32/int16 rows per cell) compresses about tenfold with zlib level 1,
-    at roughly 1 ms per MB on this machine; ``compress=False`` writes it raw.
+    Take it on the thread that owns the agent (:func:`snapshot`); :meth:`write` may then run
+    in another thread (``await asyncio.to_thread(snap.write, path)``) while the agent goes on.
+    """
+
+    tree: bytes  # msgpack of {"format", "version", "writer", "agent", "extra"}
+    arrays: list[np.ndarray]
+
+    def write_to(self, fh: BinaryIO, compress: bool = True) -> None:
+        """Write the file to a seekable binary stream (header last, once lengths and CRC are known)."""
+        start = fh.tell()
+        fh.write(bytes(len(MAGIC) + _HEADER.size))
+        crc, stored, raw = 0, 0, 0
+        deflate = zlib.compressobj(1) if compress else None
+        for part in [memoryview(self.tree), *(a.data for a in self.arrays), None]:
+            if part is None:  # the end
+                if deflate is None:
+                    break
+                part = memoryview(deflate.flush())
+            else:
+                raw += part.nbytes
+                if deflate is not None:
+                    part = memoryview(deflate.compress(part))
+            crc = zlib.crc32(part, crc)
+            stored += part.nbytes
+            fh.write(part)
+        end = fh.tell()
+        fh.seek(start)
+        fh.write(MAGIC + _HEADER.pack(FORMAT_VERSION, _ZLIB if compress else 0, len(self.tree), raw, stored, crc))
+        fh.seek(end)
+
+    def write(self, path: str | Path, compress: bool = True) -> None:
+        """Write atomically: a temporary file beside ``path``, fsync, rename, fsync the folder."""
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        try:
+            with tmp.open("wb") as fh:
+                self.write_to(fh, compress)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+            dir_fd = os.open(path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise CheckpointError(str(path), f"cannot write checkpoint: {exc}") from None
+
+
+def snapshot(agent: object, extra: dict[str, Any] | None = None, copy: bool = True) -> Snapshot:
+    """Encode ``agent`` and the caller's plain-data ``extra``; a problem raises StateError naming it.
+
+    ``extra`` is plain data only: None, bool, int, float, str, bytes, lists, tuples, sets,
+    dicts (any such keys), numeric numpy arrays and scalars.
     """
     from kimera_multi_py.agent.agent import Agent
 
@@ -312,46 +387,36 @@ def checkpoint_bytes(agent: object, extra: dict[str, Any] | None = None, compres
     extra = {} if extra is None else extra
     if type(extra) is not dict:
         raise StateError(f"extra must be a dict, got {type(extra).__name__}")
-    payload = msgpack.packb({
-        "format": FORMAT,
-        "version": FORMAT_VERSION,
-        "writer": f"kimera-multi-py {__version__}",
-        "agent": encode_state(agent, ALLOWED_CLASSES, "agent"),
-        "extra": encode_state(extra, frozenset(), "extra"),
-    }, use_bin_type=True)
-    stored = zlib.compress(payload, 1) if compress else payload
-    return MAGIC + _HEADER.pack(FORMAT_VERSION, _ZLIB if compress else 0, len(stored), len(payload),
-                                zlib.crc32(stored)) + stored
+    enc = _Encoder(ALLOWED_CLASSES, copy)
+    tree = {"format": FORMAT, "version": FORMAT_VERSION, "writer": f"kimera-multi-py {__version__}",
+            "agent": enc.encode(agent, "agent")}
+    plain = _Encoder(frozenset(), copy)  # extra: plain data only, no references into the agent
+    plain.arrays, plain.size = enc.arrays, enc.size
+    tree["extra"] = plain.encode(extra, "extra")
+    return Snapshot(msgpack.packb(tree, use_bin_type=True), enc.arrays)
+
+
+def checkpoint_bytes(agent: object, extra: dict[str, Any] | None = None, compress: bool = True) -> bytes:
+    """The bytes of the checkpoint file :func:`save_checkpoint` would write."""
+    buf = io.BytesIO()
+    snapshot(agent, extra, copy=False).write_to(buf, compress)
+    return buf.getvalue()
 
 
 def save_checkpoint(path: str | Path, agent: object, extra: dict[str, Any] | None = None,
                     compress: bool = True) -> None:
-    """Write ``agent`` and ``extra`` to ``path`` atomically (temporary file, fsync, rename).
+    """Write ``agent`` and ``extra`` to ``path`` atomically (see :func:`snapshot` for ``extra``).
 
-    ``extra`` is plain data only: None, bool, int, float, str, bytes, lists, tuples, sets,
-    dicts (any such keys) and numeric numpy arrays and scalars. An attribute the codec cannot
-    write raises CheckpointError naming it; ``path`` is then left as it was.
+    ``compress`` deflates the file with zlib level 1: the map's evidence (int32 rows per cell,
+    mostly zeros) shrinks about ninefold, and writing takes a few times longer (see
+    ``benchmarks/sources_checkpoint.py``). State the codec cannot write raises CheckpointError
+    naming the attribute, and ``path`` is left as it was.
     """
-    path = Path(path)
     try:
-        data = checkpoint_bytes(agent, extra, compress)
+        snap = snapshot(agent, extra, copy=False)
     except (StateError, OverflowError, TypeError) as exc:
         raise CheckpointError(str(path), f"cannot write checkpoint: {exc}") from None
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with tmp.open("wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise CheckpointError(str(path), f"cannot write checkpoint: {exc}") from None
+    snap.write(path, compress)
 
 
 def load_checkpoint(path: str | Path) -> tuple[Any, dict[str, Any]]:
@@ -377,34 +442,34 @@ def parse_checkpoint(data: bytes, name: str = "<bytes>") -> tuple[Any, dict[str,
         raise CheckpointError(name, "not a kimera-multi checkpoint (bad magic)")
     if len(data) < head:
         raise CheckpointError(name, "truncated checkpoint (incomplete header)")
-    version, flags, size, raw_size, crc = _HEADER.unpack_from(data, len(MAGIC))
+    version, flags, tree_size, raw_size, size, crc = _HEADER.unpack_from(data, len(MAGIC))
     if version != FORMAT_VERSION:
         raise CheckpointError(name, f"checkpoint format version {version}, this program reads version {FORMAT_VERSION}")
     if flags & ~_ZLIB:
         raise CheckpointError(name, f"unknown checkpoint flags {flags:#x}")
-    payload = data[head:]
-    if len(payload) != size:
-        what = "truncated" if len(payload) < size else "trailing bytes after"
-        raise CheckpointError(name, f"{what} checkpoint payload ({len(payload)} bytes, header says {size})")
-    if zlib.crc32(payload) != crc:
+    body = memoryview(data)[head:]
+    if len(body) != size:
+        what = "truncated" if len(body) < size else "trailing bytes after"
+        raise CheckpointError(name, f"{what} checkpoint payload ({len(body)} bytes, header says {size})")
+    if zlib.crc32(body) != crc:
         raise CheckpointError(name, "corrupt checkpoint (CRC mismatch)")
     if flags & _ZLIB:
         try:
-            inflate = zlib.decompressobj()
-            payload = inflate.decompress(payload, raw_size + 1)  # never more than the header promises
+            body = memoryview(zlib.decompressobj().decompress(body, raw_size + 1))  # never more than promised
         except zlib.error as exc:
             raise CheckpointError(name, f"corrupt checkpoint payload: {exc}") from None
-    if len(payload) != raw_size:
-        raise CheckpointError(name, f"checkpoint payload is {len(payload)} bytes, header says {raw_size}")
+    if len(body) != raw_size or tree_size > raw_size:
+        raise CheckpointError(name, f"checkpoint payload is {len(body)} bytes, header says {raw_size}")
     try:
-        doc = msgpack.unpackb(payload, raw=False, use_list=True, strict_map_key=False)
+        doc = msgpack.unpackb(body[:tree_size], raw=False, use_list=True, strict_map_key=False)
     except (ValueError, msgpack.UnpackException, TypeError) as exc:
         raise CheckpointError(name, f"corrupt checkpoint payload: {exc}") from None
     if type(doc) is not dict or doc.get("format") != FORMAT or doc.get("version") != FORMAT_VERSION:
         raise CheckpointError(name, f"payload is not a {FORMAT} of version {FORMAT_VERSION}")
+    arrays = body[tree_size:]
     try:
-        agent = decode_state(doc.get("agent"), ALLOWED_CLASSES, "agent")
-        extra = decode_state(doc.get("extra"), frozenset(), "extra")
+        agent = _Decoder(ALLOWED_CLASSES, arrays).decode(doc.get("agent"), "agent")
+        extra = _Decoder(frozenset(), arrays).decode(doc.get("extra"), "extra")
     except (StateError, RecursionError) as exc:
         raise CheckpointError(name, f"bad checkpoint content: {exc}") from None
     except ValidationError as exc:  # a config model refused its values
