@@ -252,7 +252,16 @@ def test_source_from_spec(recording, cfg, tmp_path):
     s = source_from_spec(f"sim:{TINY}:0", 3, 0)  # a generated robot beyond the file's team
     assert_same_stream(itertools.islice(s, 2), itertools.islice(SimSource(with_team_size(cfg, 5), 0, 3), 2))
     r = source_from_spec(str(recording), 1, 100)
-    assert isinstance(r, RecordedSource) and [kf.index for kf in r] == list(range(100, 117))
+    assert isinstance(r, RecordedSource) and next(r).index == 100
+    state = r.state()
+    assert [kf.index for kf in source_from_spec(str(recording), 1, 101, resume=state)] == list(range(101, 117))
+    with pytest.raises(ConfigError, match="resume"):
+        source_from_spec(str(recording), 1, 100, resume=state)
+    sim = source_from_spec(f"sim:{TINY}:7", 1, 0)
+    for _ in itertools.islice(sim, 20):
+        pass
+    resumed = source_from_spec(f"sim:{TINY}:7", 1, 20, resume=sim.state())
+    assert_same_stream(resumed, sim)
     for bad, problem in [("sim:", "expected sim:SCENARIO"), (str(tmp_path / "nowhere"), "neither"),
                          ("zenoh:foo", "neither")]:
         with pytest.raises(ConfigError, match=problem):
