@@ -13,11 +13,13 @@ arrays: ``index`` (m,) int64, ``stamp`` (m,) float64, ``odometry`` (m, 4, 4) flo
 ``T_{k-1,k}`` (identity at k = 0), ``max_range`` (m,) float64, ``offsets`` (m+1,) int64 and the
 rays of all m scans concatenated: ``points`` (N, 3) float64 sensor-frame end points (misses at
 max range), ``labels`` (N,) int16 (0 for misses) and ``hit`` (N,) bool; keyframe j's rays are
-``offsets[j]:offsets[j+1]``. Chunks rather than one file per keyframe: one file open and zip
-parse per 32 keyframes, contiguous arrays that ``np.load`` maps without copying per keyframe,
-and a restart at k reads only the chunk holding k. Uncompressed: float end points barely
-compress and inflating would cost more than reading. Every problem found on reading raises
-:class:`~kimera_multi_py.errors.DatasetError` naming the file and what is wrong.
+``offsets[j]:offsets[j+1]``. Chunks rather than one file per keyframe: one file open, zip parse
+and check per 32 keyframes (each array is read once and the keyframes are views into it), and
+a restart at k reads only the chunk holding k. Uncompressed: on an office chunk zlib saves only
+14 % of the bytes, and inflating takes about 4x as long as ``np.load`` of the plain file.
+Odometry must be a rigid transform (rotation orthonormal to 1e-5, last row 0 0 0 1). Every
+problem found on reading raises :class:`~kimera_multi_py.errors.DatasetError` naming the file
+and what is wrong.
 """
 
 from __future__ import annotations
@@ -72,7 +74,7 @@ def _check_poses(where: str, what: str, T: np.ndarray, first: int | None = None)
     R = T[:, :3, :3]
     err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2))
     bottom = np.abs(T[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
-    bad = (err > 1e-6) | (bottom > 0) | (np.linalg.det(R) < 0)
+    bad = (err > 1e-5) | (bottom > 0) | (np.linalg.det(R) < 0)  # 1e-5: rotations computed in float32 pass
     if bad.any():
         raise DatasetError(f"{where}: {what} at {at(bad)} is not a rigid transform")
 
