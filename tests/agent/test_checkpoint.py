@@ -3,6 +3,7 @@
 import itertools
 import struct
 import zlib
+from collections import Counter
 
 import gtsam
 import msgpack
@@ -81,7 +82,7 @@ def ckpt(agent, tmp_path_factory):
 def test_round_trip_restores_every_attribute(agent, tmp_path):
     x = np.arange(6, dtype=np.float32).reshape(2, 3)
     extra = {"next": 30, (1, 2): {3, 4}, 5: [x, x, np.int16(7), np.float64(0.5)], "t": (None, True, b"\x00"),
-             "big": 2**63 + 1, "f": frozenset({"a"})}
+             "big": 2**63 + 1, "f": frozenset({"a"}), "errors": Counter({"query": 2}), "nan": float("nan")}
     for compress in (True, False):
         path = tmp_path / f"a{compress}.ckpt"
         save_checkpoint(path, agent, extra, compress=compress)
