@@ -29,15 +29,14 @@ def _root() -> None:
 def _setup_logging(verbose: bool) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s [%(robot)s] %(name)s: %(message)s")
-    old = logging.getLogRecordFactory()
 
-    def factory(*args: object, **kwargs: object) -> logging.LogRecord:
-        record = old(*args, **kwargs)  # type: ignore[arg-type]
-        if not hasattr(record, "robot"):
+    def default_robot(record: logging.LogRecord) -> bool:
+        if not hasattr(record, "robot"):  # records logged without extra={"robot": ...}
             record.robot = "-"
-        return record
+        return True
 
-    logging.setLogRecordFactory(factory)
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(default_robot)
 
 
 def fail(exc: KimeraMultiError) -> typer.Exit:

@@ -16,7 +16,7 @@ Membership comes from presence (liveliness): whoever is alive is the team.
 Two ways to drive it. The single-process simulation calls :meth:`drain` and :meth:`tick` with a
 simulated clock (deterministic: a round's wait ends when the runtime says nothing more can
 arrive). A robot process calls :meth:`run`, which feeds keyframes from a source at a rate, ticks
-on wall time, writes checkpoints and returns when the team's final optimisation is done.
+on wall time and returns when the team's final optimisation is done.
 """
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ class AgentNode:
         self.complete = False  # the team's final optimisation reached us
         self.pgo: TeamPgo | None = None
         if self.params.server is None:
-            self.pgo = TeamPgo(agent.robot, pgo_params or PgoParams(robust=True, max_rounds=300),
+            self.pgo = TeamPgo(agent.robot, pgo_params or PgoParams(robust=True, max_rounds=600),
                                self.schedule, agent.local_graph, agent.apply_poses,
                                lambda: agent.robot_graph, self._accepted_inter)
         self._sub: Subscription | None = None

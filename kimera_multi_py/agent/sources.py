@@ -206,7 +206,9 @@ def write_recording(out_dir: str | Path, cfg: ScenarioConfig, robots: int | None
     sim = Simulation(cfg, seed)
     info = {"scenario_name": cfg.name, "scenario_path": None if scenario_path is None else str(scenario_path),
             "seed": sim.seed, "robots": sim.num_robots, "scenario": cfg.model_dump(mode="json", by_alias=True)}
-    with RecordingWriter(out_dir, sensor=cfg.sensor.model_dump(mode="json"), truth_info=info,
+    sensor = {**cfg.sensor.model_dump(mode="json"), "odometry": cfg.odometry.model_dump(mode="json"),
+              "keyframe_distance": cfg.keyframes.distance}  # the agents' noise model
+    with RecordingWriter(out_dir, sensor=sensor, truth_info=info,
                          chunk_size=chunk_size) as writer:
         for r in range(sim.num_robots):
             for kf in sim.keyframes(r):

@@ -195,6 +195,9 @@ class TeamPgo:
         return local, seeded
 
     def _finish(self, s: Session) -> None:
+        log.info("robot %d: PGO epoch %d ends after %d rounds (%s; %d timeouts so far, GNC step %d)", self.robot,
+                 s.epoch, s.rnd, "stopped" if s.pgo.done else "round cap", self.stats.timeouts, s.pgo.gnc.steps,
+                 extra={"robot": self.robot})
         self._apply(s.pgo.final_poses())
         self.last_pgo = s.pgo
         self.completed = s.epoch

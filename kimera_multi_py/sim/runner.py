@@ -111,7 +111,7 @@ class SimRunner:
         self.viz: Viz = viz or NullViz()
         self.on_progress = on_progress
         self.params = params or agent_params(cfg)
-        self.pgo_params = pgo_params or PgoParams(robust=True, max_rounds=300)
+        self.pgo_params = pgo_params or PgoParams(robust=True, max_rounds=600)
         # over Zenoh a round waits on the wall clock; over loopback until the network is quiet
         self.schedule = ScheduleParams(period=pgo_period, round_timeout=0.5 if transport == "zenoh" else None)
         self.clock = _SimClock()

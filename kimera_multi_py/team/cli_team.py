@@ -45,7 +45,7 @@ def register(app: typer.Typer) -> None:
     @app.command()
     def agent(
         robot: Annotated[int, typer.Option("--robot", help="This robot's id (0..25).")],
-        source: Annotated[str, typer.Option("--source", help="sim:SCENARIO[:SEED[:N]] or a recorded folder.")],
+        source: Annotated[str, typer.Option("--source", help="sim:SCENARIO[:SEED] or a recorded folder.")],
         out: Annotated[Path, typer.Option("--out", help="Run folder; outputs go to OUT/robotI/.")],
         connect: Connect = None, listen: Listen = None, zenoh_config: ZenohConfig = None, team: Team = "t0",
         rate: Annotated[str, typer.Option(help="Pace keyframes at RATE x their stamps; inf: no pacing.")] = "inf",
@@ -121,7 +121,7 @@ def register(app: typer.Typer) -> None:
         _setup_logging(verbose)
         try:
             job = LaunchJob(scenario, robots, seed, mode, out, _rate(rate), [parse_kill(k) for k in kill or []],
-                            checkpoint_every, timeout=timeout)
+                            checkpoint_every, timeout=timeout, verbose=verbose)
             with Live(_table({}), console=console, refresh_per_second=4, transient=False) as live:
                 results = launch(job, lambda views: live.update(_table(views)))
         except KimeraMultiError as exc:
@@ -144,7 +144,7 @@ def register(app: typer.Typer) -> None:
 
         try:
             cfg = load_scenario(scenario, robots=robots)
-            write_recording(out, cfg, seed)
+            write_recording(out, cfg, robots=len(cfg.robots), seed=seed, scenario_path=scenario)
         except KimeraMultiError as exc:
             raise fail(exc) from None
         console.print(f"wrote {out}")

@@ -62,6 +62,7 @@ class LaunchJob:
     pgo_period: float = 60.0
     timeout: float = 1800.0
     team: str = "t0"
+    verbose: bool = False
 
 
 @dataclass
@@ -115,7 +116,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     (out / "logs").mkdir(parents=True, exist_ok=True)
     port = free_ports(1)[0]
     endpoint = f"tcp/127.0.0.1:{port}"
-    conn = ["--connect", endpoint, "--team", job.team]
+    conn = ["--connect", endpoint, "--team", job.team] + (["-v"] if job.verbose else [])
     procs: dict[str, subprocess.Popen[bytes]] = {}
     logs: list[Any] = []
 
@@ -125,7 +126,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
         return subprocess.Popen(_cmd(*args), stdout=fh, stderr=subprocess.STDOUT)
 
     def agent_args(r: int, resume: bool) -> list[str]:
-        args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}:{job.robots}",
+        args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}",
                 "--out", str(out), "--rate", str(job.rate), "--checkpoint-every", str(job.checkpoint_every),
                 "--pgo-period", str(job.pgo_period), *conn]
         if job.mode == "centralized":

@@ -20,17 +20,20 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from kimera_multi_py.agent.agent import Agent, AgentParams, KeyframeInput
 from kimera_multi_py.agent.checkpoint import load_checkpoint, save_checkpoint
 from kimera_multi_py.agent.node import AgentNode, NodeParams
 from kimera_multi_py.agent.outputs import outcome_of, own_graph, write_outcome
-from kimera_multi_py.agent.sources import source_from_spec
+from kimera_multi_py.agent.sources import KeyframeSource, SimSource, source_from_spec
 from kimera_multi_py.comms import runtime
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.consensus.pgo import PgoParams
 from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.sim.runner import agent_params
 
 log = logging.getLogger(__name__)
 
@@ -79,9 +82,9 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     if job.robot < 0 or job.robot > 25:
         raise ConfigError("robot", f"robot id must be in 0..25, got {job.robot}")
     ckpt = checkpoint_path(job.out_dir, job.robot)
+    ckpt.parent.mkdir(parents=True, exist_ok=True)
     extra: dict[str, Any] = {}
-    source = source_from_spec(job.source, job.robot, 0)
-    params: AgentParams = source.agent_params()
+    params = params_for(source_from_spec(job.source, job.robot, 0))
     if job.centralized:
         params = replace(params, server=SERVER_ID)
     if job.resume and ckpt.exists():
@@ -92,10 +95,11 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     else:
         agent = Agent(job.robot, None, params)
     start = agent.num_keyframes
-    source = source_from_spec(job.source, job.robot, start)
+    resume = json.loads(extra["source"]) if isinstance(extra.get("source"), str) else None
+    source = source_from_spec(job.source, job.robot, start, resume)
     schedule = ScheduleParams(period=job.pgo_period, round_timeout=0.5, final_grace=2.0)
     bus = job.connection.bus(job.robot)
-    node = AgentNode(agent, bus, PgoParams(robust=True, max_rounds=300), schedule,
+    node = AgentNode(agent, bus, PgoParams(robust=True, max_rounds=600), schedule,
                      NodeParams(server=params.server, state_period=1.0))
     if node.pgo is not None:
         node.pgo.epoch = node.pgo.completed = int(extra.get("epoch", 0))
@@ -105,12 +109,12 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
         nonlocal last
         if time.monotonic() - last >= job.checkpoint_every:
             last = time.monotonic()
-            save_checkpoint(ckpt, agent, _node_state(node))
+            save_checkpoint(ckpt, agent, _node_state(node, source))
 
     try:
         await node.start()
         await node.run(iter(source), rate=job.rate, on_keyframe=on_keyframe)
-        save_checkpoint(ckpt, agent, _node_state(node))
+        save_checkpoint(ckpt, agent, _node_state(node, source))
         write_outcome(job.out_dir, outcome_of(node), own_graph(agent))
     finally:
         await node.close()
@@ -119,8 +123,27 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
             "epochs": node.pgo.stats.epochs if node.pgo is not None else 0, "wall_s": time.monotonic() - t0}
 
 
-def _node_state(node: AgentNode) -> dict[str, Any]:
-    return {"epoch": node.pgo.completed if node.pgo is not None else 0, "next_keyframe": node.agent.num_keyframes}
+def _node_state(node: AgentNode, source: KeyframeSource) -> dict[str, Any]:
+    # the source's state as JSON text: a simulator's generator state holds 128-bit integers
+    state = json.dumps(source.state()) if hasattr(source, "state") else None
+    return {"epoch": node.pgo.completed if node.pgo is not None else 0, "next_keyframe": node.agent.num_keyframes,
+            "source": state}
+
+
+def params_for(source: KeyframeSource) -> AgentParams:
+    """The agent's noise model: the scenario's for the simulator, the recording's sensor info
+    (``odometry.rot_sigma_deg``, ``odometry.trans_sigma``, ``keyframe_distance``) otherwise."""
+    if isinstance(source, SimSource):
+        return agent_params(source.sim.cfg)
+    sensor = getattr(source, "manifest", {}).get("sensor", {})
+    odo = sensor.get("odometry") or {}
+    try:
+        rot = max(float(np.deg2rad(float(odo.get("rot_sigma_deg", 0.5)))), 1e-4)
+        trans = max(float(odo.get("trans_sigma", 0.03)), 1e-3)
+        dist = float(sensor.get("keyframe_distance", 0.5))
+    except (TypeError, ValueError) as exc:
+        raise ConfigError("manifest.sensor", f"bad odometry noise model: {exc}") from None
+    return AgentParams(odom_sigmas=(rot, trans), keyframe_distance=dist)
 
 
 # ---------------------------------------------------------------------------- server
