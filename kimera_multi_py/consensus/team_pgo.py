@@ -162,7 +162,9 @@ class TeamPgo:
         pgo = PgoAgent(local, self.params)
         pgo.neighbour_poses.update(seeded)
         leader = min(members)
-        depends = set(members if self.robot == leader else local.neighbours) & set(members)
+        # the epoch's leader waits for everyone; the others for their neighbours and the leader
+        # (which paces a robot without neighbours yet, instead of it racing to the round cap)
+        depends = set(members if self.robot == leader else [*local.neighbours, leader]) & set(members)
         depends.discard(self.robot)
         self.session = Session(msg.epoch, members, bool(msg.final), pgo, depends, keyframes, began=self._now)
         future, self._future = self._future, []
