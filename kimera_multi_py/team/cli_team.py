@@ -110,18 +110,21 @@ def register(app: typer.Typer) -> None:
         rate: Annotated[str, typer.Option(help="Pace keyframes at RATE x their stamps; inf: no pacing.")] = "inf",
         kill: Annotated[list[str] | None, typer.Option("--kill", help="I@T: SIGKILL agent I at stream time T, "
                                                                        "then restart it with --resume.")] = None,
+        join: Annotated[list[str] | None, typer.Option("--join", help="I@T: start agent I once the team's "
+                                                                       "stream reaches T s.")] = None,
         checkpoint_every: Annotated[float, typer.Option(help="Seconds between agent checkpoints.")] = 5.0,
         timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 1800.0,
         verbose: Verbose = False,
     ) -> None:
         """Start a router and N agent processes (and the server) on 127.0.0.1, then evaluate."""
-        from kimera_multi_py.cli import _results_table, _summary
+        from kimera_multi_py.cli import _results_table, _robot_at, _summary
         from kimera_multi_py.team.launcher import LaunchJob, launch, parse_kill
 
         _setup_logging(verbose)
         try:
             job = LaunchJob(scenario, robots, seed, mode, out, _rate(rate), [parse_kill(k) for k in kill or []],
-                            checkpoint_every, timeout=timeout, verbose=verbose)
+                            dict(_robot_at(j, "join") for j in join or []), checkpoint_every, timeout=timeout,
+                            verbose=verbose)
             with Live(_table({}), console=console, refresh_per_second=4, transient=False) as live:
                 results = launch(job, lambda views: live.update(_table(views)))
         except KimeraMultiError as exc:

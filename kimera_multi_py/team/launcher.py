@@ -58,6 +58,7 @@ class LaunchJob:
     out_dir: Path
     rate: float = math.inf
     kills: list[Kill] = field(default_factory=list)
+    joins: dict[int, float] = field(default_factory=dict)  # robot -> team stream time it starts at
     checkpoint_every: float = 5.0
     pgo_period: float = 60.0
     timeout: float = 1800.0
@@ -93,6 +94,9 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     for k in job.kills:
         if not 0 <= k.robot < job.robots:
             raise ConfigError("kill", f"robot {k.robot} is not in the team of {job.robots}")
+    for r in job.joins:
+        if not 0 <= r < job.robots or len(job.joins) >= job.robots:
+            raise ConfigError("join", f"robot {r}: needs a robot of the team, and someone to join")
     from kimera_multi_py.sim.scenario import load_scenario
 
     cfg = load_scenario(job.scenario, robots=job.robots)  # fail here, not in N processes
@@ -146,7 +150,8 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
             procs["server"] = start("server", ["server", "--out", str(out), "--pgo-period", str(job.pgo_period),
                                                *conn])
         for r in range(job.robots):
-            procs[f"robot{r}"] = start(f"robot{r}", agent_args(r, False))
+            if r not in job.joins:
+                procs[f"robot{r}"] = start(f"robot{r}", agent_args(r, False))
         deadline = time.monotonic() + job.timeout
         while True:
             while (msg := states.try_recv()) is not None:
@@ -154,12 +159,17 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
                     v = views[f"robot{msg.robot}"]
                     v.keyframes, v.stamp, v.epochs, v.finished = msg.keyframes, msg.stamp, msg.epoch, msg.finished
                     v.closures, v.rounds, v.bytes_sent = msg.closures, msg.rounds, msg.bytes_sent
+            team_time = max((v.stamp for v in views.values()), default=0.0)
+            for r, at in job.joins.items():
+                if f"robot{r}" not in procs and team_time >= at:
+                    log.warning("robot %d joins at team time %.1f s", r, team_time)
+                    procs[f"robot{r}"] = start(f"robot{r}", agent_args(r, False))
             peers = observer.peers()
             for r in range(job.robots):
                 views[f"robot{r}"].alive = r in peers
             for k in job.kills:
-                p = procs[f"robot{k.robot}"]
-                if not k.done and views[f"robot{k.robot}"].stamp >= k.at and p.poll() is None:
+                p = procs.get(f"robot{k.robot}")
+                if p is not None and not k.done and views[f"robot{k.robot}"].stamp >= k.at and p.poll() is None:
                     os.kill(p.pid, signal.SIGKILL)
                     p.wait()
                     k.done = True
@@ -173,7 +183,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
             if on_update is not None:
                 on_update(views)
             team = [p for n, p in procs.items() if n != "router"]
-            codes = [p.poll() for p in team]
+            codes = [p.poll() for p in team] + [None] * sum(f"robot{r}" not in procs for r in job.joins)
             if any(c not in (None, 0) for c in codes):
                 bad = [n for n, p in procs.items() if n != "router" and p.poll() not in (None, 0)]
                 raise KimeraMultiError(f"{bad[0]} exited with code {procs[bad[0]].poll()}; "

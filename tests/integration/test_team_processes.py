@@ -111,3 +111,20 @@ def test_corrupt_checkpoint_and_source_are_one_line_errors(tmp_path):
     res = cli("agent", "--robot", "0", "--source", str(bad), "--out", str(tmp_path / "o"),
               "--listen", f"tcp/127.0.0.1:{port}", timeout=120)
     assert res.returncode == 1 and "manifest.json" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.slow
+def test_a_robot_joining_late_is_aligned_into_the_team(clean, tmp_path, odometry_ate):
+    res = launch(tmp_path, "--join", "2@40")
+    assert "joins" not in res  # the schema is the sim's
+    sim = Simulation(load_scenario(SMALL), seed=0)
+    assert [r["keyframes"] for r in res["robots"]] == [len(p.stamps) for p in sim.plans]
+    assert res["loop_closures"]["false_accepted_inter"] == 0
+    closures = json.loads((tmp_path / "robot2" / "closures.json").read_text())
+    assert closures["pgo_epochs"] >= 1
+    # robot 2's closures are with robots that started 40 s before it, and they entered PGO
+    peers = {c["peer"] for r in range(2)
+             for c in json.loads((tmp_path / f"robot{r}" / "closures.json").read_text())["closures"]
+             if c["weight"] is not None and c["weight"] >= 0.5}
+    assert 2 in peers
+    assert res["team"]["ate_rmse_m"] < 0.8 * odometry_ate
