@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 from kimera_multi_py.agent.agent import MAX_AGENT_ID, Agent, KeyframeInput
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.bus import Bus, BusClosedError, PresenceEvent, Stream, Subscription
+from kimera_multi_py.comms.bus import Bus, BusClosedError, Closeable, PresenceEvent, Stream, Subscription
 from kimera_multi_py.comms.messages import (
     AgentState,
     KeyframeDescriptor,
@@ -82,7 +82,7 @@ class AgentNode:
                                self.schedule, agent.local_graph, agent.apply_poses,
                                lambda: agent.robot_graph, self._accepted_inter)
         self._sub: Subscription | None = None
-        self._serve = None
+        self._serve: Closeable | None = None
         self._presence: Stream[PresenceEvent] | None = None
         self._unacked: dict[int, LoopClosures] = {}  # peer -> newest closures batch not acknowledged
         self._sent_at: dict[int, float] = {}
@@ -249,8 +249,8 @@ class AgentNode:
                 out.append(self._state())
                 if self.pgo.final_done and self.finished:
                     self.complete = True
-        for msg in out:
-            await self._publish(msg)
+        for m in out:
+            await self._publish(m)
         return len(out)
 
     def blocked(self) -> bool:

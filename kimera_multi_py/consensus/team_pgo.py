@@ -103,7 +103,7 @@ class TeamPgo:
         self.stats = TeamPgoStats()
         self.states: dict[int, AgentState] = {}
         self.last_public: dict[int, np.ndarray] = {}  # pose key -> latest public pose heard
-        self._future: list[Message] = []  # messages of an epoch not opened yet
+        self._future: list[Message] = []  # PGO messages (all carry a round) of an epoch not opened yet
         self._opened_at = 0.0  # team time of the last epoch's opening
         self._closures_at_open = 0
         self._finished_since: float | None = None
@@ -169,7 +169,7 @@ class TeamPgo:
         self.session = Session(msg.epoch, members, bool(msg.final), pgo, depends, keyframes, began=self._now)
         future, self._future = self._future, []
         for m in future:
-            epoch, rnd = divmod(m.round, EPOCH_ROUNDS)
+            epoch, rnd = divmod(m.round, EPOCH_ROUNDS)  # type: ignore[attr-defined]
             if epoch == msg.epoch:
                 self._absorb(self.session, dataclasses.replace(m, round=rnd))
             elif epoch > msg.epoch:
