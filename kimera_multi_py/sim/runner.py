@@ -98,7 +98,8 @@ class SimRunner:
                  out_dir: str | Path | None = None, viz: Viz | None = None,
                  on_progress: Progress | None = None, transport: str = "loopback",
                  pgo_period: float = 60.0, params: AgentParams | None = None,
-                 pgo_params: PgoParams | None = None, join: dict[int, float] | None = None) -> None:
+                 pgo_params: PgoParams | None = None, join: dict[int, float] | None = None,
+                 leave: dict[int, float] | None = None) -> None:
         if mode not in MODES:
             raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
         if transport not in TRANSPORTS:
@@ -117,9 +118,12 @@ class SimRunner:
         self.clock = _SimClock()
         # robot -> seconds after the others that it joins (its whole stream is shifted by that)
         self.join = {int(r): float(t) for r, t in (join or {}).items()}
-        for r, t in self.join.items():
-            if not 0 <= r < self.sim.num_robots or not (math.isfinite(t) and t >= 0):
-                raise ConfigError("join", f"robot {r} at {t} s: needs a robot of the team and a time >= 0")
+        # robot -> time at which it leaves for good (its node closes; the rest of its stream is dropped)
+        self.leave = {int(r): float(t) for r, t in (leave or {}).items()}
+        for what, table in (("join", self.join), ("leave", self.leave)):
+            for r, t in table.items():
+                if not 0 <= r < self.sim.num_robots or not (math.isfinite(t) and t >= 0):
+                    raise ConfigError(what, f"robot {r} at {t} s: needs a robot of the team and a time >= 0")
         self.tracks: list[_Track] = []
         self.nodes: list[AgentNode] = []
         self.server: ServerNode | None = None
@@ -179,6 +183,13 @@ class SimRunner:
             epochs = 0
             for done, kf in enumerate(self._stream(), 1):
                 self.clock.t = kf.stamp
+                for r, t in self.leave.items():
+                    if kf.stamp >= t and self.nodes[r] in nodes:
+                        nodes.remove(self.nodes[r])
+                        await self.nodes[r].close()
+                        await buses[r].close()
+                if self.nodes[kf.robot] not in nodes:
+                    continue
                 node = self.nodes[kf.robot]
                 if kf.index == 0 and kf.robot in self.join:
                     await node.start()
@@ -190,10 +201,15 @@ class SimRunner:
                     epochs = self._epochs()
                     self._log_team(kf.stamp)
             for node in self.nodes:
-                await node.finish_stream()
+                if node in nodes:
+                    await node.finish_stream()
+            end = self.clock.t
             while not all(n.complete for n in nodes):
                 if not await self._settle(nodes, buses):
-                    raise RuntimeError("the team stopped before its final optimisation")  # a bug, not bad input
+                    # quiet but not done: time passes (a robot that left is waited for a while)
+                    if self.clock.t - end > 10 * self.schedule.absent_timeout:
+                        raise RuntimeError("the team stopped before its final optimisation")  # a bug
+                    self.clock.t += 1.0
             self._log_team()
             weights = self.server.server.stats.weights if self.server is not None else None
             self.outcomes = [outcome_of(n, weights) for n in self.nodes]

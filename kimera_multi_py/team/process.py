@@ -33,6 +33,7 @@ from kimera_multi_py.consensus.pgo import PgoParams
 from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.sim.runner import agent_params
 
 log = logging.getLogger(__name__)
@@ -172,6 +173,9 @@ async def _server(job: ServerJob) -> dict[str, Any]:
         await bus.close()
     d = Path(job.out_dir) / "server"
     d.mkdir(parents=True, exist_ok=True)
+    graph, _ = server.graph()
+    if graph.num_poses:
+        write_g2o(d / "graph.g2o", graph)
     weights = [[a, ka, b, kb, w] for (a, ka, b, kb), w in sorted(server.stats.weights.items())]
     (d / "weights.json").write_text(json.dumps({"version": 1, "weights": weights, "solves": server.stats.solves}))
     return {"solves": server.stats.solves, "poses": server.stats.poses}

@@ -34,3 +34,19 @@ def test_a_robot_joining_late_is_aligned_and_in_pgo(tmp_path):
     world = est @ T[:3, :3].T + T[:3, 3]
     assert np.sqrt(np.mean(np.sum((world - truth) ** 2, axis=1))) < 1.0
     assert res["loop_closures"]["false_accepted_inter"] == 0
+
+
+def test_a_robot_that_leaves_does_not_stall_the_team():
+    """Robot 2 disappears mid-run: the others are not held up by it, finish, and it is dropped
+    from the schedule (later epochs are the two of them)."""
+    from .helpers import TINY
+
+    runner = SimRunner(load_scenario(TINY, robots=3), seed=0, mode="distributed", leave={2: 30.0})
+    res = runner.run().to_dict()
+    a, b, gone = runner.nodes
+    assert a.complete and b.complete and not gone.complete
+    assert gone.agent.stamps[-1] < 30.0 and res["robots"][2]["keyframes"] == gone.agent.num_keyframes
+    late = [h for h in a.pgo.history if h[3] >= 30.0]
+    assert late and all(h[1] == (0, 1) for h in late)  # (epoch, members, final, began)
+    assert late[-1][2]  # the final epoch ran without robot 2
+    assert a.pgo.stats.rounds < 0.8 * runner.pgo_params.max_rounds * len(a.pgo.history)  # nobody waited out caps
