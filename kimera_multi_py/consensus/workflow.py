@@ -19,9 +19,9 @@ import numpy as np
 
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.loopback import Faults, LoopbackNetwork
+from kimera_multi_py.consensus.evaluation import RobustEvaluation, evaluate_robust
 from kimera_multi_py.consensus.factors import graph_cost
 from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, split_local
-from kimera_multi_py.consensus.evaluation import RobustEvaluation, evaluate_robust
 from kimera_multi_py.consensus.robust import precision_recall, tls_threshold
 from kimera_multi_py.consensus.runner import RunStats, run_team
 from kimera_multi_py.consensus.server import CentralizedResult, solve_centralized

@@ -13,8 +13,8 @@ from typer.testing import CliRunner
 from kimera_multi_py.consensus.cli_pgo import register
 from kimera_multi_py.consensus.evaluation import evaluate_robust, jaccard
 from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, colour_robots, split_local
-from kimera_multi_py.consensus.workflow import load_graph, run_pgo
 from kimera_multi_py.consensus.robust import tls_threshold
+from kimera_multi_py.consensus.workflow import load_graph, run_pgo
 from kimera_multi_py.io.g2o import read_g2o
 from kimera_multi_py.io.pose_graph import ODOMETRY
 from kimera_multi_py.io.tum import read_tum

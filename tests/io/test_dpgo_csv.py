@@ -11,9 +11,9 @@ import pytest
 
 from kimera_multi_py.consensus.factors import graph_cost
 from kimera_multi_py.errors import DatasetError
+from kimera_multi_py.geometry import inverse
 from kimera_multi_py.io.dpgo_csv import COLUMNS, read_dpgo_csv, write_dpgo_csv
 from kimera_multi_py.io.g2o import read_g2o
-from kimera_multi_py.geometry import inverse
 from kimera_multi_py.io.pose_graph import (
     INTER_ROBOT,
     LOOP_CLOSURE,

@@ -16,12 +16,14 @@ from kimera_multi_py.errors import DatasetError
 from kimera_multi_py.geometry import from_gtsam
 from kimera_multi_py.io.g2o import read_g2o, write_g2o
 from kimera_multi_py.io.planar import pose_to_se2
+from kimera_multi_py.io.pose_graph import PoseGraph
 
 GTSAM_DATA = Path(os.path.dirname(gtsam.__file__)) / "Data"
 
 
-def edge_map(g) -> dict[tuple[int, int], int]:
-    return {(int(g.ids[i]), int(g.ids[j])): e for e, (i, j) in enumerate(zip(g.edge_i, g.edge_j))}
+def edge_map(g: PoseGraph) -> dict[tuple[int, int], int]:
+    return {(int(g.ids[i]), int(g.ids[j])): e for e, (i, j) in
+            enumerate(zip(g.edge_i, g.edge_j, strict=True))}
 
 
 def test_toro_sphere2500_is_the_g2o_sphere2500(datasets_dir: Path) -> None:
