@@ -1,5 +1,9 @@
 """The ``pgo`` workflow: load a graph, solve it centrally and distributed, score, write.
 
+Inputs: g2o / TORO files (SE(3), or SE(2) solved as planar SE(3) with 2-D outputs) and DPGO CSV
+folders. Robust runs are scored without ground truth (:mod:`.evaluation`); precision, recall
+and the outlier-free reference appear only when the outliers were injected here.
+
 ``run_pgo(...)`` reads as its stages: ``_load``, ``_inject``, ``_centralized``,
 ``_distributed``, ``_score``, ``_write``. It returns a :class:`PgoRunResult`; only the CLI prints.
 """
@@ -256,7 +260,7 @@ def _first_below(history: list[float], reference: float, tol: float) -> int | No
 
 def _score(graph: PoseGraph, central: CentralizedResult, poses: np.ndarray, stats: RunStats,
            history: list[float], agents: list[PgoAgent], transport: str,
-           robust: bool, truth_known: bool = True, barc2: float = 22.458) -> PgoRunResult:
+           robust: bool, truth_known: bool = True, barc2: float | None = None) -> PgoRunResult:
     inliers = ~graph.outlier
     cost = graph_cost(graph, poses, inliers)
     ref = central.cost
@@ -275,8 +279,9 @@ def _score(graph: PoseGraph, central: CentralizedResult, poses: np.ndarray, stat
         assert central.weights is not None
         result.centralized_weights, result.distributed_weights = central.weights, weights
         truth = graph.outlier if truth_known else None
-        result.robust_eval = evaluate_robust(graph, central.poses, central.weights, poses,
-                                             weights, barc2, truth)
+        result.robust_eval = evaluate_robust(graph, central.poses, central.weights, poses, weights,
+                                             tls_threshold(0.999) if barc2 is None else barc2,
+                                             truth)
         if truth_known:
             inter = graph.edge_kind() == INTER_ROBOT
             result.inlier_precision, result.inlier_recall = precision_recall(
