@@ -17,11 +17,13 @@ def register(app: typer.Typer) -> None:
     @app.command("pgo")
     def pgo(
         inputs: Annotated[list[Path], typer.Argument(
-            help="a g2o file (split among robots), several multi-robot g2o files, "
-                 "or a DPGO robotK/measurements.csv folder")],
+            help="a g2o or TORO file, 3-D or 2-D (split among robots), several multi-robot g2o "
+                 "files, or a DPGO robotK/measurements.csv folder")],
         robots: Annotated[int, typer.Option(help="robots for a single-robot g2o")] = 5,
         transport: Annotated[str, typer.Option(help="loopback | zenoh")] = "loopback",
-        robust: Annotated[bool, typer.Option("--robust", help="GNC-TLS on closures")] = False,
+        robust: Annotated[bool, typer.Option("--robust", help=(
+            "GNC-TLS on closures; scored by TLS cost, inlier sets and their Jaccard (precision "
+            "and recall only with --outliers)"))] = False,
         outliers: Annotated[float, typer.Option(
             help="add this fraction of wrong inter-robot closures")] = 0.0,
         seed: Annotated[int, typer.Option(help="seed of outliers and message faults")] = 0,

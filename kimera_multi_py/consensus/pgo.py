@@ -81,6 +81,7 @@ class PgoParams:
     resend_interval: int = 5  # re-publish unchanged public poses this often (message loss)
     robust: bool = False
     inlier_probability: float = 0.999  # χ²₆ quantile of the TLS threshold c̄² (22.5)
+    tls_dof: int = 6  # degrees of freedom of that χ² (3 for a planar, 2-D graph)
     gnc_round_cap: int = 10  # rounds between weight updates at most
     # robust: which inter-robot edges start at weight 0 (GNC revisits them): "support" those no
     # other edge agrees with (random outliers; every consistent group stays for the joint GNC),
@@ -237,7 +238,7 @@ class PgoAgent:
         self.neighbour_poses: dict[int, np.ndarray] = {}
         self.inter_weights = np.ones(len(local.inter_edge))
         self.intra_weights = np.ones(len(local.intra_edge))
-        self.gnc = GncSchedule(tls_threshold(p.inlier_probability))
+        self.gnc = GncSchedule(tls_threshold(p.inlier_probability, p.tls_dof))
         self.gnc_pending: int | None = None  # round of a pending weight update
         self.gnc_last_round = 0
         self.mu_proposals: dict[int, float] = {}  # robot -> proposed μ₀ (team-wide GNC)

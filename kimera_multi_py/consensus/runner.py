@@ -37,6 +37,7 @@ class RunStats:
     bytes_by_topic: dict[str, int] = field(default_factory=dict)
     timeouts: int = 0
     wall_s: float = 0.0
+    dropped: int = 0  # messages lost on the way (filled in by a caller that can count them)
 
 
 class _RoundLog:

@@ -100,8 +100,9 @@ def _gnc(graph: PoseGraph, fg: gtsam.NonlinearFactorGraph, values: gtsam.Values,
 
 def solve_centralized(graph: PoseGraph, robust: bool = False, chordal: bool = True,
                       inlier_probability: float = 0.999, relative_tol: float = 1e-8,
-                      max_iterations: int = 500) -> CentralizedResult:
-    """Optimise the joint graph. The cost reported is over the non-outlier edges, unweighted."""
+                      max_iterations: int = 500, dof: int = 6) -> CentralizedResult:
+    """Optimise the joint graph. The cost reported is over the non-outlier edges, unweighted.
+    ``dof``: degrees of freedom of a residual for the TLS threshold (3 for a planar graph)."""
     if graph.num_poses == 0:
         raise GraphError("empty graph")
     t0 = time.perf_counter()
@@ -122,7 +123,7 @@ def solve_centralized(graph: PoseGraph, robust: bool = False, chordal: bool = Tr
     if robust:
         # chordal relaxation sees the outliers too: run GNC from it and from the given values,
         # keep the lower truncated (TLS) cost
-        barc2 = float(chi2.ppf(inlier_probability, 6))
+        barc2 = float(chi2.ppf(inlier_probability, dof))
         best = None
         starts = [(init, values)]
         if chordal:

@@ -1,7 +1,9 @@
 """DPGO's multi-robot CSV layout: ``robotK/measurements.csv`` per robot.
 
 Columns: ``robot_src,pose_src,robot_dst,pose_dst,qx,qy,qz,qw,tx,ty,tz,kappa,tau,
-is_known_inlier,weight``. An inter-robot row appears in both robots' files and is kept once.
+is_known_inlier,weight``. An inter-robot row appears in both robots' files and is kept once; the
+two copies are compared without ``weight`` (a previous solver's GNC weight, which differs
+between the copies of real files), and any other disagreement is a warning (first copy kept).
 
 DPGO's cost ``κ‖R_j − R_i R_ij‖²_F + τ‖t_j − t_i − R_i t_ij‖²`` matches a Gaussian with
 information ``diag(2κ I₃, τ I₃)`` in gtsam's ``[rotation, translation]`` order (DPGO's own g2o
@@ -13,14 +15,14 @@ from __future__ import annotations
 
 import logging
 import re
-from collections import deque
 from pathlib import Path
 
 import numpy as np
 
 from kimera_multi_py.errors import DatasetError
-from kimera_multi_py.geometry import inverse, make_pose, quat_to_rot, rot_to_quat
-from kimera_multi_py.io.pose_graph import PoseGraph, robot_key
+from kimera_multi_py.geometry import make_pose, quat_to_rot, rot_to_quat
+from kimera_multi_py.io.pose_graph import PoseGraph, chain_odometry, robot_key
+from kimera_multi_py.io.text import read_text
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +68,7 @@ def read_dpgo_csv(folder: str | Path) -> PoseGraph:
         raise DatasetError(f"{folder}: no robotK/measurements.csv files")
     rows: dict[tuple[int, ...], tuple[np.ndarray, str]] = {}
     for robot, path in files:
-        lines = path.read_text().splitlines()
+        lines = read_text(path, "DPGO measurements file").splitlines()
         if not lines or [c.strip() for c in lines[0].split(",")] != list(COLUMNS):
             raise DatasetError(f"{path}:1: header must be {','.join(COLUMNS)}")
         for lineno, line in enumerate(lines[1:], 2):
@@ -77,13 +79,22 @@ def read_dpgo_csv(folder: str | Path) -> PoseGraph:
                 raise DatasetError(f"{path}:{lineno}: row involves neither robot {robot}")
             where = f"{path}:{lineno}"
             if ints in rows:
-                first, first_where = rows[ints]
-                if not np.allclose(first, vals, rtol=1e-6, atol=1e-9):
-                    raise DatasetError(f"{where}: disagrees with the same measurement at "
-                                       f"{first_where}")
+                _check_duplicate(rows[ints], vals, where)
                 continue
             rows[ints] = (vals, where)
     return _build(folder, rows)
+
+
+def _check_duplicate(first: tuple[np.ndarray, str], vals: np.ndarray, where: str) -> None:
+    """An inter-robot row read a second time (from the other robot's file). ``weight`` (the
+    last column) is a previous solver's GNC weight, not part of the measurement: it is ignored.
+    Any other disagreement is logged and the first copy kept."""
+    old, first_where = first
+    if not np.allclose(old[:-1], vals[:-1], rtol=1e-6, atol=1e-9):
+        bad = [COLUMNS[4 + c] for c in np.flatnonzero(
+            ~np.isclose(old[:-1], vals[:-1], rtol=1e-6, atol=1e-9))]
+        log.warning("%s: disagrees with the same measurement at %s in %s; keeping the first",
+                    where, first_where, ",".join(bad))
 
 
 def _build(folder: Path, rows: dict[tuple[int, ...], tuple[np.ndarray, str]]) -> PoseGraph:
@@ -106,49 +117,10 @@ def _build(folder: Path, rows: dict[tuple[int, ...], tuple[np.ndarray, str]]) ->
         edge_i[e], edge_j[e] = index[(k[0], k[1])], index[(k[2], k[3])]
         meas[e] = make_pose(quat_to_rot(vals[:4]), vals[4:7])
         info[e] = np.diag([2 * vals[7]] * 3 + [vals[8]] * 3)
-    poses = _chain_odometry(folder, robot, edge_i, edge_j, meas)
+    poses = chain_odometry(str(folder), robot, edge_i, edge_j, meas)
     ids = np.array([robot_key(int(r), int(p)) for r, p in keys], dtype=np.int64)
     return PoseGraph(poses=poses, robot=robot, local=local, ids=ids, edge_i=edge_i,
                      edge_j=edge_j, measurement=meas, information=info, source=folder.name)
-
-
-def _chain_odometry(folder: Path, robot: np.ndarray, edge_i: np.ndarray, edge_j: np.ndarray,
-                    meas: np.ndarray) -> np.ndarray:
-    """Initial poses per robot: compose odometry (consecutive poses) first, then reach any
-    pose the odometry chain misses through the robot's other measurements (breadth first)."""
-    n = len(robot)
-    poses = np.tile(np.eye(4), (n, 1, 1))
-    adj: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(n)]
-    step: dict[int, np.ndarray] = {}  # pose index k -> T_{k-1, k}
-    for e in np.flatnonzero(robot[edge_i] == robot[edge_j]):
-        a, b = int(edge_i[e]), int(edge_j[e])
-        adj[a].append((b, meas[e]))
-        adj[b].append((a, inverse(meas[e])))
-        if b == a + 1:
-            step.setdefault(b, meas[e])
-        elif a == b + 1:
-            step.setdefault(a, inverse(meas[e]))
-    seen = np.zeros(n, dtype=bool)
-    for r in np.unique(robot):
-        idx = np.flatnonzero(robot == r)  # consecutive, in local order
-        seen[idx[0]] = True
-        for k in idx[1:]:
-            if k in step and seen[k - 1]:
-                poses[k] = poses[k - 1] @ step[k]
-                seen[k] = True
-        if not seen[idx].all():
-            log.warning("%s: robot %d odometry chain is broken; bridging it", folder, r)
-        queue = deque(int(k) for k in idx if seen[k])
-        while queue:
-            a = queue.popleft()
-            for b, T in adj[a]:
-                if not seen[b]:
-                    seen[b] = True
-                    poses[b] = poses[a] @ T
-                    queue.append(b)
-        if not seen[idx].all():
-            log.warning("%s: robot %d is split into disconnected pieces", folder, r)
-    return poses
 
 
 def write_dpgo_csv(folder: str | Path, graph: PoseGraph) -> None:

@@ -7,11 +7,16 @@ that robot's own sequence, so its gtsam key is ``Symbol(chr(ord('a') + robot), l
 
 from __future__ import annotations
 
+import logging
+from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from kimera_multi_py.errors import GraphError
+from kimera_multi_py.geometry import inverse
+
+log = logging.getLogger(__name__)
 
 ODOMETRY = 0
 LOOP_CLOSURE = 1
@@ -45,6 +50,7 @@ class PoseGraph:
     information: np.ndarray  # (m, 6, 6) [rot, trans]
     source: str = ""
     outlier: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # (m,) injected
+    planar: bool = False  # read from a 2-D (SE(2)) file: outputs are 2-D too (see io/planar.py)
 
     def __post_init__(self) -> None:
         m = len(self.edge_i)
@@ -151,8 +157,50 @@ def merge_graphs(graphs: list[PoseGraph]) -> PoseGraph:
         information=np.concatenate([g.information for g in graphs]),
         source="+".join(g.source for g in graphs),
         outlier=np.concatenate([g.outlier for g in graphs]),
+        planar=all(g.planar for g in graphs),
     )
     pairs = set(zip(merged.robot.tolist(), merged.local.tolist(), strict=False))
     if len(pairs) != merged.num_poses:
         raise GraphError("merged graphs share pose keys")
     return merged
+
+
+def chain_odometry(where: str, robot: np.ndarray, edge_i: np.ndarray, edge_j: np.ndarray,
+                   meas: np.ndarray) -> np.ndarray:
+    """Initial poses for files without any (DPGO CSV, TORO edge lists), per robot from its
+    first pose: compose odometry (consecutive poses) first, then reach any pose the chain
+    misses through the robot's other measurements (breadth first). Pose indices of a robot
+    must be consecutive and in local order."""
+    n = len(robot)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    adj: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(n)]
+    step: dict[int, np.ndarray] = {}  # pose index k -> T_{k-1, k}
+    for e in np.flatnonzero(robot[edge_i] == robot[edge_j]):
+        a, b = int(edge_i[e]), int(edge_j[e])
+        adj[a].append((b, meas[e]))
+        adj[b].append((a, inverse(meas[e])))
+        if b == a + 1:
+            step.setdefault(b, meas[e])
+        elif a == b + 1:
+            step.setdefault(a, inverse(meas[e]))
+    seen = np.zeros(n, dtype=bool)
+    for r in np.unique(robot):
+        idx = np.flatnonzero(robot == r)  # consecutive, in local order
+        seen[idx[0]] = True
+        for k in idx[1:]:
+            if k in step and seen[k - 1]:
+                poses[k] = poses[k - 1] @ step[k]
+                seen[k] = True
+        if not seen[idx].all():
+            log.warning("%s: robot %d odometry chain is broken; bridging it", where, r)
+        queue = deque(int(k) for k in idx if seen[k])
+        while queue:
+            a = queue.popleft()
+            for b, T in adj[a]:
+                if not seen[b]:
+                    seen[b] = True
+                    poses[b] = poses[a] @ T
+                    queue.append(b)
+        if not seen[idx].all():
+            log.warning("%s: robot %d is split into disconnected pieces", where, r)
+    return poses

@@ -11,9 +11,12 @@ import typer
 from typer.testing import CliRunner
 
 from kimera_multi_py.consensus.cli_pgo import register
+from kimera_multi_py.consensus.evaluation import evaluate_robust, jaccard
 from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, colour_robots, split_local
+from kimera_multi_py.consensus.robust import tls_threshold
 from kimera_multi_py.consensus.workflow import load_graph, run_pgo
 from kimera_multi_py.io.g2o import read_g2o
+from kimera_multi_py.io.pose_graph import ODOMETRY
 from kimera_multi_py.io.tum import read_tum
 
 
@@ -27,7 +30,14 @@ def test_distributed_matches_centralized_over_loopback(datasets_dir: Path, name:
     res = run_pgo([pgo(datasets_dir, name)], robots=robots, max_rounds=300)
     assert abs(res.relative_gap) <= 1e-4
     assert res.rounds < 300  # stopped by the ready protocol, not by the cap
-    assert res.rounds_to_1e_3 is not None and res.rounds_to_1e_3 <= res.rounds
+    # rounds_to_1e_3 is the first round of the recorded history within 1e-3 of the optimum
+    gap = (np.array(res.history) - res.centralized_cost) / res.centralized_cost
+    r3 = res.rounds_to_1e_3
+    assert r3 is not None and gap[r3] <= 1e-3 and np.all(gap[:r3] > 1e-3)
+    # block updates are kept only when they lower the block's cost: the team cost never rises
+    # once every robot has solved its block (before that, aligning robots move whole frames)
+    rises = np.flatnonzero(np.diff(res.history) > 1e-9 * res.centralized_cost)
+    assert len(rises) == 0 or rises.max() < 2 * robots, rises
     assert res.bytes_sent > 0 and res.bytes_by_topic["pgo/public_poses"] > 0
 
 
@@ -42,7 +52,7 @@ def test_two_robot_files_without_inter_robot_edges(datasets_dir: Path) -> None:
 def test_converges_with_ten_percent_message_drop(datasets_dir: Path) -> None:
     res = run_pgo([pgo(datasets_dir, "smallGrid3D")], robots=4, drop=0.1, seed=3,
                   max_rounds=300, round_timeout=0.05)
-    assert res.timeouts > 0  # messages really were lost
+    assert res.dropped > 0  # messages really were lost (the network's own count)
     assert abs(res.relative_gap) <= 1e-4
 
 
@@ -67,8 +77,24 @@ def test_robust_with_half_outliers(datasets_dir: Path, robots: int, seed: int) -
     res = run_pgo([pgo(datasets_dir, "smallGrid3D")], robots=robots, robust=True, outliers=0.5,
                   seed=seed, max_rounds=600)
     assert res.outliers > 0
+    assert res.inlier_precision is not None and res.inlier_recall is not None
     assert res.inlier_precision >= 0.95 and res.inlier_recall >= 0.95
-    assert res.gap_to_outlier_free <= 1e-2
+    assert res.gap_to_outlier_free is not None and abs(res.gap_to_outlier_free) <= 1e-3
+    # the same solutions scored with the truth hidden (as on data nobody here made) give the
+    # same agreement figures, and they agree with the truth-based ones
+    assert res.graph is not None and res.robust_eval is not None
+    assert res.centralized_weights is not None and res.distributed_weights is not None
+    blind = evaluate_robust(res.graph, res.centralized_poses, res.centralized_weights, res.poses,
+                            res.distributed_weights, tls_threshold(0.999), truth=None)
+    known = res.robust_eval
+    assert not blind.truth_known and not blind.precision_recall and known.truth_known
+    assert blind.inlier_jaccard == known.inlier_jaccard >= 0.95
+    assert blind.tls_gap == known.tls_gap and abs(blind.tls_gap) <= 1e-2
+    closures = res.graph.edge_kind() != ODOMETRY
+    kept = np.zeros(res.graph.num_edges, dtype=bool)
+    kept[blind.inliers_distributed] = True
+    assert jaccard(kept[closures], ~res.graph.outlier[closures]) >= 0.95
+    assert known.precision_recall["centralized"]["precision"] >= 0.95
 
 
 def test_colouring_separates_neighbours(datasets_dir: Path) -> None:

@@ -43,5 +43,6 @@ def test_gnc_rejects_injected_outliers(datasets_dir: Path) -> None:
     res = solve_centralized(g, robust=True)
     assert res.weights is not None
     assert np.all(res.weights[g.outlier] < 0.5)
+    assert np.all(res.weights[~g.outlier] >= 0.5)  # and no true edge (closure or odometry) lost
     free = solve_centralized(g.subset_edges(~g.outlier))
     assert res.cost == pytest.approx(free.cost, rel=1e-2)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -9,9 +11,16 @@ import pytest
 
 from kimera_multi_py.consensus.factors import graph_cost
 from kimera_multi_py.errors import DatasetError
+from kimera_multi_py.geometry import inverse
 from kimera_multi_py.io.dpgo_csv import COLUMNS, read_dpgo_csv, write_dpgo_csv
 from kimera_multi_py.io.g2o import read_g2o
-from kimera_multi_py.io.pose_graph import INTER_ROBOT, split_contiguous
+from kimera_multi_py.io.pose_graph import (
+    INTER_ROBOT,
+    LOOP_CLOSURE,
+    ODOMETRY,
+    PoseGraph,
+    split_contiguous,
+)
 
 HEADER = ",".join(COLUMNS)
 ROW = "{},{},{},{},0,0,0,1,1,0,0,50,100,1,1"
@@ -25,18 +34,39 @@ def make(tmp_path: Path, files: dict[int, list[str]]) -> Path:
     return tmp_path
 
 
-def test_round_trip_of_split_grid(tmp_path: Path, datasets_dir: Path) -> None:
+def flip(g: PoseGraph, edges: np.ndarray) -> PoseGraph:
+    """``g`` with ``edges`` reversed: ``j -> i`` measuring ``Z⁻¹`` (the same information)."""
+    ei, ej, meas = g.edge_i.copy(), g.edge_j.copy(), g.measurement.copy()
+    ei[edges], ej[edges] = g.edge_j[edges], g.edge_i[edges]
+    meas[edges] = inverse(g.measurement[edges])
+    return replace(g, edge_i=ei, edge_j=ej, measurement=meas)
+
+
+def test_round_trip_keeps_every_edge(tmp_path: Path, datasets_dir: Path) -> None:
     g = split_contiguous(read_g2o(datasets_dir / "pgo" / "smallGrid3D.g2o"), 3)
+    kind = g.edge_kind()
+    # written backwards: an inter-robot edge from a higher robot to a lower one, a loop
+    # closure from a later pose to an earlier one, and an odometry step j -> j-1
+    inter, loop, odo = (np.flatnonzero(kind == k) for k in (INTER_ROBOT, LOOP_CLOSURE, ODOMETRY))
+    g = flip(g, np.concatenate([inter[:5], loop[:5], odo[3:4]]))
+    assert np.any(g.robot[g.edge_i] > g.robot[g.edge_j])
     write_dpgo_csv(tmp_path, g)
     h = read_dpgo_csv(tmp_path)
-    assert h.num_robots == 3 and h.num_poses == g.num_poses
-    assert h.num_edges == g.num_edges  # inter-robot rows are in two files but kept once
-    assert (h.edge_kind() == INTER_ROBOT).sum() == (g.edge_kind() == INTER_ROBOT).sum()
-    # isotropic information diag(2κ, τ); the grid's information is isotropic per block
-    np.testing.assert_allclose(np.sort(h.information.ravel()), np.sort(g.information.ravel()))
-    # initial poses chain the odometry from each robot's first pose: zero odometry residual
-    odo = h.edge_kind() == 0
-    assert graph_cost(h, h.poses, odo) == pytest.approx(0.0, abs=1e-9)
+    assert (h.num_robots, h.num_poses, h.num_edges) == (3, g.num_poses, g.num_edges)
+    # every written edge comes back once, in its direction, with its measurement and its
+    # information (the grid's is isotropic per block, so DPGO's diag(2κ, τ) holds it exactly)
+    key_g = {(int(g.robot[i]), int(g.local[i]), int(g.robot[j]), int(g.local[j])): e
+             for e, (i, j) in enumerate(zip(g.edge_i, g.edge_j, strict=True))}
+    for e, (i, j) in enumerate(zip(h.edge_i, h.edge_j, strict=True)):
+        k = (int(h.robot[i]), int(h.local[i]), int(h.robot[j]), int(h.local[j]))
+        assert k in key_g, f"edge {k} was not written"
+        written = key_g.pop(k)
+        np.testing.assert_allclose(h.measurement[e], g.measurement[written], atol=1e-9)
+        np.testing.assert_allclose(h.information[e], g.information[written], rtol=1e-9)
+    assert not key_g
+    # the same graph: equal cost at the same poses (h orders poses by (robot, local))
+    order = np.lexsort((g.local, g.robot))
+    assert graph_cost(h, g.poses[order]) == pytest.approx(graph_cost(g, g.poses), rel=1e-9)
 
 
 def test_duplicate_inter_robot_rows_kept_once(tmp_path: Path) -> None:
@@ -67,11 +97,39 @@ def test_malformed_rows(tmp_path: Path, rows: list[str], message: str) -> None:
         read_dpgo_csv(folder)
 
 
-def test_conflicting_duplicates_and_bad_header(tmp_path: Path) -> None:
-    folder = make(tmp_path / "a", {0: [ROW.format(0, 0, 1, 0)],
-                                   1: [ROW.format(0, 0, 1, 0).replace(",1,0,0,50", ",2,0,0,50")]})
-    with pytest.raises(DatasetError, match="robot1/measurements.csv:2: disagrees"):
-        read_dpgo_csv(folder)
+def test_duplicates_differing_only_in_weight_are_one_edge(tmp_path: Path,
+                                                          caplog: pytest.LogCaptureFixture) -> None:
+    # real DPGO files: the two copies of an inter-robot row differ in the weight column only
+    row = ROW.format(0, 1, 1, 0)
+    folder = make(tmp_path, {0: [ROW.format(0, 0, 0, 1), row[:-1] + "0.999997"],
+                             1: [ROW.format(1, 0, 1, 1), row[:-1] + "0.999993"]})
+    with caplog.at_level(logging.WARNING, logger="kimera_multi_py.io.dpgo_csv"):
+        g = read_dpgo_csv(folder)
+    assert g.num_edges == 3 and not caplog.records
+
+
+def test_conflicting_duplicates_warn_and_keep_the_first(tmp_path: Path,
+                                                        caplog: pytest.LogCaptureFixture) -> None:
+    first = ROW.format(0, 0, 1, 0)
+    folder = make(tmp_path, {0: [first], 1: [first.replace(",1,0,0,50", ",2,0,0,50")]})
+    with caplog.at_level(logging.WARNING, logger="kimera_multi_py.io.dpgo_csv"):
+        g = read_dpgo_csv(folder)
+    assert g.num_edges == 1 and g.measurement[0, 0, 3] == 1.0
+    assert "robot1/measurements.csv:2: disagrees" in caplog.text and "in tx" in caplog.text
+
+
+def test_binary_file_is_a_dataset_error(tmp_path: Path) -> None:
+    p = tmp_path / "robot0" / "measurements.csv"
+    p.parent.mkdir(parents=True)
+    p.write_bytes(HEADER.encode() + b"\n\x89PNG\r\n\x1a\n\x00\x00")
+    with pytest.raises(DatasetError, match=r"measurements.csv: not a text .*binary data at byte"):
+        read_dpgo_csv(tmp_path)
+    p.write_bytes(HEADER.encode() + b"\n\xff\xfe0,0,0,1")
+    with pytest.raises(DatasetError, match="undecodable byte at offset"):
+        read_dpgo_csv(tmp_path)
+
+
+def test_bad_header_and_empty_folder(tmp_path: Path) -> None:
     bad = tmp_path / "b" / "robot0" / "measurements.csv"
     bad.parent.mkdir(parents=True)
     bad.write_text("a,b,c\n")
