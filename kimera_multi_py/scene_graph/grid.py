@@ -1,0 +1,109 @@
+"""A dense free / occupied grid of a semantic octree, and its Euclidean distance field.
+
+The scene graph works on a dense voxel grid in the map frame (Hydra downsamples its 0.1 m
+TSDF to 0.2 m for the GVD). A leaf of the octree is *occupied* when its occupancy probability
+exceeds 0.5 (:func:`~kimera_multi_py.mapping.semantic_octree.occupied_mask`) and *free* when it
+is observed and the free class dominates it (occupancy below 0.5). A coarse cell is occupied
+when any octree voxel in it is occupied, free when it holds free voxels and no occupied one,
+and unknown otherwise. Unknown space counts as an obstacle for the distance field.
+
+Grid cell ``(i, j, k)`` spans ``origin + resolution * [i, i+1) x ...``; origins are multiples
+of the resolution, so two identical maps give identical grids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from kimera_multi_py.mapping import morton
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree, occupied_mask
+
+_MARGIN = 2  # unknown cells padded all round, so the distance field sees a closed border
+
+
+@dataclass
+class OccupancyGrid:
+    """Dense boolean free / occupied masks of one map (map frame)."""
+
+    origin: np.ndarray  # (3,) corner of cell (0, 0, 0)
+    resolution: float
+    free: np.ndarray  # bool (nx, ny, nz)
+    occupied: np.ndarray  # bool (nx, ny, nz)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        s = self.free.shape
+        return int(s[0]), int(s[1]), int(s[2])
+
+    def centers(self, index: np.ndarray) -> np.ndarray:
+        """Centres ``(n, 3)`` of cells given by integer indices ``(n, 3)``."""
+        return self.origin + (np.asarray(index, dtype=np.float64) + 0.5) * self.resolution
+
+    def index(self, points: np.ndarray) -> np.ndarray:
+        """Integer cell indices ``(n, 3)`` of points (may fall outside the grid)."""
+        return np.floor((np.asarray(points, dtype=np.float64) - self.origin) / self.resolution).astype(np.int64)
+
+    def inside(self, index: np.ndarray) -> np.ndarray:
+        return np.all((index >= 0) & (index < np.array(self.shape)), axis=-1)
+
+
+@dataclass
+class DistanceField:
+    """Clearance (m) of every free cell and the index of its nearest obstacle cell (parent)."""
+
+    grid: OccupancyGrid
+    clearance: np.ndarray  # float32 (nx, ny, nz), 0 outside free space
+    parents: np.ndarray  # int32 (3, nx, ny, nz)
+
+    def clearance_at(self, points: np.ndarray) -> np.ndarray:
+        """Clearance at points (nearest cell); 0 outside the grid."""
+        idx = self.grid.index(points)
+        ok = self.grid.inside(idx)
+        out = np.zeros(idx.shape[:-1], dtype=np.float64)
+        i = idx[ok]
+        out[ok] = self.clearance[i[..., 0], i[..., 1], i[..., 2]]
+        return out
+
+
+def occupancy_grid(octree: SemanticOctree, resolution: float | None = None) -> OccupancyGrid:
+    """Rasterise the octree's leaves into a dense grid of ``resolution`` (a power-of-two multiple
+    of the octree's; default the octree's own)."""
+    res = octree.resolution if resolution is None else float(resolution)
+    ratio = res / octree.resolution
+    c = int(round(np.log2(ratio))) if ratio > 0 else -1
+    if c < 0 or not np.isclose(2.0**c, ratio):
+        raise ValueError(f"grid resolution {res} must be the octree's {octree.resolution} times a power of two")
+    codes, levels = octree.codes, octree.levels.astype(np.int64)
+    if len(codes) == 0:
+        empty = np.zeros((1, 1, 1), dtype=np.bool_)
+        return OccupancyGrid(np.zeros(3), res, empty, empty.copy())
+    occ = occupied_mask(octree.values)
+    keys = morton.decode(codes) - morton.KEY_OFFSET  # signed voxel coordinates of each leaf's first voxel
+    base = keys >> c  # arithmetic shift: floor division
+    cells: list[np.ndarray] = []
+    flags: list[np.ndarray] = []
+    for lev in np.unique(levels):
+        sel = levels == lev
+        n = 1 << max(int(lev) - c, 0)  # coarse cells per axis a leaf covers
+        off = np.stack(np.meshgrid(*([np.arange(n)] * 3), indexing="ij"), -1).reshape(-1, 3)
+        cells.append((base[sel][:, None, :] + off[None]).reshape(-1, 3))
+        flags.append(np.repeat(occ[sel], len(off)))
+    ijk = np.concatenate(cells)
+    is_occ = np.concatenate(flags)
+    lo = ijk.min(0) - _MARGIN
+    shape = tuple(int(v) for v in ijk.max(0) - lo + 1 + _MARGIN)
+    rel = ijk - lo
+    occupied = np.zeros(shape, dtype=np.bool_)
+    any_free = np.zeros(shape, dtype=np.bool_)
+    occupied[tuple(rel[is_occ].T)] = True
+    any_free[tuple(rel[~is_occ].T)] = True
+    return OccupancyGrid(lo.astype(np.float64) * res, res, any_free & ~occupied, occupied)
+
+
+def distance_field(grid: OccupancyGrid) -> DistanceField:
+    """Euclidean distance transform of free space with parent (nearest obstacle) indices."""
+    dist, parents = ndimage.distance_transform_edt(grid.free, sampling=grid.resolution, return_indices=True)
+    return DistanceField(grid, dist.astype(np.float32), parents.astype(np.int32))

@@ -1,0 +1,124 @@
+"""Rooms: Hydra's dilation sweep over the places graph, then seed growth (DESIGN §4.6).
+
+For each δ from ``room_delta_max`` down to ``room_delta_min`` the places with clearance above δ
+and the edges with weight above δ form a subgraph; its components of at least
+``room_min_places`` places are candidate rooms. Narrow passages (doors) have small clearance,
+so at the right δ they disappear and each room is its own component. δ is taken from the
+longest run of δ with the same number of components (the plateau), at its middle. Those
+components seed the rooms, which then grow over the remaining places along the highest-
+clearance edge first (a priority flood over the place graph; places are hundreds, not voxels).
+Rooms that end with fewer than ``room_min_places`` places are dropped.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from kimera_multi_py.scene_graph.params import SceneGraphParams
+from kimera_multi_py.scene_graph.places import Places
+
+
+@dataclass
+class Rooms:
+    """Room of each place (-1 for none), the chosen δ and the sweep that chose it."""
+
+    place_room: np.ndarray  # (n,) int64
+    delta: float
+    deltas: np.ndarray
+    counts: np.ndarray  # rooms (components of >= room_min_places) at each δ
+
+    @property
+    def num_rooms(self) -> int:
+        return int(self.place_room.max() + 1) if len(self.place_room) else 0
+
+
+def _components(places: Places, delta: float, min_places: int) -> np.ndarray:
+    """Component label per place at dilation ``delta`` (-1 for small components and dropped places)."""
+    n = len(places)
+    keep = places.clearance > delta
+    e = places.edges
+    ek = keep[e[:, 0]] & keep[e[:, 1]] & (places.edge_clearance > delta)
+    g = coo_matrix((np.ones(int(ek.sum())), (e[ek, 0], e[ek, 1])), shape=(n, n))
+    _, label = connected_components(g, directed=False)
+    label = np.where(keep, label, -1)
+    sizes = np.bincount(label[keep], minlength=n) if keep.any() else np.zeros(n, dtype=np.int64)
+    big = np.flatnonzero(sizes >= min_places)
+    out = np.full(n, -1, dtype=np.int64)
+    member = keep & np.isin(label, big)
+    out[member] = np.searchsorted(big, label[member])
+    return out
+
+
+def _plateau(counts: np.ndarray) -> tuple[int, int]:
+    """``(start, end)`` (inclusive) of the longest run of equal non-zero counts (first of ties)."""
+    best = (0, 0)
+    best_len = 0
+    start = 0
+    for i in range(1, len(counts) + 1):
+        if i == len(counts) or counts[i] != counts[start]:
+            if counts[start] > 0 and i - start > best_len:
+                best, best_len = (start, i - 1), i - start
+            start = i
+    return best
+
+
+def _grow(places: Places, seeds: np.ndarray) -> np.ndarray:
+    """Assign unlabelled places to rooms along the highest-clearance edge first."""
+    label = seeds.copy()
+    n = len(places)
+    nbrs: list[list[tuple[float, int]]] = [[] for _ in range(n)]
+    for (i, j), w in zip(places.edges.tolist(), places.edge_clearance.tolist(), strict=True):
+        nbrs[i].append((w, j))
+        nbrs[j].append((w, i))
+    heap: list[tuple[float, int, int]] = []
+    for i in np.flatnonzero(label >= 0).tolist():
+        for w, j in nbrs[i]:
+            if label[j] < 0:
+                heapq.heappush(heap, (-w, j, int(label[i])))
+    while heap:
+        _, j, room = heapq.heappop(heap)
+        if label[j] >= 0:
+            continue
+        label[j] = room
+        for w, k in nbrs[j]:
+            if label[k] < 0:
+                heapq.heappush(heap, (-w, k, room))
+    return label
+
+
+def find_rooms(places: Places, params: SceneGraphParams) -> Rooms:
+    """Rooms of the places graph by the dilation sweep (see module docstring)."""
+    n = len(places)
+    deltas = np.round(np.arange(params.room_delta_max, params.room_delta_min - 1e-9, -params.room_delta_step), 6)
+    if n == 0:
+        return Rooms(np.zeros(0, np.int64), float(deltas[0]), deltas, np.zeros(len(deltas), np.int64))
+    comps = [_components(places, float(d), params.room_min_places) for d in deltas]
+    counts = np.array([int(c.max() + 1) for c in comps])
+    start, end = _plateau(counts)
+    pick = (start + end) // 2
+    label = _grow(places, comps[pick]) if counts[pick] > 0 else np.full(n, -1, dtype=np.int64)
+    # drop small rooms, then number rooms by their smallest place id (places are sorted by id)
+    sizes = np.bincount(label[label >= 0], minlength=max(int(label.max()) + 1, 0))
+    label = np.where((label >= 0) & (sizes[np.maximum(label, 0)] >= params.room_min_places), label, -1)
+    rooms = np.unique(label[label >= 0])
+    first = np.array([np.flatnonzero(label == r)[0] for r in rooms], dtype=np.int64)
+    rank = np.empty(len(rooms), dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(len(rooms))
+    out = np.full(n, -1, dtype=np.int64)
+    m = label >= 0
+    out[m] = rank[np.searchsorted(rooms, label[m])]
+    return Rooms(out, float(deltas[pick]), deltas, counts)
+
+
+def room_edges(places: Places, place_room: np.ndarray) -> np.ndarray:
+    """Room pairs ``(r, s)``, r < s, joined by a place edge (through a door)."""
+    e = places.edges
+    ra, rb = place_room[e[:, 0]], place_room[e[:, 1]]
+    cross = (ra >= 0) & (rb >= 0) & (ra != rb)
+    pairs = np.sort(np.stack([ra[cross], rb[cross]], 1), axis=1)
+    return np.unique(pairs, axis=0).reshape(-1, 2)
