@@ -58,10 +58,8 @@ def room_color(r: int) -> np.ndarray:
     return _ROOM_COLORS[r % len(_ROOM_COLORS)]
 
 
-def _color(rgb: np.ndarray) -> dsg.Color:
-    c = dsg.Color()
-    c.r, c.g, c.b, c.a = int(rgb[0]), int(rgb[1]), int(rgb[2]), 255
-    return c
+def _color(rgb: np.ndarray) -> np.ndarray:
+    return np.asarray(rgb, dtype=np.uint8).reshape(3)
 
 
 def _box(lo: np.ndarray, hi: np.ndarray) -> dsg.BoundingBox:

@@ -131,15 +131,16 @@ def as_objects(objects: Iterable[Any]) -> _Objects:
     return _Objects(ids, np.array([r[1] for r in rows], dtype=np.int64), *arr)
 
 
-def _attach(field: DistanceField, places: Places, points: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-            k: int) -> np.ndarray:
+def _attach(field: DistanceField, places: Places, usable: np.ndarray, points: np.ndarray, lo: np.ndarray,
+            hi: np.ndarray, k: int) -> np.ndarray:
     """Nearest place in sight of each point: the segment may cross only free or unknown cells, or the
-    point's own box (``lo``, ``hi``, grown by a voxel). Falls back to the nearest place."""
-    if len(points) == 0 or len(places) == 0:
+    point's own box (``lo``, ``hi``). Only places in ``usable`` are tried; falls back to the nearest."""
+    pool = np.flatnonzero(usable)
+    if len(points) == 0 or len(pool) == 0:
         return np.full(len(points), -1, dtype=np.int64)
-    k = min(k, len(places))
-    _, idx = cKDTree(places.positions).query(points, k=k)
-    idx = idx.reshape(len(points), k)
+    k = min(k, len(pool))
+    _, near = cKDTree(places.positions[pool]).query(points, k=k)
+    idx = pool[np.asarray(near).reshape(len(points), k)]
     target = places.positions[idx]  # (q, k, 3)
     length = np.linalg.norm(target - points[:, None], axis=2)
     res = field.grid.resolution
@@ -150,7 +151,7 @@ def _attach(field: DistanceField, places: Places, points: np.ndarray, lo: np.nda
     occ = np.zeros(ok.shape, dtype=np.bool_)
     c = cells[ok]
     occ[ok] = field.grid.occupied[c[:, 0], c[:, 1], c[:, 2]]
-    own = np.all((pts >= lo[:, None, None] - res) & (pts <= hi[:, None, None] + res), axis=-1)
+    own = np.all((pts >= lo[:, None, None]) & (pts <= hi[:, None, None]), axis=-1)
     seen = ~np.any(occ & ~own, axis=2)  # (q, k)
     first = np.where(seen.any(axis=1), np.argmax(seen, axis=1), 0)
     return idx[np.arange(len(points)), first].astype(np.int64)
@@ -177,7 +178,8 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
                          for a in range(3)], 1) / np.maximum(counts, 1)[:, None]
     building = room_pos.mean(0) if nr else (places.positions.mean(0) if len(places) else np.zeros(3))
     obs = as_objects(objects)
-    object_place = _attach(field, places, obs.centroids, obs.lo, obs.hi, p.attach_candidates)
+    usable = m if m.any() else np.ones(len(places), dtype=np.bool_)  # attach to places that have a room
+    object_place = _attach(field, places, usable, obs.centroids, obs.lo, obs.hi, p.attach_candidates)
     robots, index, stamps, poses = [], [], [], []
     for r in sorted(trajectories or {}):
         robot_letter(int(r))
@@ -193,7 +195,7 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
         poses.append(P)
     agent_pose = np.concatenate(poses) if poses else np.zeros((0, 4, 4))
     xyz = agent_pose[:, :3, 3]
-    agent_place = _attach(field, places, xyz, xyz, xyz, p.attach_candidates)
+    agent_place = _attach(field, places, usable, xyz, xyz, xyz, p.attach_candidates)
     build_s = time.perf_counter() - t0
     meta = {"delta": rooms.delta, "sweep": {"deltas": rooms.deltas.tolist(), "counts": rooms.counts.tolist()},
             "params": p.to_dict(), "build_s": build_s, "resolution": grid.resolution}

@@ -19,7 +19,7 @@ import numpy as np
 from scipy import ndimage
 
 from kimera_multi_py.mapping import morton
-from kimera_multi_py.mapping.semantic_octree import SemanticOctree, occupied_mask
+from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
 
 _MARGIN = 2  # unknown cells padded all round, so the distance field sees a closed border
 
@@ -68,6 +68,14 @@ class DistanceField:
         return out
 
 
+def _occupied(values: np.ndarray) -> np.ndarray:
+    """Rows whose occupancy probability exceeds 0.5, ``sum(exp(h[1:])) > 1`` (the rule of the octree's
+    ``occupied_mask``, in float32: entries are clamped to a few units, so this does not overflow)."""
+    h = values[:, 1:].astype(np.float32)
+    h *= np.float32(1.0 / SCALE)
+    return np.exp(h, out=h).sum(axis=1) > 1.0
+
+
 def occupancy_grid(octree: SemanticOctree, resolution: float | None = None) -> OccupancyGrid:
     """Rasterise the octree's leaves into a dense grid of ``resolution`` (a power-of-two multiple
     of the octree's; default the octree's own)."""
@@ -80,27 +88,35 @@ def occupancy_grid(octree: SemanticOctree, resolution: float | None = None) -> O
     if len(codes) == 0:
         empty = np.zeros((1, 1, 1), dtype=np.bool_)
         return OccupancyGrid(np.zeros(3), res, empty, empty.copy())
-    occ = occupied_mask(octree.values)
+    occ = _occupied(octree.values)
     keys = morton.decode(codes) - morton.KEY_OFFSET  # signed voxel coordinates of each leaf's first voxel
-    base = keys >> c  # arithmetic shift: floor division
-    cells: list[np.ndarray] = []
-    flags: list[np.ndarray] = []
-    for lev in np.unique(levels):
-        sel = levels == lev
-        n = 1 << max(int(lev) - c, 0)  # coarse cells per axis a leaf covers
-        off = np.stack(np.meshgrid(*([np.arange(n)] * 3), indexing="ij"), -1).reshape(-1, 3)
-        cells.append((base[sel][:, None, :] + off[None]).reshape(-1, 3))
-        flags.append(np.repeat(occ[sel], len(off)))
-    ijk = np.concatenate(cells)
-    is_occ = np.concatenate(flags)
-    lo = ijk.min(0) - _MARGIN
-    shape = tuple(int(v) for v in ijk.max(0) - lo + 1 + _MARGIN)
-    rel = ijk - lo
+    base = keys >> c  # coarse cell of each leaf's first voxel (arithmetic shift: floor division)
+    top = max(int(levels.max()) - c, 0)
+    step = 1 << top  # the grid is aligned to the largest leaf, so every leaf is a whole block of cells
+    lo = ((base.min(0) >> top) << top) - step
+    shape = tuple(int(v) for v in ((base.max(0) - lo) // step + 2) * step)
     occupied = np.zeros(shape, dtype=np.bool_)
     any_free = np.zeros(shape, dtype=np.bool_)
-    occupied[tuple(rel[is_occ].T)] = True
-    any_free[tuple(rel[~is_occ].T)] = True
-    return OccupancyGrid(lo.astype(np.float64) * res, res, any_free & ~occupied, occupied)
+    for lev in np.unique(levels).tolist():
+        k = max(int(lev) - c, 0)  # a leaf covers 2**k coarse cells per axis
+        sel = levels == lev
+        cell = (base[sel] - lo) >> k
+        small = tuple(n >> k for n in shape)
+        for target, mask in ((occupied, occ[sel]), (any_free, ~occ[sel])):
+            if not mask.any():
+                continue
+            coarse = np.zeros(small, dtype=np.bool_)
+            coarse[tuple(cell[mask].T)] = True
+            if k:
+                coarse = coarse.repeat(1 << k, 0).repeat(1 << k, 1).repeat(1 << k, 2)
+            target |= coarse
+    # crop to the known cells plus a margin of unknown ones
+    known = occupied | any_free
+    nz = [np.flatnonzero(known.any(axis=tuple(a for a in range(3) if a != ax))) for ax in range(3)]
+    sl = tuple(slice(max(int(z[0]) - _MARGIN, 0), int(z[-1]) + _MARGIN + 1) for z in nz)
+    origin = (lo + np.array([s.start for s in sl])).astype(np.float64) * res
+    free = any_free[sl] & ~occupied[sl]
+    return OccupancyGrid(origin, res, np.ascontiguousarray(free), np.ascontiguousarray(occupied[sl]))
 
 
 def distance_field(grid: OccupancyGrid) -> DistanceField:

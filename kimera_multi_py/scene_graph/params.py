@@ -23,9 +23,9 @@ class SceneGraphParams:
     gvd_parent_cos: float = 0.2
     """... or parents seen at an angle whose cosine is below this."""
     place_min_clearance: float = 0.4
-    place_cell: float = 1.0
+    place_cell: float = 0.5
     """Edge of the cells GVD voxels are compressed in (one place per connected cluster)."""
-    place_merge_distance: float = 0.5
+    place_merge_distance: float = 0.25
     edge_min_clearance: float = 0.25
     """Place edges whose straight segment has less clearance are dropped."""
     # rooms (Hydra's room_finder)

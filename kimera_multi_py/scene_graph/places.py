@@ -64,6 +64,13 @@ def _pair_indices(mask: np.ndarray, offset: tuple[int, int, int], shape: tuple[i
     return np.ravel_multi_index(va, shape), np.ravel_multi_index(vb, shape)
 
 
+def _sum3(parts: list[np.ndarray]) -> np.ndarray:
+    out = parts[0]
+    out += parts[1]
+    out += parts[2]
+    return out
+
+
 def gvd_mask(field: DistanceField, params: SceneGraphParams) -> np.ndarray:
     """Boolean mask of the GVD voxels."""
     grid = field.grid
@@ -78,8 +85,8 @@ def gvd_mask(field: DistanceField, params: SceneGraphParams) -> np.ndarray:
     for off in _OFFSETS:
         a, b = _slices(off)
         both = ok[a] & ok[b]
-        dp2 = sum((field.parents[k][a] - field.parents[k][b]).astype(np.int64) ** 2 for k in range(3))
-        dot = sum(rel[k][a].astype(np.int64) * rel[k][b] for k in range(3))
+        dp2 = _sum3([(field.parents[k][a] - field.parents[k][b]) ** 2 for k in range(3)])
+        dot = _sum3([rel[k][a] * rel[k][b] for k in range(3)])
         distinct = both & ((dp2 > far2) | (dot < params.gvd_parent_cos * norm[a] * norm[b]))
         gvd[a] |= distinct
         gvd[b] |= distinct
@@ -164,7 +171,9 @@ def extract_places(field: DistanceField, params: SceneGraphParams) -> Places:
     cu, cv = np.concatenate(cross_u), np.concatenate(cross_v)
     eu, ev = place_of_cluster[cluster[cu]], place_of_cluster[cluster[cv]]
     keep = eu != ev
-    e = np.unique(np.sort(np.stack([eu[keep], ev[keep]], 1), axis=1), axis=0).reshape(-1, 2)
+    lo_, hi_ = np.minimum(eu[keep], ev[keep]), np.maximum(eu[keep], ev[keep])
+    key = np.unique(lo_ * m + hi_)
+    e = np.stack([key // m, key % m], 1)
     w = _segment_clearance(field, pos[e[:, 0]], pos[e[:, 1]])
     strong = w >= params.edge_min_clearance
     e, w = e[strong], w[strong]

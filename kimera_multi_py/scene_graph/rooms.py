@@ -103,7 +103,7 @@ def find_rooms(places: Places, params: SceneGraphParams) -> Rooms:
     pick = (start + end) // 2
     label = _grow(places, comps[pick]) if counts[pick] > 0 else np.full(n, -1, dtype=np.int64)
     # drop small rooms, then number rooms by their smallest place id (places are sorted by id)
-    sizes = np.bincount(label[label >= 0], minlength=max(int(label.max()) + 1, 0))
+    sizes = np.bincount(label[label >= 0], minlength=max(int(label.max()) + 1, 1))
     label = np.where((label >= 0) & (sizes[np.maximum(label, 0)] >= params.room_min_places), label, -1)
     rooms = np.unique(label[label >= 0])
     first = np.array([np.flatnonzero(label == r)[0] for r in rooms], dtype=np.int64)
