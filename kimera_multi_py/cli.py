@@ -106,6 +106,7 @@ def _register_commands() -> None:
     from kimera_multi_py.consensus.cli_pgo import register
 
     register(app)
+    __import__("kimera_multi_py.scene_graph.cli_query", fromlist=["register"]).register(app)
 
 
 _register_commands()

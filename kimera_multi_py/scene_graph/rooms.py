@@ -5,19 +5,20 @@ and the edges with weight above δ form a subgraph; its components of at least
 ``room_min_places`` places are candidate rooms. Narrow passages (doors) have small clearance,
 so at the right δ they disappear and each room is its own component. δ is taken from the
 longest run of δ with the same number of components (the plateau), at its middle. Those
-components seed the rooms, which then grow over the remaining places along the highest-
-clearance edge first (a priority flood over the place graph; places are hundreds, not voxels).
+components seed the rooms; every remaining place joins the room of its nearest seed place along
+the graph (Euclidean edge lengths). Hydra grows along the highest-clearance edge first instead;
+with 0.5 m place cells the low-clearance places along walls are joined by edges weaker than a
+door's, so that flood leaks through doors into the next room's edges (see the two-room test).
 Rooms that end with fewer than ``room_min_places`` places are dropped.
 """
 
 from __future__ import annotations
 
-import heapq
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse.csgraph import connected_components, dijkstra
 
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 from kimera_multi_py.scene_graph.places import Places
@@ -68,26 +69,19 @@ def _plateau(counts: np.ndarray) -> tuple[int, int]:
 
 
 def _grow(places: Places, seeds: np.ndarray) -> np.ndarray:
-    """Assign unlabelled places to rooms along the highest-clearance edge first."""
+    """Give every unlabelled place the room of its nearest seed place along the graph (Euclidean
+    edge lengths; one multi-source Dijkstra)."""
     label = seeds.copy()
+    src = np.flatnonzero(seeds >= 0)
+    if len(src) == 0 or len(places.edges) == 0:
+        return label
     n = len(places)
-    nbrs: list[list[tuple[float, int]]] = [[] for _ in range(n)]
-    for (i, j), w in zip(places.edges.tolist(), places.edge_clearance.tolist(), strict=True):
-        nbrs[i].append((w, j))
-        nbrs[j].append((w, i))
-    heap: list[tuple[float, int, int]] = []
-    for i in np.flatnonzero(label >= 0).tolist():
-        for w, j in nbrs[i]:
-            if label[j] < 0:
-                heapq.heappush(heap, (-w, j, int(label[i])))
-    while heap:
-        _, j, room = heapq.heappop(heap)
-        if label[j] >= 0:
-            continue
-        label[j] = room
-        for w, k in nbrs[j]:
-            if label[k] < 0:
-                heapq.heappush(heap, (-w, k, room))
+    e = places.edges
+    length = np.linalg.norm(places.positions[e[:, 0]] - places.positions[e[:, 1]], axis=1)
+    g = csr_matrix((np.maximum(length, 1e-9), (e[:, 0], e[:, 1])), shape=(n, n))
+    dist, _, source = dijkstra(g, directed=False, indices=src, min_only=True, return_predecessors=True)
+    reached = np.isfinite(dist) & (label < 0)
+    label[reached] = seeds[source[reached]]
     return label
 
 
