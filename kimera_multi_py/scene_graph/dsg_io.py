@@ -134,6 +134,19 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
+def _vec(node: Any, name: str) -> np.ndarray:
+    """A copy of a vector attribute, taken while the attributes object is alive (the bindings return
+    views into it)."""
+    attrs = node.attributes
+    return np.array(getattr(attrs, name), dtype=np.float64, copy=True)
+
+
+def _box_min_max(node: Any) -> tuple[np.ndarray, np.ndarray]:
+    attrs = node.attributes
+    box = attrs.bounding_box
+    return np.array(box.min, dtype=np.float64, copy=True), np.array(box.max, dtype=np.float64, copy=True)
+
+
 def from_spark(G: dsg.DynamicSceneGraph) -> SceneGraph:
     """The arrays of a Spark-DSG graph written by :func:`to_spark`."""
     places, rooms, objects, agents = [], [], [], []
@@ -146,7 +159,7 @@ def from_spark(G: dsg.DynamicSceneGraph) -> SceneGraph:
         elif layer == ROOMS_LAYER and cat == "R":
             rooms.append(node)
         elif layer == BUILDING_LAYER and cat == "B":
-            building = np.asarray(node.attributes.position, np.float64)
+            building = _vec(node, "position")
         elif layer == OBJECTS_LAYER and node.layer.partition == 0 and cat == "O":
             objects.append(node)
         elif layer == AGENTS_LAYER and node.layer.partition != 0:
@@ -181,24 +194,25 @@ def from_spark(G: dsg.DynamicSceneGraph) -> SceneGraph:
     agents.sort(key=lambda n: (n.id.category, n.id.category_id))
     a_meta = [n.attributes.metadata.get() for n in agents]
     meta = G.metadata.get().get("kimera_multi", {})
+    boxes = [_box_min_max(n) for n in objects]
 
     def arr(rows: list[Any], dim: int = 3) -> np.ndarray:
         return np.array(rows, dtype=np.float64).reshape(-1, dim)
 
     return SceneGraph(
         place_ids=place_ids,
-        place_pos=arr([n.attributes.position for n in places]),
+        place_pos=arr([_vec(n, "position") for n in places]),
         place_clearance=np.array([n.attributes.distance for n in places], dtype=np.float64),
         place_room=np.array([parent_room(n) for n in places], dtype=np.int64),
         place_edges=pe[order],
         place_edge_clearance=np.array(weights, dtype=np.float64)[order],
-        room_pos=arr([n.attributes.position for n in rooms]),
+        room_pos=arr([_vec(n, "position") for n in rooms]),
         room_edges=re,
         object_ids=np.array([n.id.category_id for n in objects], dtype=np.int64),
         object_class=np.array([n.attributes.semantic_label for n in objects], dtype=np.int64),
-        object_pos=arr([n.attributes.position for n in objects]),
-        object_lo=arr([n.attributes.bounding_box.min for n in objects]),
-        object_hi=arr([n.attributes.bounding_box.max for n in objects]),
+        object_pos=arr([_vec(n, "position") for n in objects]),
+        object_lo=arr([b[0] for b in boxes]),
+        object_hi=arr([b[1] for b in boxes]),
         object_place=np.array([parent_place(n) for n in objects], dtype=np.int64),
         agent_robot=np.array([ord(n.id.category) - ord("a") for n in agents], dtype=np.int64),
         agent_index=np.array([n.id.category_id for n in agents], dtype=np.int64),
