@@ -13,6 +13,9 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from kimera_multi_py.mapping import morton
+from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
+from kimera_multi_py.semantics import NUM_CLASSES
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.world import World
 
@@ -72,3 +75,22 @@ def true_rooms(world_or_scenario: World | ScenarioConfig) -> TrueRooms:
     lo = np.array([[s.min[0], s.min[1], b.floor_z] for s in cfg.spaces], dtype=np.float64)
     hi = np.array([[s.max[0], s.max[1], b.floor_z + b.height] for s in cfg.spaces], dtype=np.float64)
     return TrueRooms(names, kinds, lo, hi, box_room)
+
+
+def perfect_octree(world_or_scenario: World | ScenarioConfig, resolution: float = 0.1,
+                   num_classes: int = NUM_CLASSES) -> SemanticOctree:
+    """The ground-truth voxel grid as a semantic octree (every cell observed, confidently free or
+    occupied by its true class): the flawless map, as a reference for the scene-graph builder."""
+    grid = as_world(world_or_scenario).gt_voxel_grid(resolution)
+    labels = grid.labels.reshape(-1)
+    known = labels >= 0
+    codes = morton.points_to_codes(grid.centers().reshape(-1, 3)[known], resolution)
+    order = np.argsort(codes)
+    rows = np.zeros((len(codes), num_classes + 1), dtype=np.int16)
+    rows[:, 1:] = -3 * SCALE
+    lab = labels[known].astype(np.int64)
+    occ = np.flatnonzero(lab > 0)
+    rows[occ, lab[occ]] = 6 * SCALE
+    tree = SemanticOctree(resolution, num_classes)
+    tree.add(codes[order], rows[order])
+    return tree
