@@ -7,8 +7,9 @@ octree it was built from; the graph is pure data, with no file or network access
 
 Inputs
     ``objects``: object landmarks (:class:`~kimera_multi_py.mapping.objects.Landmark`, using
-    ``id``, the most likely non-free class, ``position`` (the box centre) and ``aabb()``), or tuples ``(id, class, centroid, box_lo,
-    box_hi)`` with ``class`` an id or a name. Ids must be unique.
+    ``id``, the most likely non-free class, ``position`` (the box centre) and ``aabb()``), or
+    tuples ``(id, class, centroid, box_lo, box_hi)`` with ``class`` an id or a name. Ids must be
+    unique.
     ``trajectories``: ``{robot index: (stamps (n,), poses (n, 4, 4))}``, keyframe poses in the
     map frame; robot ``i`` has the letter ``chr(ord('a') + i)``.
 """
