@@ -29,7 +29,7 @@ from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.scene_graph.grid import DistanceField, distance_field, occupancy_grid
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 from kimera_multi_py.scene_graph.places import Places, extract_places
-from kimera_multi_py.scene_graph.rooms import find_rooms, room_edges
+from kimera_multi_py.scene_graph.rooms import find_rooms, find_rooms_ceiling, room_edges
 from kimera_multi_py.semantics import CLASS_IDS, CLASS_NAMES
 
 OBJECTS_LAYER, AGENTS_LAYER, PLACES_LAYER, ROOMS_LAYER, BUILDING_LAYER = 2, 2, 3, 4, 5
@@ -172,7 +172,7 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
         raise SceneGraphError(f"scene_graph.esdf_resolution: {exc}") from None
     field = distance_field(grid)
     places = extract_places(field, p)
-    rooms = find_rooms(places, p)
+    rooms = find_rooms(places, p) if p.room_method == "dilation" else find_rooms_ceiling(places, field, p)
     # rooms: mean of their places; building: mean of the rooms
     nr = rooms.num_rooms
     m = rooms.place_room >= 0

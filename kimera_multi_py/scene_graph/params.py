@@ -33,6 +33,12 @@ class SceneGraphParams:
     room_delta_min: float = 0.5
     room_delta_step: float = 0.05
     room_min_places: int = 10
+    room_method: str = "dilation"
+    """``dilation`` (Hydra's sweep) or ``ceiling`` (the DSG paper's cut below the ceiling)."""
+    ceiling_offset: float = 0.3
+    ceiling_clearance: float = 0.3
+    room_min_area: float = 2.0
+    """Smallest component of the ceiling cut (m²) that seeds a room."""
     # attachments
     attach_candidates: int = 8
     """Nearest places tried when attaching an object or a pose (the nearest one in sight wins)."""
@@ -44,6 +50,8 @@ class SceneGraphParams:
                 raise ConfigError(f"scene_graph.{name}", f"must be positive, got {getattr(self, name)}")
         if self.esdf_resolution is not None and not self.esdf_resolution > 0:
             raise ConfigError("scene_graph.esdf_resolution", f"must be positive, got {self.esdf_resolution}")
+        if self.room_method not in ("dilation", "ceiling"):
+            raise ConfigError("scene_graph.room_method", f"must be 'dilation' or 'ceiling', got {self.room_method!r}")
         if self.room_delta_min > self.room_delta_max:
             raise ConfigError("scene_graph.room_delta_min", "must not exceed room_delta_max")
         if self.room_min_places < 1 or self.attach_candidates < 1:

@@ -17,9 +17,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 
+from kimera_multi_py.scene_graph.grid import DistanceField
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 from kimera_multi_py.scene_graph.places import Places
 
@@ -96,9 +98,14 @@ def find_rooms(places: Places, params: SceneGraphParams) -> Rooms:
     start, end = _plateau(counts)
     pick = (start + end) // 2
     label = _grow(places, comps[pick]) if counts[pick] > 0 else np.full(n, -1, dtype=np.int64)
-    # drop small rooms, then number rooms by their smallest place id (places are sorted by id)
+    return Rooms(_finish(label, params.room_min_places), float(deltas[pick]), deltas, counts)
+
+
+def _finish(label: np.ndarray, min_places: int) -> np.ndarray:
+    """Drop rooms below ``min_places``, then number rooms by their smallest place id."""
+    n = len(label)
     sizes = np.bincount(label[label >= 0], minlength=max(int(label.max()) + 1, 1))
-    label = np.where((label >= 0) & (sizes[np.maximum(label, 0)] >= params.room_min_places), label, -1)
+    label = np.where((label >= 0) & (sizes[np.maximum(label, 0)] >= min_places), label, -1)
     rooms = np.unique(label[label >= 0])
     first = np.array([np.flatnonzero(label == r)[0] for r in rooms], dtype=np.int64)
     rank = np.empty(len(rooms), dtype=np.int64)
@@ -106,7 +113,35 @@ def find_rooms(places: Places, params: SceneGraphParams) -> Rooms:
     out = np.full(n, -1, dtype=np.int64)
     m = label >= 0
     out[m] = rank[np.searchsorted(rooms, label[m])]
-    return Rooms(out, float(deltas[pick]), deltas, counts)
+    return out
+
+
+def find_rooms_ceiling(places: Places, field: DistanceField, params: SceneGraphParams) -> Rooms:
+    """The DSG paper's alternative: cut free space ``ceiling_offset`` below the ceiling (the highest
+    grid layer with at least half as many free cells as the fullest layer), keep the cells of the cut
+    with 2-D clearance above ``ceiling_clearance``, and take its connected components (of at least
+    ``room_min_area``) as room seeds; places seed by containment, then grow as in the sweep. It
+    separates rooms where door frames stop below the ceiling; the simulator's doors are full height."""
+    grid = field.grid
+    n = len(places)
+    counts = grid.free.sum(axis=(0, 1))
+    if n == 0 or counts.max() == 0:
+        return Rooms(np.full(n, -1, dtype=np.int64), params.ceiling_clearance, np.zeros(0), np.zeros(0, np.int64))
+    top = int(np.flatnonzero(counts >= 0.5 * counts.max())[-1])
+    k = max(top - int(round(params.ceiling_offset / grid.resolution)), 0)
+    cut = grid.free[:, :, k]
+    clear = ndimage.distance_transform_edt(cut, sampling=grid.resolution)
+    comp, num = ndimage.label(clear > params.ceiling_clearance, structure=np.ones((3, 3), dtype=np.int64))
+    area = np.bincount(comp.reshape(-1), minlength=num + 1) * grid.resolution**2
+    area[0] = 0.0
+    idx = grid.index(places.positions)[:, :2]
+    ok = np.all((idx >= 0) & (idx < np.array(cut.shape)), axis=1)
+    seed = np.zeros(n, dtype=np.int64)
+    seed[ok] = comp[idx[ok, 0], idx[ok, 1]]
+    seed = np.where((seed > 0) & (area[seed] >= params.room_min_area), seed - 1, -1)
+    label = _grow(places, seed)
+    return Rooms(_finish(label, params.room_min_places), params.ceiling_clearance, np.zeros(0),
+                 np.zeros(0, np.int64))
 
 
 def room_edges(places: Places, place_room: np.ndarray) -> np.ndarray:

@@ -95,3 +95,13 @@ def test_bad_input_is_named(two_rooms) -> None:
         build_scene_graph(tree, [], {0: (np.arange(3.0), np.repeat(np.eye(4)[None], 2, 0))})
     with pytest.raises(SceneGraphError, match="letter 'p'"):
         build_scene_graph(tree, [], {15: (np.arange(1.0), np.eye(4)[None])})
+
+
+def test_ceiling_cut_needs_clearance_above_the_doors_half_width() -> None:
+    c, free = box_world(*TWO_ROOMS)  # the door is 1 m wide and full height
+    tree = octree_of(c, free)
+    assert build_scene_graph(tree, params=SceneGraphParams(room_method="ceiling")).num_rooms == 1
+    two = build_scene_graph(tree, params=SceneGraphParams(room_method="ceiling", ceiling_clearance=0.6))
+    assert two.num_rooms == 2
+    with pytest.raises(Exception, match="room_method"):
+        SceneGraphParams(room_method="magic")
