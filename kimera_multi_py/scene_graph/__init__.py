@@ -10,7 +10,7 @@
 """
 
 from kimera_multi_py.scene_graph.dsg_io import from_spark, load_scene_graph, save_scene_graph, to_networkx, to_spark
-from kimera_multi_py.scene_graph.graph import SceneGraph, SceneGraphError, build_scene_graph
+from kimera_multi_py.scene_graph.graph import SceneGraph, SceneGraphError, build_scene_graph, team_objects
 from kimera_multi_py.scene_graph.metrics import scene_graph_metrics
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 from kimera_multi_py.scene_graph.queries import objects_in, path, room_of, where
@@ -34,6 +34,7 @@ __all__ = [
     "scene_graph_metrics",
     "scene_graph_outputs",
     "to_networkx",
+    "team_objects",
     "to_spark",
     "true_rooms",
     "where",

@@ -75,7 +75,7 @@ def _edge(weight: float) -> dsg.EdgeAttributes:
 def to_spark(g: SceneGraph) -> dsg.DynamicSceneGraph:
     """A Spark-DSG graph holding every layer of ``g``."""
     G = dsg.DynamicSceneGraph()
-    b = dsg.RoomNodeAttributes()  # Spark-DSG has no building attribute type; rooms' is the semantic one
+    b = dsg.SemanticNodeAttributes()  # what Hydra gives its building node
     b.position, b.name = np.asarray(g.building_pos, np.float64), "building"
     G.add_node(BUILDING_LAYER, BUILDING, b)
     for r in range(g.num_rooms):

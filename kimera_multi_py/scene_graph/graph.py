@@ -98,6 +98,10 @@ class _Objects:
     lo: np.ndarray
     hi: np.ndarray
 
+    def rows(self) -> list[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
+        return [(int(self.ids[k]), int(self.labels[k]), self.centroids[k], self.lo[k], self.hi[k])
+                for k in range(len(self.ids))]
+
 
 def _class_id(c: object) -> int:
     if isinstance(c, str):
@@ -132,6 +136,21 @@ def as_objects(objects: Iterable[Any]) -> _Objects:
     if not all(np.all(np.isfinite(a)) for a in arr):
         raise SceneGraphError("object centroids and boxes must be finite")
     return _Objects(ids, np.array([r[1] for r in rows], dtype=np.int64), *arr)
+
+
+TEAM_ID_SHIFT = 24  # object ids of a team graph: robot << 24 | landmark id
+
+
+def team_objects(landmarks_by_robot: Mapping[int, Iterable[Any]]) -> list[tuple[int, int, Any, Any, Any]]:
+    """Object tuples for a graph over several robots' landmarks, with ids made unique and
+    deterministic as ``robot << 24 | landmark id`` (each robot numbers its landmarks from 0)."""
+    out = []
+    for robot in sorted(landmarks_by_robot):
+        for ob in as_objects(landmarks_by_robot[robot]).rows():
+            if not 0 <= ob[0] < 1 << TEAM_ID_SHIFT:
+                raise SceneGraphError(f"landmark id {ob[0]} of robot {robot} does not fit in {TEAM_ID_SHIFT} bits")
+            out.append(((int(robot) << TEAM_ID_SHIFT) | ob[0], *ob[1:]))
+    return out
 
 
 def _attach(field: DistanceField, places: Places, usable: np.ndarray, points: np.ndarray, lo: np.ndarray,

@@ -75,3 +75,12 @@ def test_keys_of_results(tree) -> None:
     m = scene_graph_outputs(tree, None, [], None, cfg, None)
     assert KEYS <= set(m)
     assert m["rooms_found"] == m["rooms_true"] == 2 and m["room_precision"] > 0.9
+
+
+def test_team_objects_have_unique_ids(tree) -> None:
+    from kimera_multi_py.scene_graph import build_scene_graph, team_objects
+
+    lm = _landmark(0, 6, np.array([0.6, 0.6, 0.0]), np.array([1.6, 1.2, 0.7]))
+    objs = team_objects({0: [lm], 2: [lm]})
+    assert [o[0] for o in objs] == [0, 2 << 24]
+    assert build_scene_graph(tree, objs).object_ids.tolist() == [0, 2 << 24]
