@@ -21,7 +21,7 @@ from scipy import ndimage
 from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
 
-_MARGIN = 2  # unknown cells padded all round, so the distance field sees a closed border
+_MARGIN = 2  # cells kept around the free space, so the distance field sees a closed border
 
 
 @dataclass
@@ -110,13 +110,13 @@ def occupancy_grid(octree: SemanticOctree, resolution: float | None = None) -> O
             if k:
                 coarse = coarse.repeat(1 << k, 0).repeat(1 << k, 1).repeat(1 << k, 2)
             target |= coarse
-    # crop to the known cells plus a margin of unknown ones
-    known = occupied | any_free
-    nz = [np.flatnonzero(known.any(axis=tuple(a for a in range(3) if a != ax))) for ax in range(3)]
+    # crop to the free cells plus a margin: the nearest obstacle of a free cell is always inside
+    free_all = any_free & ~occupied
+    keep = free_all if free_all.any() else occupied | any_free
+    nz = [np.flatnonzero(keep.any(axis=tuple(a for a in range(3) if a != ax))) for ax in range(3)]
     sl = tuple(slice(max(int(z[0]) - _MARGIN, 0), int(z[-1]) + _MARGIN + 1) for z in nz)
     origin = (lo + np.array([s.start for s in sl])).astype(np.float64) * res
-    free = any_free[sl] & ~occupied[sl]
-    return OccupancyGrid(origin, res, np.ascontiguousarray(free), np.ascontiguousarray(occupied[sl]))
+    return OccupancyGrid(origin, res, np.ascontiguousarray(free_all[sl]), np.ascontiguousarray(occupied[sl]))
 
 
 def distance_field(grid: OccupancyGrid) -> DistanceField:

@@ -33,6 +33,8 @@ class SceneGraphParams:
     room_delta_min: float = 0.5
     room_delta_step: float = 0.05
     room_min_places: int = 10
+    room_plateau_ratio: float = 0.5
+    """Plateaus of fewer than this fraction of the largest component count are not candidates."""
     room_method: str = "dilation"
     """``dilation`` (Hydra's sweep) or ``ceiling`` (the DSG paper's cut below the ceiling)."""
     ceiling_offset: float = 0.3
@@ -56,6 +58,8 @@ class SceneGraphParams:
             raise ConfigError("scene_graph.room_delta_min", "must not exceed room_delta_max")
         if self.room_min_places < 1 or self.attach_candidates < 1:
             raise ConfigError("scene_graph", "room_min_places and attach_candidates must be at least 1")
+        if not 0.0 <= self.room_plateau_ratio <= 1.0:
+            raise ConfigError("scene_graph.room_plateau_ratio", f"must lie in [0, 1], got {self.room_plateau_ratio}")
         for name in ("gvd_min_clearance", "place_min_clearance", "place_merge_distance", "edge_min_clearance"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"scene_graph.{name}", f"must be non-negative, got {getattr(self, name)}")

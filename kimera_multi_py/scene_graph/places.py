@@ -64,33 +64,34 @@ def _pair_indices(mask: np.ndarray, offset: tuple[int, int, int], shape: tuple[i
     return np.ravel_multi_index(va, shape), np.ravel_multi_index(vb, shape)
 
 
-def _sum3(parts: list[np.ndarray]) -> np.ndarray:
-    out = parts[0]
-    out += parts[1]
-    out += parts[2]
-    return out
-
-
 def gvd_mask(field: DistanceField, params: SceneGraphParams) -> np.ndarray:
-    """Boolean mask of the GVD voxels."""
+    """Boolean mask of the GVD voxels (vectorised over the voxel pairs of the candidates only)."""
     grid = field.grid
     clear = field.clearance
-    res = grid.resolution
-    ok = grid.free & (clear > params.gvd_min_clearance)
     shape = clear.shape
-    rel = [field.parents[k] - np.arange(shape[k]).reshape([-1 if i == k else 1 for i in range(3)]) for k in range(3)]
-    norm = clear / res  # |rel| in voxels
+    ok = (grid.free & (clear > params.gvd_min_clearance)).reshape(-1)
+    a0 = np.flatnonzero(ok)  # free cells are never on the grid border (it is padded with unknown cells)
+    coords = np.stack(np.unravel_index(a0, shape), 0).astype(np.int32)
+    parents = field.parents.reshape(3, -1)
+    norm = clear.reshape(-1) / grid.resolution  # |parent - voxel| in voxels
+    strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
     far2 = params.gvd_parent_voxels**2
-    gvd = np.zeros(shape, dtype=np.bool_)
+    gvd = np.zeros(ok.shape, dtype=np.bool_)
+    pa_all = parents[:, a0]
+    rel_all = pa_all - coords
     for off in _OFFSETS:
-        a, b = _slices(off)
-        both = ok[a] & ok[b]
-        dp2 = _sum3([(field.parents[k][a] - field.parents[k][b]) ** 2 for k in range(3)])
-        dot = _sum3([rel[k][a] * rel[k][b] for k in range(3)])
-        distinct = both & ((dp2 > far2) | (dot < params.gvd_parent_cos * norm[a] * norm[b]))
-        gvd[a] |= distinct
-        gvd[b] |= distinct
-    return gvd
+        b0 = a0 + int(np.dot(off, strides))
+        both = ok[b0]
+        a, b = a0[both], b0[both]
+        pa, pb = pa_all[:, both], parents[:, b]
+        rel_a = rel_all[:, both]
+        rel_b = pb - (coords[:, both] + np.array(off, dtype=np.int32)[:, None])
+        dp2 = ((pa - pb) ** 2).sum(axis=0)
+        dot = (rel_a * rel_b).sum(axis=0)
+        distinct = (dp2 > far2) | (dot < params.gvd_parent_cos * norm[a] * norm[b])
+        gvd[a[distinct]] = True
+        gvd[b[distinct]] = True
+    return gvd.reshape(shape)
 
 
 def _cells(points: np.ndarray, cell: float) -> np.ndarray:

@@ -4,7 +4,10 @@ For each δ from ``room_delta_max`` down to ``room_delta_min`` the places with c
 and the edges with weight above δ form a subgraph; its components of at least
 ``room_min_places`` places are candidate rooms. Narrow passages (doors) have small clearance,
 so at the right δ they disappear and each room is its own component. δ is taken from the
-longest run of δ with the same number of components (the plateau), at its middle. Those
+longest run of δ with the same number of components (the plateau), at its middle. Only counts of
+at least ``room_plateau_ratio`` times the largest count compete: at large δ rooms do not merge,
+they vanish (their clearance is below δ), so a long run of one component there says nothing about
+doors (a robot's partial map of the office shows exactly that; Hydra has a ``plateau_ratio`` too). Those
 components seed the rooms; every remaining place joins the room of its nearest seed place along
 the graph (Euclidean edge lengths). Hydra grows along the highest-clearance edge first instead;
 with 0.5 m place cells the low-clearance places along walls are joined by edges weaker than a
@@ -57,14 +60,16 @@ def _components(places: Places, delta: float, min_places: int) -> np.ndarray:
     return out
 
 
-def _plateau(counts: np.ndarray) -> tuple[int, int]:
-    """``(start, end)`` (inclusive) of the longest run of equal non-zero counts (first of ties)."""
+def _plateau(counts: np.ndarray, ratio: float) -> tuple[int, int]:
+    """``(start, end)`` (inclusive) of the longest run of equal counts of at least ``ratio`` times the
+    largest count (first of ties)."""
     best = (0, 0)
     best_len = 0
     start = 0
+    floor = max(ratio * float(counts.max()), 1.0) if len(counts) else 1.0
     for i in range(1, len(counts) + 1):
         if i == len(counts) or counts[i] != counts[start]:
-            if counts[start] > 0 and i - start > best_len:
+            if counts[start] >= floor and i - start > best_len:
                 best, best_len = (start, i - 1), i - start
             start = i
     return best
@@ -95,7 +100,7 @@ def find_rooms(places: Places, params: SceneGraphParams) -> Rooms:
         return Rooms(np.zeros(0, np.int64), float(deltas[0]), deltas, np.zeros(len(deltas), np.int64))
     comps = [_components(places, float(d), params.room_min_places) for d in deltas]
     counts = np.array([int(c.max() + 1) for c in comps])
-    start, end = _plateau(counts)
+    start, end = _plateau(counts, params.room_plateau_ratio)
     pick = (start + end) // 2
     label = _grow(places, comps[pick]) if counts[pick] > 0 else np.full(n, -1, dtype=np.int64)
     return Rooms(_finish(label, params.room_min_places), float(deltas[pick]), deltas, counts)
