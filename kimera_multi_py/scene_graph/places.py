@@ -46,24 +46,6 @@ class Places:
         return len(self.ids)
 
 
-def _slices(offset: tuple[int, int, int]) -> tuple[tuple[slice, ...], tuple[slice, ...]]:
-    """Slices ``a`` (voxel v) and ``b`` (voxel v + offset) over the grid."""
-    a, b = [], []
-    for d in offset:
-        a.append(slice(0, -1) if d == 1 else slice(1, None) if d == -1 else slice(None))
-        b.append(slice(1, None) if d == 1 else slice(0, -1) if d == -1 else slice(None))
-    return tuple(a), tuple(b)
-
-
-def _pair_indices(mask: np.ndarray, offset: tuple[int, int, int], shape: tuple[int, ...]) -> tuple[np.ndarray, ...]:
-    """Flat grid indices of the voxel pairs ``(v, v + offset)`` where ``mask`` (over slice a) holds."""
-    sub = np.nonzero(mask)
-    start = [1 if d == -1 else 0 for d in offset]
-    va = [s + st for s, st in zip(sub, start, strict=True)]
-    vb = [v + d for v, d in zip(va, offset, strict=True)]
-    return np.ravel_multi_index(va, shape), np.ravel_multi_index(vb, shape)
-
-
 def gvd_mask(field: DistanceField, params: SceneGraphParams) -> np.ndarray:
     """Boolean mask of the GVD voxels (vectorised over the voxel pairs of the candidates only)."""
     grid = field.grid
@@ -71,25 +53,28 @@ def gvd_mask(field: DistanceField, params: SceneGraphParams) -> np.ndarray:
     shape = clear.shape
     ok = (grid.free & (clear > params.gvd_min_clearance)).reshape(-1)
     a0 = np.flatnonzero(ok)  # free cells are never on the grid border (it is padded with unknown cells)
-    coords = np.stack(np.unravel_index(a0, shape), 0).astype(np.int32)
-    parents = field.parents.reshape(3, -1)
-    norm = clear.reshape(-1) / grid.resolution  # |parent - voxel| in voxels
-    strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
+    coords = np.unravel_index(a0, shape)
+    par = [field.parents[k].reshape(-1) for k in range(3)]
+    pa0 = [par[k][a0] for k in range(3)]
+    rel0 = [pa0[k] - coords[k].astype(np.int32) for k in range(3)]
+    norm = clear.reshape(-1) / np.float32(grid.resolution)  # |parent - voxel| in voxels
+    na0 = norm[a0] * np.float32(params.gvd_parent_cos)
+    strides = (shape[1] * shape[2], shape[2], 1)
     far2 = params.gvd_parent_voxels**2
     gvd = np.zeros(ok.shape, dtype=np.bool_)
-    pa_all = parents[:, a0]
-    rel_all = pa_all - coords
     for off in _OFFSETS:
-        b0 = a0 + int(np.dot(off, strides))
-        both = ok[b0]
-        a, b = a0[both], b0[both]
-        pa, pb = pa_all[:, both], parents[:, b]
-        rel_a = rel_all[:, both]
-        rel_b = pb - (coords[:, both] + np.array(off, dtype=np.int32)[:, None])
-        dp2 = ((pa - pb) ** 2).sum(axis=0)
-        dot = (rel_a * rel_b).sum(axis=0)
-        distinct = (dp2 > far2) | (dot < params.gvd_parent_cos * norm[a] * norm[b])
-        gvd[a[distinct]] = True
+        b0 = a0 + (off[0] * strides[0] + off[1] * strides[1] + off[2] * strides[2])
+        both = np.flatnonzero(ok[b0])
+        b = b0[both]
+        dp2 = np.zeros(len(b), dtype=np.int32)
+        dot = np.zeros(len(b), dtype=np.int32)
+        for k in range(3):
+            pb = par[k][b]
+            d = pa0[k][both] - pb
+            dp2 += d * d
+            dot += rel0[k][both] * (pb - (coords[k][both] + off[k]).astype(np.int32))
+        distinct = (dp2 > far2) | (dot < na0[both] * norm[b])
+        gvd[a0[both[distinct]]] = True
         gvd[b[distinct]] = True
     return gvd.reshape(shape)
 
@@ -140,11 +125,14 @@ def extract_places(field: DistanceField, params: SceneGraphParams) -> Places:
     cell = _cells(centers, params.place_cell)
     clear = field.clearance.reshape(-1)[lin].astype(np.float64)
     # voxel pairs among candidates: same cell -> one cluster; across cells -> an edge
+    slot = np.full(cand.size, -1, dtype=np.int64)
+    slot[lin] = np.arange(len(lin))
+    strides = (shape[1] * shape[2], shape[2], 1)
     same_u, same_v, cross_u, cross_v = [], [], [], []
     for off in _OFFSETS:
-        a, b = _slices(off)
-        u, v = _pair_indices(cand[a] & cand[b], off, shape)
-        iu, iv = np.searchsorted(lin, u), np.searchsorted(lin, v)
+        j = slot[lin + (off[0] * strides[0] + off[1] * strides[1] + off[2] * strides[2])]
+        iu = np.flatnonzero(j >= 0)
+        iv = j[iu]
         same = np.all(cell[iu] == cell[iv], axis=1)
         same_u.append(iu[same])
         same_v.append(iv[same])
