@@ -211,6 +211,8 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
             raise SceneGraphError(f"trajectories[{r}]: {len(st)} stamps for {len(P)} poses")
         if not (np.all(np.isfinite(st)) and np.all(np.isfinite(P))):
             raise SceneGraphError(f"trajectories[{r}]: stamps and poses must be finite")
+        if np.any(np.diff(st) < 0):
+            raise SceneGraphError(f"trajectories[{r}]: stamps must not decrease")
         robots.append(np.full(len(st), int(r), dtype=np.int64))
         index.append(np.arange(len(st), dtype=np.int64))
         stamps.append(st)

@@ -93,6 +93,8 @@ def test_bad_input_is_named(two_rooms) -> None:
         build_scene_graph(tree, [(1, "chair", (1, 1, 1), (0, 0, 0), (2, 2, 2))] * 2)
     with pytest.raises(SceneGraphError, match="3 stamps for 2 poses"):
         build_scene_graph(tree, [], {0: (np.arange(3.0), np.repeat(np.eye(4)[None], 2, 0))})
+    with pytest.raises(SceneGraphError, match="must not decrease"):
+        build_scene_graph(tree, [], {0: (np.array([1.0, 0.0]), np.repeat(np.eye(4)[None], 2, 0))})
     with pytest.raises(SceneGraphError, match="letter 'p'"):
         build_scene_graph(tree, [], {15: (np.arange(1.0), np.eye(4)[None])})
 
