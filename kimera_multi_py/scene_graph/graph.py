@@ -154,9 +154,10 @@ def team_objects(landmarks_by_robot: Mapping[int, Iterable[Any]]) -> list[tuple[
 
 
 def _attach(field: DistanceField, places: Places, usable: np.ndarray, points: np.ndarray, lo: np.ndarray,
-            hi: np.ndarray, k: int) -> np.ndarray:
-    """Nearest place in sight of each point: the segment may cross only free or unknown cells, or the
-    point's own box (``lo``, ``hi``). Only places in ``usable`` are tried; falls back to the nearest."""
+            hi: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    """Nearest place in sight of each point: the segment may cross only free or unknown cells, or cells
+    of the point's own class (``labels``) inside its own box (``lo``, ``hi``): an object's box often holds
+    some wall, which must still block. Only places in ``usable`` are tried; falls back to the nearest."""
     pool = np.flatnonzero(usable)
     if len(points) == 0 or len(pool) == 0:
         return np.full(len(points), -1, dtype=np.int64)
@@ -171,9 +172,12 @@ def _attach(field: DistanceField, places: Places, usable: np.ndarray, points: np
     cells = field.grid.index(pts)
     ok = field.grid.inside(cells)
     occ = np.zeros(ok.shape, dtype=np.bool_)
+    cls = np.zeros(ok.shape, dtype=np.int64)
     c = cells[ok]
     occ[ok] = field.grid.occupied[c[:, 0], c[:, 1], c[:, 2]]
+    cls[ok] = field.grid.labels[c[:, 0], c[:, 1], c[:, 2]]
     own = np.all((pts >= lo[:, None, None]) & (pts <= hi[:, None, None]), axis=-1)
+    own &= cls == labels[:, None, None]
     seen = ~np.any(occ & ~own, axis=2)  # (q, k)
     first = np.where(seen.any(axis=1), np.argmax(seen, axis=1), 0)
     return idx[np.arange(len(points)), first].astype(np.int64)
@@ -201,7 +205,7 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
     building = room_pos.mean(0) if nr else (places.positions.mean(0) if len(places) else np.zeros(3))
     obs = as_objects(objects)
     usable = m if m.any() else np.ones(len(places), dtype=np.bool_)  # attach to places that have a room
-    object_place = _attach(field, places, usable, obs.centroids, obs.lo, obs.hi, p.attach_candidates)
+    object_place = _attach(field, places, usable, obs.centroids, obs.lo, obs.hi, obs.labels, p.attach_candidates)
     robots, index, stamps, poses = [], [], [], []
     for r in sorted(trajectories or {}):
         robot_letter(int(r))
@@ -219,7 +223,7 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
         poses.append(P)
     agent_pose = np.concatenate(poses) if poses else np.zeros((0, 4, 4))
     xyz = agent_pose[:, :3, 3]
-    agent_place = _attach(field, places, usable, xyz, xyz, xyz, p.attach_candidates)
+    agent_place = _attach(field, places, usable, xyz, xyz, xyz, np.zeros(len(xyz), np.int64), p.attach_candidates)
     build_s = time.perf_counter() - t0
     meta = {"delta": rooms.delta, "sweep": {"deltas": rooms.deltas.tolist(), "counts": rooms.counts.tolist()},
             "params": p.to_dict(), "build_s": build_s, "resolution": grid.resolution}

@@ -32,6 +32,7 @@ class OccupancyGrid:
     resolution: float
     free: np.ndarray  # bool (nx, ny, nz)
     occupied: np.ndarray  # bool (nx, ny, nz)
+    labels: np.ndarray  # int8 (nx, ny, nz): most likely class of occupied cells, 0 elsewhere
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -87,8 +88,9 @@ def occupancy_grid(octree: SemanticOctree, resolution: float | None = None) -> O
     codes, levels = octree.codes, octree.levels.astype(np.int64)
     if len(codes) == 0:
         empty = np.zeros((1, 1, 1), dtype=np.bool_)
-        return OccupancyGrid(np.zeros(3), res, empty, empty.copy())
+        return OccupancyGrid(np.zeros(3), res, empty, empty.copy(), np.zeros((1, 1, 1), dtype=np.int8))
     occ = _occupied(octree.values)
+    cls = (np.argmax(octree.values[:, 1:], axis=1) + 1).astype(np.int8)
     keys = morton.decode(codes) - morton.KEY_OFFSET  # signed voxel coordinates of each leaf's first voxel
     base = keys >> c  # coarse cell of each leaf's first voxel (arithmetic shift: floor division)
     top = max(int(levels.max()) - c, 0)
@@ -97,6 +99,7 @@ def occupancy_grid(octree: SemanticOctree, resolution: float | None = None) -> O
     shape = tuple(int(v) for v in ((base.max(0) - lo) // step + 2) * step)
     occupied = np.zeros(shape, dtype=np.bool_)
     any_free = np.zeros(shape, dtype=np.bool_)
+    labels = np.zeros(shape, dtype=np.int8)
     for lev in np.unique(levels).tolist():
         k = max(int(lev) - c, 0)  # a leaf covers 2**k coarse cells per axis
         sel = levels == lev
@@ -110,13 +113,20 @@ def occupancy_grid(octree: SemanticOctree, resolution: float | None = None) -> O
             if k:
                 coarse = coarse.repeat(1 << k, 0).repeat(1 << k, 1).repeat(1 << k, 2)
             target |= coarse
+            if target is occupied:
+                lab = np.zeros(small, dtype=np.int8)
+                lab[tuple(cell[mask].T)] = cls[sel][mask]
+                if k:
+                    lab = lab.repeat(1 << k, 0).repeat(1 << k, 1).repeat(1 << k, 2)
+                np.copyto(labels, lab, where=coarse)
     # crop to the free cells plus a margin: the nearest obstacle of a free cell is always inside
     free_all = any_free & ~occupied
     keep = free_all if free_all.any() else occupied | any_free
     nz = [np.flatnonzero(keep.any(axis=tuple(a for a in range(3) if a != ax))) for ax in range(3)]
     sl = tuple(slice(max(int(z[0]) - _MARGIN, 0), int(z[-1]) + _MARGIN + 1) for z in nz)
     origin = (lo + np.array([s.start for s in sl])).astype(np.float64) * res
-    return OccupancyGrid(origin, res, np.ascontiguousarray(free_all[sl]), np.ascontiguousarray(occupied[sl]))
+    return OccupancyGrid(origin, res, np.ascontiguousarray(free_all[sl]), np.ascontiguousarray(occupied[sl]),
+                         np.ascontiguousarray(labels[sl]))
 
 
 def distance_field(grid: OccupancyGrid) -> DistanceField:
