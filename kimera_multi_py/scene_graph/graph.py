@@ -165,6 +165,18 @@ def _attach(field: DistanceField, places: Places, usable: np.ndarray, points: np
     _, near = cKDTree(places.positions[pool]).query(points, k=k)
     idx = pool[np.asarray(near).reshape(len(points), k)]
     target = places.positions[idx]  # (q, k, 3)
+    seen = np.concatenate([_in_sight(field, points[c:c + _CHUNK], target[c:c + _CHUNK], lo[c:c + _CHUNK],
+                                     hi[c:c + _CHUNK], labels[c:c + _CHUNK]) for c in range(0, len(points), _CHUNK)])
+    first = np.where(seen.any(axis=1), np.argmax(seen, axis=1), 0)
+    return idx[np.arange(len(points)), first].astype(np.int64)
+
+
+_CHUNK = 256  # points per line-of-sight batch (bounds memory when a point is far from every place)
+
+
+def _in_sight(field: DistanceField, points: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+              labels: np.ndarray) -> np.ndarray:
+    """``(q, k)``: whether each segment ``points[i] -> target[i, j]`` is clear (see :func:`_attach`)."""
     length = np.linalg.norm(target - points[:, None], axis=2)
     res = field.grid.resolution
     s = np.linspace(0.0, 1.0, int(np.ceil(length.max() / (0.5 * res))) + 2)
@@ -178,9 +190,7 @@ def _attach(field: DistanceField, places: Places, usable: np.ndarray, points: np
     cls[ok] = field.grid.labels[c[:, 0], c[:, 1], c[:, 2]]
     own = np.all((pts >= lo[:, None, None]) & (pts <= hi[:, None, None]), axis=-1)
     own &= cls == labels[:, None, None]
-    seen = ~np.any(occ & ~own, axis=2)  # (q, k)
-    first = np.where(seen.any(axis=1), np.argmax(seen, axis=1), 0)
-    return idx[np.arange(len(points)), first].astype(np.int64)
+    return ~np.any(occ & ~own, axis=2)
 
 
 def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
