@@ -11,7 +11,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from kimera_multi_py.errors import KimeraMultiError
+from kimera_multi_py.errors import ConfigError, KimeraMultiError
 
 DEFAULT_SCENARIO = Path("sims/office.toml")
 
@@ -29,15 +29,14 @@ def _root() -> None:
 def _setup_logging(verbose: bool) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s [%(robot)s] %(name)s: %(message)s")
-    old = logging.getLogRecordFactory()
 
-    def factory(*args: object, **kwargs: object) -> logging.LogRecord:
-        record = old(*args, **kwargs)  # type: ignore[arg-type]
-        if not hasattr(record, "robot"):
+    def default_robot(record: logging.LogRecord) -> bool:
+        if not hasattr(record, "robot"):  # records logged without extra={"robot": ...}
             record.robot = "-"
-        return record
+        return True
 
-    logging.setLogRecordFactory(factory)
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(default_robot)
 
 
 def fail(exc: KimeraMultiError) -> typer.Exit:
@@ -58,6 +57,29 @@ def _results_table(res: dict) -> Table:
     return table
 
 
+def _robot_at(spec: str, option: str) -> tuple[int, float]:
+    """``I@T`` as ``(robot, seconds)``."""
+    try:
+        robot, at = spec.split("@")
+        return int(robot), float(at)
+    except ValueError:
+        raise ConfigError(option, f"expected I@T (robot@seconds), got {spec!r}") from None
+
+
+def _summary(res: dict) -> None:
+    """Loop closures, objects and bytes of a team run, in two lines."""
+    if "loop_closures" not in res:
+        return
+    lc, ob = res["loop_closures"], res["objects"]
+    console.print(
+        f"loop closures: {lc['candidates']} candidates, {lc['verified']} verified, "
+        f"{lc['accepted_inter']} inter-robot accepted ({lc['true_accepted_inter']} true, "
+        f"{lc['false_accepted_inter']} false; PCM rejected {lc['rejected_pcm_false_inter']} false, "
+        f"GNC rejected {lc['rejected_gnc_false_inter']} false)")
+    console.print(f"objects: precision {ob['precision']:.2f}, recall {ob['recall']:.2f}, "
+                  f"centroid error {ob['mean_error']:.2f} m; bytes sent {res['bytes_sent']['total']:,}")
+
+
 @app.command()
 def sim(
     scenario: Annotated[Path, typer.Argument(help="Scenario TOML file.")] = DEFAULT_SCENARIO,
@@ -68,6 +90,8 @@ def sim(
     = "loopback",
     out: Annotated[Path, typer.Option(help="Run folder for results.json and trajectories.")] = Path("runs/sim"),
     rerun: Annotated[bool, typer.Option("--rerun/--no-rerun", help="Write OUT/recording.rrd.")] = True,
+    join: Annotated[list[str] | None, typer.Option("--join", help="I@T: robot I joins T s after the others "
+                                                                   "(repeatable).")] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Run the multi-robot simulation and evaluate it against ground truth."""
@@ -83,29 +107,24 @@ def sim(
                       TimeElapsedColumn(), console=err_console, transient=False) as progress:
             task = progress.add_task(f"{cfg.name} x{len(cfg.robots)}", total=None)
             runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz, transport=transport,
+                               join=dict(_robot_at(j, "join") for j in join or []),
                                on_progress=lambda done, total: progress.update(task, completed=done, total=total))
             results = runner.run()
     except KimeraMultiError as exc:
         raise fail(exc) from None
     res = results.to_dict()
     console.print(_results_table(res))
-    if "loop_closures" in res:
-        lc, ob = res["loop_closures"], res["objects"]
-        console.print(
-            f"loop closures: {lc['candidates']} candidates, {lc['verified']} verified, "
-            f"{lc['accepted_inter']} inter-robot accepted ({lc['true_accepted_inter']} true, "
-            f"{lc['false_accepted_inter']} false; PCM rejected {lc['rejected_pcm_false_inter']} false, "
-            f"GNC rejected {lc['rejected_gnc_false_inter']} false)")
-        console.print(f"objects: precision {ob['precision']:.2f}, recall {ob['recall']:.2f}, "
-                      f"centroid error {ob['mean_error']:.2f} m; bytes sent {res['bytes_sent']['total']:,}")
+    _summary(res)
     console.print(f"sim {res['sim_seconds']:.1f} s in {res['wall_s']:.2f} s wall "
                   f"(x{res['realtime_factor']:.1f} real time); wrote {out / 'results.json'}")
 
 
 def _register_commands() -> None:
     from kimera_multi_py.consensus.cli_pgo import register
+    from kimera_multi_py.team import cli_team
 
     register(app)
+    cli_team.register(app)
     __import__("kimera_multi_py.scene_graph.cli_query", fromlist=["register"]).register(app)
 
 

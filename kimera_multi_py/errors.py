@@ -30,3 +30,15 @@ class GraphError(KimeraMultiError):
 
 class MapError(KimeraMultiError):
     """A map file is corrupt, truncated or of an unknown format version."""
+
+
+class CheckpointError(KimeraMultiError):
+    """A checkpoint file is missing, corrupt, truncated, foreign or of another format version.
+
+    The message names the file and the problem.
+    """
+
+    def __init__(self, path: str, problem: str) -> None:
+        self.path = path
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")

@@ -56,6 +56,7 @@ _OBJECT_IDS = np.array([class_id(c) for c in OBJECT_CLASSES])
 _CLASS_TO_SLOT = np.full(NUM_CLASSES + 1, -1)
 _CLASS_TO_SLOT[_OBJECT_IDS] = np.arange(len(_OBJECT_IDS))
 _FLOOR_CEILING = (class_id("floor"), class_id("ceiling"))
+MAX_AGENT_ID = 25  # robot i owns gtsam Symbol chr(ord('a') + i)
 
 
 @dataclass
@@ -145,9 +146,9 @@ class LoopClosureStats:
 class Agent:
     """One robot's SLAM front end and map (see the module docstring)."""
 
-    def __init__(self, robot: int, team: tuple[int, ...], params: AgentParams | None = None) -> None:
+    def __init__(self, robot: int, team: tuple[int, ...] | None = None, params: AgentParams | None = None) -> None:
         self.robot = robot
-        self.team = tuple(team)
+        self.team = tuple(team) if team is not None else None  # None: whoever is present
         self.params = params or AgentParams()
         p = self.params
         self.spec = DescriptorSpec(num_classes=len(_OBJECT_IDS))
@@ -170,7 +171,8 @@ class Agent:
         self._pending: dict[int, tuple[int, int, int]] = {}  # request id -> (peer, peer_kf, own_kf)
         self._request_id = 0
         self._budget: dict[int, list[float]] = {}
-        self._batch: dict[int, int] = {}
+        self._batch: dict[int, int] = {}  # peer -> batches of closures sent
+        self._peer_batch: dict[int, int] = {}  # peer -> newest batch of its closures received
 
     # ---- keyframes ------------------------------------------------------------------------
     @property
@@ -365,15 +367,20 @@ class Agent:
             if accepted:
                 self.robot_graph.add((min(self.robot, peer), max(self.robot, peer)))
         self._batch[peer] = self._batch.get(peer, 0) + 1
+        return [self.closures_message(peer)]
+
+    def closures_message(self, peer: int) -> LoopClosures:
+        """The closures with ``peer`` that PCM accepts now, as the newest batch."""
+        accepted = [c for c in self.closures.get(peer, []) if c.accepted]
         n = len(accepted)
-        return [LoopClosures(
-            robot=self.robot, peer=peer, batch=self._batch[peer],
+        return LoopClosures(
+            robot=self.robot, peer=peer, batch=self._batch.get(peer, 0),
             keys_a=np.array([robot_key(self.robot, c.own_kf) for c in accepted], dtype=np.int64),
             keys_b=np.array([robot_key(peer, c.peer_kf) for c in accepted], dtype=np.int64),
             poses=np.stack([c.Z for c in accepted]) if n else np.zeros((0, 4, 4)),
             sigmas=np.tile(np.repeat(self.params.closure_sigmas, 3), (n, 1)),
             inliers=np.array([c.inliers for c in accepted], dtype=np.int32),
-        )]
+        )
 
     def handle(self, msg: Message) -> list[Message]:
         """React to a message from another robot; return the messages to send."""
@@ -385,10 +392,13 @@ class Agent:
                 if own.any():
                     self.apply_poses(np.array(msg.poses[own]))
             return []
-        if msg.robot not in self.team:
+        if (self.team is not None and msg.robot not in self.team) or not 0 <= msg.robot <= MAX_AGENT_ID:
             raise ValueError(f"robot {self.robot}: message from unknown robot {msg.robot}")
         if isinstance(msg, KeyframeDescriptor):
-            self.peer_descriptors.setdefault(msg.robot, []).append((msg.keyframe, np.array(msg.descriptor)))
+            known = self.peer_descriptors.setdefault(msg.robot, [])
+            if any(k == msg.keyframe for k, _ in known):
+                return []  # a re-send (the peer caught us up after a restart or a late join)
+            known.append((msg.keyframe, np.array(msg.descriptor)))
             return self._maybe_request(msg.robot, msg.keyframe, msg.descriptor, msg.stamp)
         if isinstance(msg, LoopClosureReply):
             pending = self._pending.pop(msg.request_id, None)
@@ -407,13 +417,17 @@ class Agent:
                 self.robot_graph.add(pair)
             if msg.peer != self.robot:
                 return []
+            ack = [LoopClosuresAck(robot=self.robot, peer=msg.robot, batch=msg.batch)]
+            if msg.batch < self._peer_batch.get(msg.robot, -1):
+                return ack  # an older batch re-sent late: the newer one stands
+            self._peer_batch[msg.robot] = msg.batch
             self.inter_edges = {k: v for k, v in self.inter_edges.items() if k[1] != msg.robot}
             for ka, kb, Z, n in zip(msg.keys_a, msg.keys_b, msg.poses, msg.inliers, strict=True):
                 own_kf = split_key(kb)[1]
                 peer_kf = split_key(ka)[1]
                 if own_kf < self.num_keyframes:
                     self.inter_edges[(own_kf, msg.robot, peer_kf)] = (inverse(np.array(Z)), int(n))
-            return [LoopClosuresAck(robot=self.robot, peer=msg.robot, batch=msg.batch)]
+            return ack
         return []
 
     # ---- back end -------------------------------------------------------------------------
@@ -464,7 +478,7 @@ class Agent:
             inter_meas=np.where(lower[:, None, None], inverse(meas), meas),
             inter_info=np.tile(cinfo, (len(edges), 1, 1)),
             inter_edge=np.arange(len(edges)),
-            robot_graph=sorted(self.robot_graph), team=self.team,
+            robot_graph=sorted(self.robot_graph), team=self.team or (self.robot,),
         )
 
     def apply_poses(self, poses: np.ndarray) -> int:

@@ -1,82 +1,171 @@
-"""AgentNode: the asyncio runtime that binds a pure :class:`Agent` to a Bus.
+"""AgentNode: the asyncio runtime of one robot, end to end on its own clock (DESIGN §4.7).
 
-It announces the robot's presence, serves its keyframe constellations on
-``kmp/{team}/r{robot}/keyframe/{id}``, subscribes to the team's topics, hands every message to
-the agent and sends what the agent returns: ``LoopClosureRequest`` becomes a Bus query to the
-target robot (the reply goes back into the agent), everything else is published on its topic.
-A message the agent refuses (unknown robot, inconsistent content) is logged and counted; the
-node keeps running.
+The node binds a pure :class:`Agent` and a :class:`TeamPgo` to a Bus and runs everything the
+robot does, with no orchestrator:
 
-Two ways to drive it: :meth:`drain` handles everything queued now (the single-process
-simulation steps all nodes deterministically this way), :meth:`run` loops until closed (one
-robot per process). :meth:`checkpoint` / :meth:`restore` pickle the agent's state.
+* keyframes in (:meth:`process_keyframe`, from a source);
+* the loop-closure protocol: descriptors out, constellation queries to peers, verified closures
+  out (re-sent until acknowledged, and again to a robot that (re)appears, together with our
+  descriptors, so late joiners and restarted robots catch up);
+* distributed PGO that the team starts and stops itself (:mod:`kimera_multi_py.consensus.team_pgo`),
+  or in centralised mode the server's corrected poses;
+* its progress as :class:`AgentState` on a period (the leader's view of who has finished).
+
+Membership comes from presence (liveliness): whoever is alive is the team.
+
+Two ways to drive it. The single-process simulation calls :meth:`drain` and :meth:`tick` with a
+simulated clock (deterministic: a round's wait ends when the runtime says nothing more can
+arrive). A robot process calls :meth:`run`, which feeds keyframes from a source at a rate, ticks
+on wall time and returns when the team's final optimisation is done.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import pickle
+import math
+import time
 from collections import Counter
-from pathlib import Path
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 
-from kimera_multi_py.agent.agent import Agent, KeyframeInput
+from kimera_multi_py.agent.agent import MAX_AGENT_ID, Agent, KeyframeInput
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.bus import Bus
-from kimera_multi_py.comms.messages import LoopClosureReply, LoopClosureRequest, Message
+from kimera_multi_py.comms.bus import Bus, BusClosedError, Closeable, PresenceEvent, Stream, Subscription
+from kimera_multi_py.comms.messages import (
+    AgentState,
+    KeyframeDescriptor,
+    LoopClosureReply,
+    LoopClosureRequest,
+    LoopClosures,
+    LoopClosuresAck,
+    Message,
+    PgoEpoch,
+)
+from kimera_multi_py.consensus.pgo import PgoParams
+from kimera_multi_py.consensus.team_pgo import ScheduleParams, TeamPgo
 from kimera_multi_py.errors import KimeraMultiError
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_VERSION = 1
+@dataclass
+class NodeParams:
+    """The node's own knobs (the agent's and the solver's are separate)."""
+
+    query_timeout: float = 2.0  # wall s for a constellation query
+    state_period: float = 5.0  # clock s between AgentState messages (the tick's ``wall`` clock)
+    resend_period: float = 5.0  # clock s between re-sends of unacknowledged closures
+    server: int | None = None  # centralised mode: the server's id (then no team PGO)
 
 
 class AgentNode:
-    """One robot on a Bus (see the module docstring)."""
+    """One robot on a Bus (see the module docstring).
 
-    def __init__(self, agent: Agent, bus: Bus, query_timeout: float = 2.0) -> None:
+    ``clock`` gives team time in seconds (the simulation's clock, or the stream's); by default
+    the stamp of the newest keyframe this node knows of (its own or a peer's state).
+    """
+
+    def __init__(self, agent: Agent, bus: Bus, pgo_params: PgoParams | None = None,
+                 schedule: ScheduleParams | None = None, params: NodeParams | None = None,
+                 clock: Callable[[], float] | None = None) -> None:
         self.agent = agent
         self.bus = bus
-        self.query_timeout = query_timeout
+        self.params = params or NodeParams()
+        self.schedule = schedule or ScheduleParams()
+        self.clock = clock or self._stream_time
         self.errors: Counter[str] = Counter()
-        self._sub = None
-        self._serve = None
+        self.finished = False  # our stream ended
+        self.complete = False  # the team's final optimisation reached us
+        self.pgo: TeamPgo | None = None
+        if self.params.server is None:
+            self.pgo = TeamPgo(agent.robot, pgo_params or PgoParams(robust=True, max_rounds=600),
+                               self.schedule, agent.local_graph, agent.apply_poses,
+                               lambda: agent.robot_graph, self._accepted_inter)
+        self._sub: Subscription | None = None
+        self._serve: Closeable | None = None
+        self._presence: Stream[PresenceEvent] | None = None
+        self._unacked: dict[int, LoopClosures] = {}  # peer -> newest closures batch not acknowledged
+        self._sent_at: dict[int, float] = {}
+        self._state_at = -math.inf
+        self._peer_stamp = 0.0
+        self.epochs_seen = 0
+        self._closure_counts: dict[tuple[int, int], int] = {}
 
     @property
     def robot(self) -> int:
         return self.agent.robot
 
+    def alive(self) -> frozenset[int]:
+        """The agents present (the server is not a PGO member)."""
+        return frozenset(r for r in self.bus.peers() if r <= MAX_AGENT_ID)
+
+    def _stream_time(self) -> float:
+        own = self.agent.stamps[-1] if self.agent.stamps else 0.0
+        return max(own, self._peer_stamp)
+
+    def _accepted_inter(self) -> int:
+        """Inter-robot closures accepted anywhere in the team, as far as this node has heard."""
+        return sum(self._closure_counts.values())
+
+    def _count_closures(self, msg: Message) -> None:
+        if isinstance(msg, LoopClosures) and msg.robot != msg.peer:
+            self._closure_counts[(msg.robot, msg.peer)] = len(msg.keys_a)
+
+    # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
         await self.bus.announce()
         self._serve = await self.bus.serve(keys.keyframe_key(self.bus.team, self.robot, "*"), self._serve_keyframe)
         self._sub = self.bus.subscribe(keys.team_all(self.bus.team))
+        self._presence = self.bus.presence()
+
+    async def close(self) -> None:
+        for c in (self._sub, self._serve, self._presence):
+            if c is not None:
+                c.close()
 
     def _serve_keyframe(self, key: str, request: Message | None) -> LoopClosureReply:
         keyframe = int(key.rsplit("/", 1)[-1])
         rid = request.request_id if isinstance(request, LoopClosureRequest) else 0
         return self.agent.serve_keyframe(keyframe, rid)
 
+    # ------------------------------------------------------------------ keyframes
     async def process_keyframe(self, kf: KeyframeInput) -> None:
         await self.send(self.agent.process_keyframe(kf))
 
-    async def send(self, msgs: list[Message]) -> None:
+    async def finish_stream(self) -> None:
+        """Our source has no more keyframes: say so (the leader then runs the final epoch)."""
+        self.finished = True
+        await self._publish_state()
+
+    # ------------------------------------------------------------------ messages
+    async def send(self, msgs: Iterable[Message]) -> None:
         for msg in msgs:
             if isinstance(msg, LoopClosureRequest):
-                key = keys.keyframe_key(self.bus.team, msg.target, msg.keyframe)
-                try:
-                    replies = await self.bus.query(key, msg, timeout=self.query_timeout)
-                except (KimeraMultiError, TimeoutError) as exc:
-                    self._refuse("query", exc)
-                    continue
-                for reply in replies:
-                    await self.send(self._handle(reply))
-            else:
-                await self.bus.publish(self.bus.key(msg.TOPIC), msg)
+                await self._query(msg)
+                continue
+            self._count_closures(msg)
+            if isinstance(msg, LoopClosures) and msg.peer != self.robot:
+                self._unacked[msg.peer] = msg
+                self._sent_at.pop(msg.peer, None)  # the re-send timer starts at the next tick
+            await self._publish(msg)
 
-    def _handle(self, msg: Message) -> list[Message]:
+    async def _publish(self, msg: Message) -> None:
+        await self.bus.publish(self.bus.key(msg.TOPIC), msg)
+
+    async def _query(self, msg: LoopClosureRequest) -> None:
+        key = keys.keyframe_key(self.bus.team, msg.target, msg.keyframe)
+        try:
+            replies = await self.bus.query(key, msg, timeout=self.params.query_timeout)
+        except (KimeraMultiError, TimeoutError) as exc:
+            self._refuse("query", exc)
+            return
+        for reply in replies:
+            await self.send(self._handle_agent(reply))
+
+    def _handle_agent(self, msg: Message) -> list[Message]:
         try:
             return self.agent.handle(msg)
-        except (KimeraMultiError, ValueError, KeyError) as exc:
+        except (KimeraMultiError, ValueError, KeyError, IndexError) as exc:
             self._refuse(type(msg).__name__, exc)
             return []
 
@@ -84,45 +173,141 @@ class AgentNode:
         self.errors[what] += 1
         log.warning("robot %d refused %s: %s", self.robot, what, exc, extra={"robot": self.robot})
 
+    async def _dispatch(self, msg: Message) -> None:
+        if msg.robot == self.robot:
+            return
+        self._count_closures(msg)
+        if isinstance(msg, AgentState):
+            self._peer_stamp = max(self._peer_stamp, msg.stamp)
+        if isinstance(msg, LoopClosuresAck) and msg.peer == self.robot:
+            pending = self._unacked.get(msg.robot)
+            if pending is not None and msg.batch >= pending.batch:
+                del self._unacked[msg.robot]
+        if self.params.server is not None and msg.robot == self.params.server:
+            await self.send(self._handle_agent(msg))
+            if isinstance(msg, PgoEpoch) and msg.final and self.finished and not self.complete:
+                self.complete = True
+                self.epochs_seen += 1
+                await self._publish_state()
+            return
+        if self.pgo is not None:
+            try:
+                self.pgo.handle(msg, self.alive())
+            except (KimeraMultiError, ValueError, KeyError, IndexError) as exc:
+                self._refuse(type(msg).__name__, exc)
+        await self.send(self._handle_agent(msg))
+
+    async def _on_presence(self, event: PresenceEvent) -> None:
+        """A robot (re)appeared: give it what it may have missed."""
+        if not event.alive or event.robot > MAX_AGENT_ID:
+            if event.alive:  # the server: it needs our state to know who has finished
+                await self._publish_state()
+            return
+        for k, c in sorted(self.agent.constellations.items()):
+            await self._publish(KeyframeDescriptor(robot=self.robot, keyframe=k, stamp=c.stamp, kind="objects",
+                                                   descriptor=c.descriptor))
+        if event.robot in self.agent.closures and event.robot != self.robot:
+            latest = self.agent.closures_message(event.robot)
+            self._unacked[event.robot] = latest
+            self._sent_at.pop(event.robot, None)
+            await self._publish(latest)
+        await self._publish_state()
+
     async def drain(self) -> int:
-        """Handle every message queued now; return how many."""
-        assert self._sub is not None, "start() first"
+        """Handle every message and presence event queued now; return how many."""
+        if self._sub is None or self._presence is None:
+            return 0  # not started (a robot that has not joined yet)
         n = 0
+        while (event := self._presence.try_recv()) is not None:
+            await self._on_presence(event)
+            n += 1
         while (msg := self._sub.try_recv()) is not None:
-            await self.send(self._handle(msg))
+            await self._dispatch(msg)
             n += 1
         return n
 
-    async def run(self) -> None:
-        """Handle messages until the subscription closes (one robot per process)."""
+    # ------------------------------------------------------------------ the clock
+    async def tick(self, wall: float | None = None, force: bool = False) -> int:
+        """Timers: state, re-sends, the PGO schedule. Returns how many messages went out."""
+        if self._sub is None:
+            return 0
+        now = self.clock()
+        wall = time.monotonic() if wall is None else wall
+        out: list[Message] = []
+        if wall - self._state_at >= self.params.state_period:
+            self._state_at = wall
+            out.append(self._state())
+        for peer, msg in sorted(self._unacked.items()):
+            if wall - self._sent_at.setdefault(peer, wall) >= self.params.resend_period:
+                self._sent_at[peer] = wall
+                out.append(msg)
+        if self.pgo is not None:
+            before = self.pgo.completed
+            out.extend(self.pgo.tick(now, wall, self.alive(), self.finished, force))
+            if self.pgo.completed != before:
+                self.epochs_seen += 1
+                out.append(self._state())
+                if self.pgo.final_done and self.finished:
+                    self.complete = True
+        for m in out:
+            await self._publish(m)
+        return len(out)
+
+    def blocked(self) -> bool:
+        return self.pgo is not None and self.pgo.blocked()
+
+    def _state(self) -> AgentState:
+        completed = self.pgo.completed if self.pgo is not None else 0
+        stamp = self.agent.stamps[-1] if self.agent.stamps else 0.0
+        rounds = self.pgo.stats.rounds if self.pgo is not None else 0
+        return AgentState(robot=self.robot, keyframes=self.agent.num_keyframes, stamp=stamp,
+                          finished=self.finished, epoch=completed, complete=self.complete,
+                          closures=len(self.agent.inter_edges), rounds=rounds,
+                          bytes_sent=self.bus.counters.total("sent").bytes)
+
+    async def _publish_state(self) -> None:
+        await self._publish(self._state())
+
+    # ------------------------------------------------------------------ one robot per process
+    async def run(self, keyframes: Iterable[KeyframeInput], rate: float = math.inf,
+                  on_keyframe: Callable[[KeyframeInput], object] | None = None,
+                  tick_s: float = 0.005, linger: float = 2.0) -> None:
+        """Feed ``keyframes`` (paced at ``rate`` × their stamps; ``inf``: as fast as possible),
+        handle messages and timers, and return once the team's final optimisation is done
+        (then keep serving peers for ``linger`` s)."""
         assert self._sub is not None, "start() first"
-        async for msg in self._sub:
-            await self.send(self._handle(msg))
-            await asyncio.sleep(0)
-
-    async def close(self) -> None:
-        if self._sub is not None:
-            self._sub.close()
-        if self._serve is not None:
-            self._serve.close()
-
-    def checkpoint(self, path: str | Path) -> None:
-        """Write the agent's whole state (atomically)."""
-        path = Path(path)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        with tmp.open("wb") as fh:
-            pickle.dump({"version": CHECKPOINT_VERSION, "agent": self.agent}, fh, protocol=pickle.HIGHEST_PROTOCOL)
-        tmp.replace(path)
-
-    @staticmethod
-    def restore(path: str | Path) -> Agent:
-        """Read an agent written by :meth:`checkpoint`; a bad file raises KimeraMultiError."""
+        feeder = asyncio.create_task(self._feed(keyframes, rate, on_keyframe))
         try:
-            with Path(path).open("rb") as fh:
-                data = pickle.load(fh)
-        except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ValueError) as exc:
-            raise KimeraMultiError(f"{path}: unreadable checkpoint: {exc}") from None
-        if not isinstance(data, dict) or data.get("version") != CHECKPOINT_VERSION or not isinstance(
-                data.get("agent"), Agent):
-            raise KimeraMultiError(f"{path}: not a kimera-multi checkpoint of version {CHECKPOINT_VERSION}")
-        return data["agent"]
+            while not self.complete:
+                if feeder.done() and feeder.exception() is not None:
+                    raise feeder.exception()  # type: ignore[misc]
+                await self.drain()
+                await self.tick()
+                await asyncio.sleep(tick_s)
+            end = time.monotonic() + linger
+            while time.monotonic() < end:
+                await self.drain()
+                await self.tick()
+                await asyncio.sleep(tick_s)
+        except BusClosedError:
+            log.info("robot %d: bus closed", self.robot, extra={"robot": self.robot})
+        finally:
+            if not feeder.done():
+                feeder.cancel()
+
+    async def _feed(self, keyframes: Iterable[KeyframeInput], rate: float,
+                    on_keyframe: Callable[[KeyframeInput], object] | None) -> None:
+        t0: float | None = None
+        s0 = 0.0
+        for kf in keyframes:
+            if t0 is None:
+                t0, s0 = time.monotonic(), kf.stamp
+            if math.isfinite(rate):
+                wait = t0 + (kf.stamp - s0) / rate - time.monotonic()
+                if wait > 0:
+                    await asyncio.sleep(wait)
+            await self.process_keyframe(kf)
+            if on_keyframe is not None:
+                on_keyframe(kf)
+            await asyncio.sleep(0)
+        await self.finish_stream()

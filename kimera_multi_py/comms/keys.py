@@ -36,6 +36,8 @@ HEARTBEAT = "heartbeat"
 PING = "diag/ping"
 KEYFRAME = "keyframe"
 ODOMETRY = "server/odometry"
+PGO_EPOCH = "pgo/epoch"
+AGENT_STATE = "state"
 
 _TEAM_RE = re.compile(r"^[A-Za-z0-9_\-]{1,32}$")
 _ROBOT_RE = re.compile(r"^r(0|[1-9][0-9]{0,5})$")

@@ -200,6 +200,11 @@ class LoopbackNetwork:
         now = self.now()
         return not any(p.cuts(a, b, now) for p in self._partitions)
 
+    @property
+    def in_flight(self) -> int:
+        """Deliveries scheduled and not yet done."""
+        return self._flight.count
+
     async def settle(self, timeout: float = 10.0) -> None:
         """Wait until no delayed delivery or query is in flight."""
         try:

@@ -668,6 +668,38 @@ class KeyframeOdometry(Message):
     odometry: np.ndarray = arr("float64", "n", 4, 4)
 
 
+@message("PgoEpoch", keys.PGO_EPOCH)
+class PgoEpoch(Message):
+    """The PGO leader opens optimisation epoch ``epoch`` for ``members`` (the robots alive now).
+
+    ``pairs`` is the leader's robot graph (robot pairs joined by accepted inter-robot closures),
+    so every member colours the same graph; ``final`` marks the epoch after every stream ended.
+    The rounds of an epoch's PGO messages are ``epoch * EPOCH_ROUNDS + round``.
+    """
+
+    robot: int = robot_id()
+    epoch: int = count()
+    members: np.ndarray = arr("int64", "m", lo=0, hi=MAX_ROBOT_ID)
+    pairs: np.ndarray = arr("int64", "p", 2, lo=0, hi=MAX_ROBOT_ID)
+    final: bool = _f(Bool())
+
+
+@message("AgentState", keys.AGENT_STATE)
+class AgentState(Message):
+    """A node's progress, published on a period: keyframes, latest stamp, whether its stream
+    ended, and the last PGO epoch it completed."""
+
+    robot: int = robot_id()
+    keyframes: int = count()
+    stamp: float = _f(Float())
+    finished: bool = _f(Bool())
+    epoch: int = count()
+    complete: bool = _f(Bool())
+    closures: int = count()  # inter-robot closures this robot holds
+    rounds: int = count()  # PGO rounds it ran
+    bytes_sent: int = count()
+
+
 def message_type(name: str) -> type[Message]:
     """The message class registered under ``name``; raise :class:`MessageError` if unknown."""
     try:

@@ -9,19 +9,24 @@ robot's raw sensor data, and a robot that never connects simply keeps its odomet
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.bus import Bus
-from kimera_multi_py.comms.messages import KeyframeOdometry, LoopClosures, Message, PublicPoses
+from kimera_multi_py.comms.bus import Bus, Subscription
+from kimera_multi_py.comms.messages import AgentState, KeyframeOdometry, LoopClosures, Message, PgoEpoch, PublicPoses
 from kimera_multi_py.consensus.server import solve_centralized
+from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.io.pose_graph import PoseGraph, robot_key, split_key
 
 log = logging.getLogger(__name__)
+
+SERVER_ID = 999  # the centralised server's id on the bus (agents are 0..25)
 
 
 @dataclass
@@ -39,11 +44,11 @@ class ServerStats:
 class Server:
     """Joint-graph GNC over what the agents stream (see the module docstring)."""
 
-    def __init__(self, server_id: int, team: tuple[int, ...], closure_sigmas: tuple[float, float],
+    def __init__(self, server_id: int, team: tuple[int, ...] | None, closure_sigmas: tuple[float, float],
                  odom_sigmas: tuple[float, float]) -> None:
         self.id = server_id
-        self.team = tuple(team)
-        self.odometry: dict[int, list[np.ndarray]] = {r: [] for r in self.team}
+        self.team = tuple(team) if team is not None else None  # None: whoever streams to it
+        self.odometry: dict[int, list[np.ndarray]] = {r: [] for r in self.team or ()}
         self.closures: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.closure_info = np.diag(np.repeat(1.0 / np.square(closure_sigmas), 3))
         self.odom_info = np.diag(np.repeat(1.0 / np.square(odom_sigmas), 3))
@@ -63,7 +68,7 @@ class Server:
 
     # ---- the joint graph ------------------------------------------------------------------
     def graph(self) -> tuple[PoseGraph, list[tuple[int, int, int, int]]]:
-        robots = [r for r in self.team if self.odometry.get(r)]
+        robots = [r for r in (self.team or sorted(self.odometry)) if self.odometry.get(r)]
         offset, n = {}, 0
         for r in robots:
             offset[r] = n
@@ -126,12 +131,32 @@ class Server:
 
 
 class ServerNode:
-    """The Server on a Bus: absorbs the team's topics, publishes solutions on request."""
+    """The Server on a Bus, on its own clock: it absorbs the team's topics, solves every
+    ``period`` seconds of team time and once more (``final``) when every robot it knows has ended
+    its stream; after the final solve it publishes a final :class:`PgoEpoch` so the agents know
+    the run is over."""
 
-    def __init__(self, server: Server, bus: Bus) -> None:
+    def __init__(self, server: Server, bus: Bus, schedule: ScheduleParams | None = None,
+                 clock: Callable[[], float] | None = None) -> None:
         self.server = server
         self.bus = bus
-        self._sub = None
+        self.schedule = schedule or ScheduleParams()
+        self.clock = clock or self._stream_time
+        self.states: dict[int, AgentState] = {}
+        self.complete = False
+        self._sub: Subscription | None = None
+        self._solved_at = 0.0
+        self._absent_since: dict[int, float] = {}
+        self._finished_since: float | None = None
+        self._final_keyframes: dict[int, int] = {}
+        self._final: PgoEpoch | None = None
+
+    @property
+    def robot(self) -> int:
+        return self.server.id
+
+    def _stream_time(self) -> float:
+        return max((s.stamp for s in self.states.values()), default=0.0)
 
     async def start(self) -> None:
         await self.bus.announce()
@@ -141,18 +166,79 @@ class ServerNode:
         assert self._sub is not None, "start() first"
         n = 0
         while (msg := self._sub.try_recv()) is not None:
+            n += 1
+            if msg.robot == self.robot:
+                continue
+            if isinstance(msg, AgentState):
+                self.states[msg.robot] = msg
+                continue
             try:
                 self.server.handle(msg)
             except ValueError as exc:
                 self.server.stats.refused += 1
                 log.warning("server refused %s from robot %d: %s", type(msg).__name__, msg.robot, exc)
-            n += 1
         return n
+
+    async def tick(self, wall: float | None = None, force: bool = False) -> int:
+        """Solve on the period, and the final solve when every stream is over."""
+        now = self.clock()
+        wall = time.monotonic() if wall is None else wall
+        if self._all_finished(wall):
+            counts = {r: s.keyframes for r, s in self.states.items()}
+            if counts == self._final_keyframes:
+                return 0
+            self._final_keyframes = counts
+            await self.optimise()
+            self._final = PgoEpoch(robot=self.robot, epoch=self.server.round,
+                                   members=np.array(sorted(self.states), dtype=np.int64),
+                                   pairs=np.zeros((0, 2), np.int64), final=True)
+            await self.bus.publish(self.bus.key(PgoEpoch.TOPIC), self._final)
+            self.complete = True
+            return 1
+        if now - self._solved_at >= self.schedule.period and self.server.odometry:
+            self._solved_at = now
+            await self.optimise()
+            return 1
+        return 0
+
+    def blocked(self) -> bool:
+        return False
+
+    def _all_finished(self, wall: float) -> bool:
+        alive = {r for r in self.bus.peers() if r != self.robot}
+        for r in self.states:
+            if r in alive:
+                self._absent_since.pop(r, None)
+            else:
+                self._absent_since.setdefault(r, wall)
+        waiting = [r for r, st in self.states.items() if not st.finished
+                   and (r in alive or wall - self._absent_since.get(r, wall) < self.schedule.absent_timeout)]
+        waiting += [r for r in alive if r not in self.states]
+        if waiting or not self.states:
+            self._finished_since = None
+            return False
+        if self._finished_since is None:
+            self._finished_since = wall
+        return wall - self._finished_since >= self.schedule.final_grace
 
     async def optimise(self) -> None:
         await self.drain()
         for msg in self.server.optimise():
             await self.bus.publish(self.bus.key(msg.TOPIC), msg)
+
+    async def run(self, tick_s: float = 0.005, linger: float = 30.0) -> None:
+        """Serve until the final solve is published, then repeat its announcement until every
+        agent reports it complete (at most ``linger`` s): a lost announcement must not strand one."""
+        while not self.complete:
+            await self.drain()
+            await self.tick()
+            await asyncio.sleep(tick_s)
+        end = time.monotonic() + linger
+        while time.monotonic() < end and not all(s.complete for s in self.states.values()):
+            await self.drain()
+            if self._final is not None:
+                await self.bus.publish(self.bus.key(PgoEpoch.TOPIC), self._final)
+            await asyncio.sleep(0.5)
 
     async def close(self) -> None:
         if self._sub is not None:

@@ -1,48 +1,54 @@
-"""SimRunner: runs a team through a scenario in one process and evaluates it against truth.
+"""SimRunner: feeds a team of robot nodes from the simulator and evaluates them against truth.
 
-``run()`` reads as its stages: spawn the per-robot estimators, stream every keyframe through
-them, evaluate against ground truth, write the outputs. Modes:
+``run()`` reads as its stages: spawn the robots, stream every keyframe to them, evaluate against
+ground truth, write the outputs. The runner is only a sensor feed, a clock and an evaluator:
+every robot is an :class:`AgentNode` that runs its own loop closures, distributed PGO (opened
+and closed by the team's leader) and outputs, exactly as in ``kimera-multi agent``. Modes:
 
 * ``odometry`` -- dead reckoning: each robot chains its noisy keyframe odometry from identity.
   For the team figure each robot's odometry frame is anchored at its true start pose (the
   frames are otherwise unknown without inter-robot loop closures), then one SE(3) alignment
   over all robots is applied.
-* ``distributed`` -- one :class:`Agent` per robot, each wrapped in an :class:`AgentNode` on its
-  own bus (in-process loopback, or one Zenoh session per robot): maps, objects, inter-robot
-  loop closures (descriptors, queries, verification, PCM) and distributed PGO every
-  ``pgo_period`` seconds of simulated time and at the end. Estimates end in the team frame
-  (robot 0's), which one SE(3) alignment places in the world for evaluation.
-* ``centralized`` -- the same agents and nodes plus a :class:`ServerNode` (id N) on its own
-  bus: agents stream keyframe odometry and their accepted loop closures; the server runs gtsam
-  GNC on the joint graph on the same schedule and publishes corrected poses back.
+* ``distributed`` -- one node per robot, each on its own bus (in-process loopback, or one Zenoh
+  session per robot). Estimates end in the team frame (robot 0's), which one SE(3) alignment
+  places in the world for evaluation.
+* ``centralized`` -- the same nodes plus a :class:`ServerNode` on its own bus: agents stream
+  keyframe odometry and their accepted loop closures; the server runs gtsam GNC on the joint
+  graph on its own schedule and publishes corrected poses back.
+
+The clock is simulated: keyframes arrive in stamp order, and after each one the nodes run until
+the network is quiet. Over loopback a PGO round's wait ends when nothing more can arrive, so a
+seed always gives the same results, whatever the machine's load.
 """
 
 from __future__ import annotations
 
 import asyncio
+import heapq
 import json
+import math
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from kimera_multi_py.agent.agent import Agent, AgentParams, KeyframeInput
-from kimera_multi_py.agent.node import AgentNode
+from kimera_multi_py.agent.node import AgentNode, NodeParams
+from kimera_multi_py.agent.outputs import RobotOutcome, outcome_of, own_graph, write_outcome
 from kimera_multi_py.agent.team_graph import joint_graph
 from kimera_multi_py.comms.bus import Bus
-from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams
-from kimera_multi_py.consensus.runner import run_team
-from kimera_multi_py.consensus.server_node import Server, ServerNode
+from kimera_multi_py.consensus.pgo import PgoParams
+from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
+from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.consensus.workflow import open_buses
 from kimera_multi_py.errors import ConfigError
-from kimera_multi_py.eval.metrics import align_se3, ate_rmse
-from kimera_multi_py.eval.results import Results, RobotResult
-from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures, world_boxes
+from kimera_multi_py.eval.results import Results
+from kimera_multi_py.eval.slam import score_closures
+from kimera_multi_py.eval.team import team_results, trajectory_results
 from kimera_multi_py.geometry import transform_points
 from kimera_multi_py.io.g2o import write_g2o
-from kimera_multi_py.io.pose_graph import split_key
 from kimera_multi_py.io.tum import write_tum
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
@@ -75,6 +81,16 @@ def keyframe_input(kf: Keyframe) -> KeyframeInput:
                          kf.scan.max_range)
 
 
+class _SimClock:
+    """The simulated clock the nodes read (seconds of scenario time)."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def now(self) -> float:
+        return self.t
+
+
 class SimRunner:
     """Runs one scenario for one seed and mode; returns :class:`Results`."""
 
@@ -82,7 +98,7 @@ class SimRunner:
                  out_dir: str | Path | None = None, viz: Viz | None = None,
                  on_progress: Progress | None = None, transport: str = "loopback",
                  pgo_period: float = 60.0, params: AgentParams | None = None,
-                 pgo_params: PgoParams | None = None) -> None:
+                 pgo_params: PgoParams | None = None, join: dict[int, float] | None = None) -> None:
         if mode not in MODES:
             raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
         if transport not in TRANSPORTS:
@@ -90,21 +106,29 @@ class SimRunner:
         self.cfg = cfg
         self.mode = mode
         self.transport = transport
-        self.pgo_period = pgo_period
         self.sim = Simulation(cfg, seed)
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.viz: Viz = viz or NullViz()
         self.on_progress = on_progress
-        o = cfg.odometry
-        odom_sigmas = (max(np.deg2rad(o.rot_sigma_deg), 1e-4), max(o.trans_sigma, 1e-3))
-        self.params = params or AgentParams(odom_sigmas=odom_sigmas, keyframe_distance=cfg.keyframes.distance)
-        self.pgo_params = pgo_params or PgoParams(robust=True, max_rounds=300)
+        self.params = params or agent_params(cfg)
+        self.pgo_params = pgo_params or PgoParams(robust=True, max_rounds=600)
+        # over Zenoh a round waits on the wall clock; over loopback until the network is quiet
+        self.schedule = ScheduleParams(period=pgo_period, round_timeout=0.5 if transport == "zenoh" else None)
+        self.clock = _SimClock()
+        # robot -> seconds after the others that it joins (its whole stream is shifted by that)
+        self.join = {int(r): float(t) for r, t in (join or {}).items()}
+        for r, t in self.join.items():
+            if not 0 <= r < self.sim.num_robots or not (math.isfinite(t) and t >= 0):
+                raise ConfigError("join", f"robot {r} at {t} s: needs a robot of the team and a time >= 0")
         self.tracks: list[_Track] = []
-        self.agents: list[Agent] = []
-        self.bytes: dict[str, object] = {}
-        self.refused: dict[int, dict[str, int]] = {}
-        self.pgo_runs = 0
+        self.nodes: list[AgentNode] = []
+        self.server: ServerNode | None = None
+        self.outcomes: list[RobotOutcome] = []
         self.rays = 0
+
+    @property
+    def agents(self) -> list[Agent]:
+        return [n.agent for n in self.nodes]
 
     @property
     def total_keyframes(self) -> int:
@@ -123,13 +147,6 @@ class SimRunner:
 
     def _spawn_agents(self) -> None:
         self.tracks = [_Track() for _ in range(self.sim.num_robots)]
-        team = tuple(range(self.sim.num_robots))
-        if self.mode == "centralized":
-            from dataclasses import replace
-
-            self.params = replace(self.params, server=len(team))
-        if self.mode != "odometry":
-            self.agents = [Agent(r, team, self.params) for r in team]
         self.viz.log_world(self.sim.world)
 
     def _step(self, done: int, kf: Keyframe, est: np.ndarray) -> None:
@@ -145,207 +162,166 @@ class SimRunner:
 
     async def _run_team(self) -> None:
         robots = list(range(self.sim.num_robots))
-        ids = robots + ([len(robots)] if self.mode == "centralized" else [])
+        central = self.mode == "centralized"
+        ids = robots + ([SERVER_ID] if central else [])
+        params = replace(self.params, server=SERVER_ID) if central else self.params
         async with open_buses(ids, self.transport, team="sim", seed=self.sim.seed) as buses:
-            agent_nodes = [AgentNode(a, b) for a, b in zip(self.agents, buses, strict=False)]
-            nodes: list[AgentNode | ServerNode] = list(agent_nodes)
-            if self.mode == "centralized":
-                self.server = ServerNode(Server(len(robots), tuple(robots), self.params.closure_sigmas,
-                                                self.params.odom_sigmas), buses[-1])
+            self.nodes = [AgentNode(Agent(r, None, params), buses[r], self.pgo_params, self.schedule,
+                                    NodeParams(server=params.server), clock=self.clock.now) for r in robots]
+            nodes: list[AgentNode | ServerNode] = list(self.nodes)
+            if central:
+                self.server = ServerNode(Server(SERVER_ID, None, self.params.closure_sigmas, self.params.odom_sigmas),
+                                         buses[-1], self.schedule, clock=self.clock.now)
                 nodes.append(self.server)
             for node in nodes:
-                await node.start()
-            next_pgo = self.pgo_period
-            for done, kf in enumerate(self.sim.stream(), 1):
-                node = agent_nodes[kf.robot]
+                if node.robot not in self.join:
+                    await node.start()
+            epochs = 0
+            for done, kf in enumerate(self._stream(), 1):
+                self.clock.t = kf.stamp
+                node = self.nodes[kf.robot]
+                if kf.index == 0 and kf.robot in self.join:
+                    await node.start()
                 await node.process_keyframe(keyframe_input(kf))
-                await _drain(nodes)
+                await self._settle(nodes, buses)
                 self.tracks[kf.robot].add(kf)
                 self._step(done, kf, node.agent.poses[-1])
-                if kf.stamp >= next_pgo:
-                    await self._optimise(buses, nodes)
+                if self._epochs() > epochs:
+                    epochs = self._epochs()
                     self._log_team(kf.stamp)
-                    next_pgo += self.pgo_period
-            await _drain(nodes)
-            await self._optimise(buses, nodes)
+            for node in self.nodes:
+                await node.finish_stream()
+            while not all(n.complete for n in nodes):
+                if not await self._settle(nodes, buses):
+                    raise RuntimeError("the team stopped before its final optimisation")  # a bug, not bad input
             self._log_team()
-            per_robot: dict[str, int] = {}
-            per_topic: dict[str, int] = {}
-            for b in buses:
-                snap = b.counters.snapshot()["sent"]
-                per_robot[str(b.robot)] = int(sum(v["bytes"] for v in snap.values()))
-                for topic, v in snap.items():
-                    per_topic[topic] = per_topic.get(topic, 0) + int(v["bytes"])
-            self.bytes = {"per_robot": per_robot, "per_topic": per_topic, "total": sum(per_robot.values())}
-            self.refused = {n.robot: dict(n.errors) for n in nodes if isinstance(n, AgentNode)}
+            weights = self.server.server.stats.weights if self.server is not None else None
+            self.outcomes = [outcome_of(n, weights) for n in self.nodes]
             for node in nodes:
                 await node.close()
         self.viz.close()
 
-    async def _optimise(self, buses: list[Bus], nodes: list[AgentNode | ServerNode]) -> None:
-        """Distributed PGO over the agents' graphs, or the server's GNC; the agents adopt the result."""
-        if self.mode == "centralized":
-            await self.server.optimise()
-            await _drain(nodes)
-        else:
-            pgo = [PgoAgent(a.local_graph(), self.pgo_params) for a in self.agents]
-            await run_team(pgo, buses, self.pgo_params.max_rounds)
-            for agent, p in zip(self.agents, pgo, strict=True):
-                agent.apply_poses(p.final_poses())
-            self.pgo = pgo
-        self.pgo_runs += 1
+    def _stream(self) -> Iterator[Keyframe]:
+        """Every robot's keyframes in time order, a late joiner's shifted by its delay."""
+        if not self.join:
+            return self.sim.stream()
+
+        def shifted(r: int) -> Iterator[Keyframe]:
+            dt = self.join.get(r, 0.0)
+            for kf in self.sim.keyframes(r):
+                yield replace(kf, stamp=kf.stamp + dt)
+
+        return heapq.merge(*(shifted(r) for r in range(self.sim.num_robots)), key=lambda kf: (kf.stamp, kf.robot))
+
+    def _epochs(self) -> int:
+        if self.server is not None:
+            return self.server.server.stats.solves
+        return max((n.pgo.stats.epochs for n in self.nodes if n.pgo is not None), default=0)
+
+    async def _settle(self, nodes: list[AgentNode | ServerNode], buses: list[Bus]) -> bool:
+        """Run the nodes until the team is quiet: no message queued or in flight, no timer due.
+
+        Over loopback a PGO round still waiting then can never get its status, so its wait
+        ends (the deterministic equivalent of a timeout). Returns whether anything happened.
+        """
+        net = getattr(buses[0], "network", None)
+        wall = self.clock.now if net is not None else time.monotonic
+        progressed = False
+        while True:
+            handled = 0
+            for node in nodes:
+                handled += await node.drain()
+            for node in nodes:
+                handled += await node.tick(wall())
+            if handled:
+                progressed = True
+                continue
+            await asyncio.sleep(0)
+            if net is not None and net.in_flight:
+                await net.settle()
+                continue
+            if any(n._sub is not None and n._sub.pending() for n in nodes):
+                continue
+            blocked = [n for n in nodes if n.blocked()]
+            if not blocked:
+                return progressed
+            if net is None:  # Zenoh: wait for messages or the round timeout
+                await asyncio.sleep(0.001)
+                continue
+            for node in blocked:
+                await node.tick(wall(), force=True)
+            progressed = True
 
     def _log_team(self, stamp: float | None = None) -> None:
         """Send the team's current estimate to the visualiser, placed in the world by the true start
         of robot 0 (the team frame is robot 0's odometry frame)."""
         if isinstance(self.viz, NullViz):
             return
+        agents = self.agents
         T = self.tracks[0].true[0] if self.tracks[0].true else np.eye(4)
         trajs = [transform_points(T, np.array(a.poses)[:, :3, 3]) if a.poses else np.zeros((0, 3))
-                 for a in self.agents]
+                 for a in agents]
         closures = []
-        for a in self.agents:
+        for a in agents:
             for peer, group in a.closures.items():
                 for c in group:
-                    if c.own_kf < len(a.poses) and c.peer_kf < len(self.agents[peer].poses):
+                    if c.own_kf < len(a.poses) and c.peer_kf < len(agents[peer].poses):
                         closures.append((transform_points(T, a.poses[c.own_kf][None, :3, 3])[0],
-                                         transform_points(T, self.agents[peer].poses[c.peer_kf][None, :3, 3])[0],
+                                         transform_points(T, agents[peer].poses[c.peer_kf][None, :3, 3])[0],
                                          c.accepted))
         voxels = []
-        for a in self.agents:
+        for a in agents:
             lv, occ = a.map.octree.leaves(), a.map.octree.occupied_leaves()
             voxels.append((transform_points(T, lv.centers[occ]), np.argmax(lv.logodds[occ], axis=1)))
-        lms = [lm for a in self.agents for lm in a.objects.confirmed()]
+        lms = [lm for a in agents for lm in a.objects.confirmed()]
         objects = (transform_points(T, np.array([lm.position for lm in lms]).reshape(-1, 3)),
                    np.array([lm.box()[1] for lm in lms]).reshape(-1, 3), np.array([lm.label for lm in lms], dtype=int))
         self.viz.log_team(stamp if stamp is not None else self.sim.duration, trajs, closures, voxels, objects)
 
     def _evaluate(self, wall_s: float) -> Results:
-        robots, team_est, team_true = [], [], []
-        for i, tr in enumerate(self.tracks):
-            true = np.array(tr.true)
-            est = np.array(self.agents[i].poses) if self.agents else np.array(tr.est)
-            length = float(np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1).sum())
-            robots.append(RobotResult(i, len(true), length, ate_rmse(est[:, :3, 3], true[:, :3, 3])))
-            # odometry: each robot's own frame anchored at its true start; otherwise the team frame
-            team_est.append((true[0] @ est if not self.agents else est)[:, :3, 3])
-            team_true.append(true[:, :3, 3])
-        est_all, true_all = np.concatenate(team_est), np.concatenate(team_true)
-        team = {
-            "ate_rmse_m": ate_rmse(est_all, true_all),
-            "keyframes": int(sum(r.keyframes for r in robots)),
-            "trajectory_length_m": float(sum(r.trajectory_length_m for r in robots)),
-            "frames": ("each robot's odometry anchored at its true start pose" if not self.agents
-                       else "the team frame (robot 0's), one SE(3) alignment to the world"),
-        }
-        extra: dict[str, object] = {"rays": self.rays, "rays_per_s": self.rays / wall_s if wall_s > 0 else 0.0}
-        if self.agents:
-            extra.update(self._evaluate_team(align_se3(est_all, true_all)))
-        return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
-                       sim_seconds=self.sim.duration, wall_s=wall_s, extra=extra)
-
-    def _evaluate_team(self, T_world_team: np.ndarray) -> dict[str, object]:
-        """Maps, objects, loop closures and traffic of a team run (agents' estimates in the team frame)."""
-        world = self.sim.world
-        for a in self.agents:
-            a.objects.merge_fragments(a.map.octree)
-        grid = world.gt_voxel_grid(self.agents[0].map.resolution)
-        centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
-        maps = {str(a.robot): map_quality(a.map.octree, T_world_team, centers, gt) for a in self.agents}
-        lms = [lm for a in self.agents for lm in a.objects.confirmed()
-               if lm.num_observations >= self.params.team_object_sightings]
-        boxes = [lm.aabb() for lm in lms]
-        lo, hi = world_boxes(T_world_team, np.array([b[0] for b in boxes]).reshape(-1, 3),
-                             np.array([b[1] for b in boxes]).reshape(-1, 3))
-        cls, lo, hi = merge_objects(np.array([lm.label for lm in lms], dtype=int), lo, hi)
-        objects = object_quality(cls, (lo + hi) / 2, np.array([o.label for o in world.objects]),
-                                 np.array([o.centroid for o in world.objects]))
-        objects["landmarks"] = len(lms)
-        closures = self._closure_stats()
-        return {"map": maps, "objects": objects, "loop_closures": closures, "bytes_sent": self.bytes,
-                "pgo_runs": self.pgo_runs, "refused_messages": self.refused,
-                "transport": self.transport}
-
-    def _backend_weights(self) -> dict[tuple[int, int, int, int], float]:
-        """Final back-end (GNC) weight of each inter-robot edge, keyed ``(a, kf_a, b, kf_b)``."""
-        if self.mode == "centralized":
-            return dict(self.server.server.stats.weights)
-        out: dict[tuple[int, int, int, int], float] = {}
-        for a, p in zip(self.agents, getattr(self, "pgo", []), strict=False):
-            lg = p.local
-            for e in range(len(lg.inter_own)):
-                peer_kf = split_key(lg.inter_peer_key[e])[1]
-                out[(a.robot, int(lg.inter_own[e]), int(lg.inter_peer[e]), peer_kf)] = float(p.inter_weights[e])
-            for e_ in np.flatnonzero(~lg.intra_odometry).tolist():
-                out[(a.robot, int(lg.intra_i[e_]), a.robot, int(lg.intra_j[e_]))] = float(p.intra_weights[e_])
-        return out
-
-    def _closure_stats(self) -> dict[str, int]:
-        """Loop closures through the pipeline, scored against the true poses.
-
-        ``candidates`` were fetched and verified; ``verified`` passed geometry; PCM then kept a
-        consistent set and the back end's GNC weights decided the rest (weight < 0.5 = rejected).
-        """
         truth = [np.array(tr.true) for tr in self.tracks]
-        weights = self._backend_weights()
-        rows = []  # (inter, pcm accepted, gnc accepted, true)
-        for a in self.agents:
-            for peer, group in a.closures.items():
-                if not group:
-                    continue
-                ok = score_closures(np.stack([c.Z for c in group]), truth[a.robot][[c.own_kf for c in group]],
-                                    truth[peer][[c.peer_kf for c in group]])
-                for c, true in zip(group, ok, strict=True):
-                    w = weights.get((a.robot, c.own_kf, peer, c.peer_kf), 0.0)
-                    rows.append((peer != a.robot, c.accepted, c.accepted and w >= 0.5, bool(true)))
-        r = np.array(rows, dtype=bool).reshape(-1, 4)
-        inter, pcm_ok, final, true = r.T
-        stats = [a.stats for a in self.agents]
-        return {
-            "candidates": sum(s.candidates for s in stats),
-            "verified": sum(s.verified for s in stats),
-            "rejected_verification": sum(s.rejected_verification for s in stats),
-            "verified_true_inter": int((inter & true).sum()),
-            "verified_false_inter": int((inter & ~true).sum()),
-            "rejected_pcm_true_inter": int((inter & ~pcm_ok & true).sum()),
-            "rejected_pcm_false_inter": int((inter & ~pcm_ok & ~true).sum()),
-            "rejected_gnc_true_inter": int((inter & pcm_ok & ~final & true).sum()),
-            "rejected_gnc_false_inter": int((inter & pcm_ok & ~final & ~true).sum()),
-            "accepted_inter": int((inter & final).sum()),
-            "true_accepted_inter": int((inter & final & true).sum()),
-            "false_accepted_inter": int((inter & final & ~true).sum()),
-            "accepted_intra": int((~inter & final).sum()),
-            "false_accepted_intra": int((~inter & final & ~true).sum()),
-        }
+        team_mode = bool(self.outcomes)
+        est = [o.poses for o in self.outcomes] if team_mode else [np.array(tr.est) for tr in self.tracks]
+        robots, team, T_world_team = trajectory_results(truth, est, anchored=not team_mode)
+        extra: dict[str, object] = {"rays": self.rays, "rays_per_s": self.rays / wall_s if wall_s > 0 else 0.0}
+        if team_mode:
+            extra.update(team_results(self.sim.world, truth, self.outcomes, T_world_team,
+                                      self.params.team_object_sightings))
+            extra["pgo_runs"] = self._epochs()
+            extra["transport"] = self.transport
+        return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
+                       sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
 
     def _write_results(self, results: Results) -> None:
         if self.out_dir is None:
             return
         self.out_dir.mkdir(parents=True, exist_ok=True)
         for i, tr in enumerate(self.tracks):
-            est = np.array(self.agents[i].poses) if self.agents else np.array(tr.est)
+            est = self.outcomes[i].poses if self.outcomes else np.array(tr.est)
             write_tum(self.out_dir / f"robot{i}_est.tum", np.array(tr.stamps), est)
             write_tum(self.out_dir / f"robot{i}_gt.tum", np.array(tr.stamps), np.array(tr.true))
-        if self.agents:  # the team's joint graph, for `kimera-multi pgo` and offline study
-            graph, inter = joint_graph(self.agents)
-            write_g2o(self.out_dir / "team_graph.g2o", graph)
-            truth = [np.array(tr.true) for tr in self.tracks]
-            Z = np.array([self.agents[a].inter_edges[(ka, b, kb)][0] for a, ka, b, kb in inter]).reshape(-1, 4, 4)
-            ok = score_closures(Z, np.array([truth[a][ka] for a, ka, _, _ in inter]).reshape(-1, 4, 4),
-                                np.array([truth[b][kb] for _, _, b, kb in inter]).reshape(-1, 4, 4))
-            (self.out_dir / "team_graph_truth.json").write_text(json.dumps(
-                {"inter_robot_edges": [list(e) for e in inter], "true": ok.tolist(),
-                 "note": "inter-robot edges follow the odometry and intra-robot edges in team_graph.g2o"}))
+        for node, outcome in zip(self.nodes, self.outcomes, strict=True):
+            write_outcome(self.out_dir, outcome, own_graph(node.agent))
+        if self.nodes:  # the team's joint graph, for `kimera-multi pgo` and offline study
+            write_team_graph(self.out_dir, self.agents, [np.array(tr.true) for tr in self.tracks])
         results.write_json(self.out_dir / "results.json")
 
 
-async def _drain(nodes: list[AgentNode | ServerNode]) -> None:
-    """Let every node handle its queued messages until the team is quiet."""
-    while True:
-        handled = 0
-        for node in nodes:
-            handled += await node.drain()
-        if not handled:
-            await asyncio.sleep(0)
-            if not any(n._sub is not None and n._sub.pending() for n in nodes):
-                return
+def agent_params(cfg: ScenarioConfig) -> AgentParams:
+    """The agents' parameters for a scenario (the odometry noise model comes from its sensor)."""
+    o = cfg.odometry
+    odom_sigmas = (max(float(np.deg2rad(o.rot_sigma_deg)), 1e-4), max(o.trans_sigma, 1e-3))
+    return AgentParams(odom_sigmas=odom_sigmas, keyframe_distance=cfg.keyframes.distance)
+
+
+def write_team_graph(out_dir: Path, agents: list[Agent], truth: list[np.ndarray]) -> None:
+    """``team_graph.g2o`` (the joint graph) and ``team_graph_truth.json`` (which inter-robot
+    edges are true)."""
+    graph, inter = joint_graph(agents)
+    write_g2o(out_dir / "team_graph.g2o", graph)
+    Z = np.array([agents[a].inter_edges[(ka, b, kb)][0] for a, ka, b, kb in inter]).reshape(-1, 4, 4)
+    ok = score_closures(Z, np.array([truth[a][ka] for a, ka, _, _ in inter]).reshape(-1, 4, 4),
+                        np.array([truth[b][kb] for _, _, b, kb in inter]).reshape(-1, 4, 4))
+    (out_dir / "team_graph_truth.json").write_text(json.dumps(
+        {"inter_robot_edges": [list(e) for e in inter], "true": ok.tolist(),
+         "note": "inter-robot edges follow the odometry and intra-robot edges in team_graph.g2o"}))

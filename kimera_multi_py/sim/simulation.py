@@ -156,12 +156,18 @@ class Simulation:
 
     def keyframes(self, robot: int) -> Iterator[Keyframe]:
         """Robot ``robot``'s keyframes in order."""
-        plan = self.plans[robot]
         rng = self.rng(robot)
-        for k, (stamp, pose) in enumerate(zip(plan.stamps, plan.poses, strict=True)):
-            odom = np.eye(4) if k == 0 else self.odometry.measure(relative(plan.poses[k - 1], pose), rng)
-            scan, truth = self.sensor.measure(self.world, pose, rng, self.humans_at(float(stamp)))
-            yield Keyframe(robot, k, float(stamp), odom, scan, pose, truth)
+        for k in range(len(self.plans[robot].stamps)):
+            yield self.keyframe(robot, k, rng)
+
+    def keyframe(self, robot: int, k: int, rng: np.random.Generator) -> Keyframe:
+        """Keyframe ``k`` of ``robot``, drawing its noise from ``rng``: the robot's generator
+        (:meth:`rng`) after keyframes ``0..k-1`` were drawn from it."""
+        plan = self.plans[robot]
+        stamp, pose = plan.stamps[k], plan.poses[k]
+        odom = np.eye(4) if k == 0 else self.odometry.measure(relative(plan.poses[k - 1], pose), rng)
+        scan, truth = self.sensor.measure(self.world, pose, rng, self.humans_at(float(stamp)))
+        return Keyframe(robot, k, float(stamp), odom, scan, pose, truth)
 
     def stream(self) -> Iterator[Keyframe]:
         """All robots' keyframes merged by time (ties by robot id)."""

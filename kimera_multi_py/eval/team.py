@@ -1,0 +1,107 @@
+"""Scoring a team run against the simulator's ground truth, from the robots' outcomes.
+
+The same function scores a single-process simulation (outcomes taken from live nodes) and a
+launch of N agent processes (outcomes read back from ``DIR/robotI/``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from kimera_multi_py.agent.outputs import RobotOutcome
+from kimera_multi_py.eval.metrics import align_se3, ate_rmse
+from kimera_multi_py.eval.results import RobotResult
+from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures, world_boxes
+
+
+def trajectory_results(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarray], anchored: bool
+                       ) -> tuple[list[RobotResult], dict[str, Any], np.ndarray]:
+    """Per-robot and team ATE. ``anchored``: each estimate is in its own odometry frame and is
+    anchored at the robot's true start (dead reckoning); otherwise all share the team frame.
+    Returns ``(robots, team, T_world_team)``."""
+    robots, team_est, team_true = [], [], []
+    for i, (true, est) in enumerate(zip(truth, estimates, strict=True)):
+        if len(est) != len(true):
+            raise ValueError(f"robot {i}: {len(est)} estimated poses for {len(true)} true keyframes")
+        length = float(np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1).sum())
+        robots.append(RobotResult(i, len(true), length, ate_rmse(est[:, :3, 3], true[:, :3, 3])))
+        team_est.append((true[0] @ est if anchored else est)[:, :3, 3])
+        team_true.append(true[:, :3, 3])
+    est_all, true_all = np.concatenate(team_est), np.concatenate(team_true)
+    team = {
+        "ate_rmse_m": ate_rmse(est_all, true_all),
+        "keyframes": int(sum(r.keyframes for r in robots)),
+        "trajectory_length_m": float(sum(r.trajectory_length_m for r in robots)),
+        "frames": ("each robot's odometry anchored at its true start pose" if anchored
+                   else "the team frame (robot 0's), one SE(3) alignment to the world"),
+    }
+    return robots, team, align_se3(est_all, true_all)
+
+
+def team_results(world: Any, truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome],
+                 T_world_team: np.ndarray, min_sightings: int) -> dict[str, Any]:
+    """Maps, objects, loop closures and traffic of a team run."""
+    grid = world.gt_voxel_grid(outcomes[0].octree.resolution)
+    centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
+    maps = {str(o.robot): map_quality(o.octree, T_world_team, centers, gt) for o in outcomes}
+    objs = [ob for o in outcomes for ob in o.objects if ob["sightings"] >= min_sightings]
+    lo, hi = world_boxes(T_world_team, np.array([ob["lo"] for ob in objs]).reshape(-1, 3),
+                         np.array([ob["hi"] for ob in objs]).reshape(-1, 3))
+    cls, lo, hi = merge_objects(np.array([ob["class"] for ob in objs], dtype=int), lo, hi)
+    objects = object_quality(cls, (lo + hi) / 2, np.array([o.label for o in world.objects]),
+                             np.array([o.centroid for o in world.objects]))
+    objects["landmarks"] = len(objs)
+    return {"map": maps, "objects": objects, "loop_closures": closure_stats(truth, outcomes),
+            "bytes_sent": traffic_totals(outcomes),
+            "refused_messages": {o.robot: dict(o.traffic.get("refused", {})) for o in outcomes}}
+
+
+def closure_stats(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome]) -> dict[str, int]:
+    """Loop closures through the pipeline, scored against the true poses.
+
+    ``candidates`` were fetched and verified; ``verified`` passed geometry; PCM then kept a
+    consistent set and the back end's GNC weights decided the rest (weight < 0.5 = rejected).
+    """
+    rows = []  # (inter, pcm accepted, gnc accepted, true)
+    for o in outcomes:
+        if not o.closures:
+            continue
+        Z = np.stack([c.Z for c in o.closures])
+        ok = score_closures(Z, truth[o.robot][[c.own_kf for c in o.closures]],
+                            np.stack([truth[c.peer][c.peer_kf] for c in o.closures]))
+        for c, true in zip(o.closures, ok, strict=True):
+            w = c.weight if c.weight is not None else 0.0
+            rows.append((c.peer != o.robot, c.accepted, c.accepted and w >= 0.5, bool(true)))
+    r = np.array(rows, dtype=bool).reshape(-1, 4)
+    inter, pcm_ok, final, true = r.T
+    fe = [o.front_end for o in outcomes]
+    return {
+        "candidates": sum(s["candidates"] for s in fe),
+        "verified": sum(s["verified"] for s in fe),
+        "rejected_verification": sum(s["rejected_verification"] for s in fe),
+        "verified_true_inter": int((inter & true).sum()),
+        "verified_false_inter": int((inter & ~true).sum()),
+        "rejected_pcm_true_inter": int((inter & ~pcm_ok & true).sum()),
+        "rejected_pcm_false_inter": int((inter & ~pcm_ok & ~true).sum()),
+        "rejected_gnc_true_inter": int((inter & pcm_ok & ~final & true).sum()),
+        "rejected_gnc_false_inter": int((inter & pcm_ok & ~final & ~true).sum()),
+        "accepted_inter": int((inter & final).sum()),
+        "true_accepted_inter": int((inter & final & true).sum()),
+        "false_accepted_inter": int((inter & final & ~true).sum()),
+        "accepted_intra": int((~inter & final).sum()),
+        "false_accepted_intra": int((~inter & final & ~true).sum()),
+    }
+
+
+def traffic_totals(outcomes: Sequence[RobotOutcome]) -> dict[str, Any]:
+    per_robot: dict[str, int] = {}
+    per_topic: dict[str, int] = {}
+    for o in outcomes:
+        sent = o.traffic.get("counters", {}).get("sent", {})
+        per_robot[str(o.robot)] = int(sum(v["bytes"] for v in sent.values()))
+        for topic, v in sent.items():
+            per_topic[topic] = per_topic.get(topic, 0) + int(v["bytes"])
+    return {"per_robot": per_robot, "per_topic": per_topic, "total": sum(per_robot.values())}

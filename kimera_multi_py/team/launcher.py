@@ -1,0 +1,208 @@
+"""``kimera-multi launch``: a router, N agent processes (plus the server) on 127.0.0.1, a live
+table, optional kills with ``--resume`` restarts, and the evaluation of what they wrote.
+
+The launcher is not part of the system: it only starts OS processes that find each other
+through the router, watches their :class:`AgentState` messages (as a silent observer that never
+announces itself, so it is not a team member) and scores the outputs afterwards.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from kimera_multi_py.comms import keys, runtime
+from kimera_multi_py.comms.messages import AgentState
+from kimera_multi_py.consensus.zenoh_team import free_ports
+from kimera_multi_py.errors import ConfigError, KimeraMultiError
+from kimera_multi_py.eval.results import Results
+
+log = logging.getLogger(__name__)
+
+OBSERVER_ID = 998
+MODES = ("distributed", "centralized")
+
+
+@dataclass
+class Kill:
+    robot: int
+    at: float  # the robot's stream time (s)
+    done: bool = False
+
+
+def parse_kill(spec: str) -> Kill:
+    """``I@T``: SIGKILL agent I when its stream reaches T seconds."""
+    try:
+        robot, at = spec.split("@")
+        return Kill(int(robot), float(at))
+    except ValueError:
+        raise ConfigError("kill", f"expected I@T (robot@seconds), got {spec!r}") from None
+
+
+@dataclass
+class LaunchJob:
+    scenario: Path
+    robots: int
+    seed: int
+    mode: str
+    out_dir: Path
+    rate: float = math.inf
+    kills: list[Kill] = field(default_factory=list)
+    joins: dict[int, float] = field(default_factory=dict)  # robot -> team stream time it starts at
+    checkpoint_every: float = 5.0
+    pgo_period: float = 60.0
+    timeout: float = 1800.0
+    team: str = "t0"
+    verbose: bool = False
+
+
+@dataclass
+class RobotView:
+    """What the live table shows of one process."""
+
+    keyframes: int = 0
+    stamp: float = 0.0
+    epochs: int = 0
+    closures: int = 0
+    rounds: int = 0
+    bytes_sent: int = 0
+    alive: bool = False
+    finished: bool = False
+    restarts: int = 0
+    exit_code: int | None = None
+
+
+View = Callable[[dict[str, RobotView]], None]
+
+
+def launch(job: LaunchJob, on_update: View | None = None) -> Results:
+    """Run the team as processes and evaluate it (see the module docstring)."""
+    if job.mode not in MODES:
+        raise ConfigError("mode", f"unknown mode {job.mode!r} (available: {', '.join(MODES)})")
+    if job.robots < 1 or job.robots > 26:
+        raise ConfigError("robots", f"must be in 1..26, got {job.robots}")
+    for k in job.kills:
+        if not 0 <= k.robot < job.robots:
+            raise ConfigError("kill", f"robot {k.robot} is not in the team of {job.robots}")
+    for r in job.joins:
+        if not 0 <= r < job.robots or len(job.joins) >= job.robots:
+            raise ConfigError("join", f"robot {r}: needs a robot of the team, and someone to join")
+    from kimera_multi_py.sim.scenario import load_scenario
+
+    cfg = load_scenario(job.scenario, robots=job.robots)  # fail here, not in N processes
+    t0 = time.monotonic()
+    runtime.run(_launch(job, on_update))
+    from kimera_multi_py.team.evaluate import evaluate_run
+
+    results = evaluate_run(job.out_dir, cfg, job.seed, job.mode, time.monotonic() - t0)
+    results.write_json(job.out_dir / "results.json")
+    return results
+
+
+def _cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "kimera_multi_py.cli", *args]
+
+
+async def _launch(job: LaunchJob, on_update: View | None) -> None:
+    from kimera_multi_py.comms.zenoh_bus import ZenohBus
+
+    out = job.out_dir
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    port = free_ports(1)[0]
+    endpoint = f"tcp/127.0.0.1:{port}"
+    conn = ["--connect", endpoint, "--team", job.team] + (["-v"] if job.verbose else [])
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    logs: list[Any] = []
+
+    def start(name: str, args: list[str]) -> subprocess.Popen[bytes]:
+        fh = (out / "logs" / f"{name}.log").open("ab")
+        logs.append(fh)
+        return subprocess.Popen(_cmd(*args), stdout=fh, stderr=subprocess.STDOUT)
+
+    def agent_args(r: int, resume: bool) -> list[str]:
+        args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}",
+                "--out", str(out), "--rate", str(job.rate), "--checkpoint-every", str(job.checkpoint_every),
+                "--pgo-period", str(job.pgo_period), *conn]
+        if job.mode == "centralized":
+            args.append("--centralized")
+        return args + (["--resume"] if resume else [])
+
+    views = {f"robot{r}": RobotView() for r in range(job.robots)}
+    if job.mode == "centralized":
+        views["server"] = RobotView()
+    observer: ZenohBus | None = None
+    try:
+        procs["router"] = start("router", ["router", "--listen", endpoint])
+        await asyncio.sleep(0.5)
+        observer = ZenohBus(job.team, OBSERVER_ID, connect=[endpoint])
+        states = observer.subscribe(keys.topic_all(job.team, keys.AGENT_STATE))
+        if job.mode == "centralized":
+            procs["server"] = start("server", ["server", "--out", str(out), "--pgo-period", str(job.pgo_period),
+                                               *conn])
+        for r in range(job.robots):
+            if r not in job.joins:
+                procs[f"robot{r}"] = start(f"robot{r}", agent_args(r, False))
+        deadline = time.monotonic() + job.timeout
+        while True:
+            while (msg := states.try_recv()) is not None:
+                if isinstance(msg, AgentState) and msg.robot < job.robots:
+                    v = views[f"robot{msg.robot}"]
+                    v.keyframes, v.stamp, v.epochs, v.finished = msg.keyframes, msg.stamp, msg.epoch, msg.finished
+                    v.closures, v.rounds, v.bytes_sent = msg.closures, msg.rounds, msg.bytes_sent
+            team_time = max((v.stamp for v in views.values()), default=0.0)
+            for r, at in job.joins.items():
+                if f"robot{r}" not in procs and team_time >= at:
+                    log.warning("robot %d joins at team time %.1f s", r, team_time)
+                    procs[f"robot{r}"] = start(f"robot{r}", agent_args(r, False))
+            peers = observer.peers()
+            for r in range(job.robots):
+                views[f"robot{r}"].alive = r in peers
+            for k in job.kills:
+                p = procs.get(f"robot{k.robot}")
+                if p is not None and not k.done and views[f"robot{k.robot}"].stamp >= k.at and p.poll() is None:
+                    os.kill(p.pid, signal.SIGKILL)
+                    p.wait()
+                    k.done = True
+                    log.warning("killed robot %d at stream time %.1f s; restarting with --resume", k.robot,
+                                views[f"robot{k.robot}"].stamp)
+                    views[f"robot{k.robot}"].restarts += 1
+                    procs[f"robot{k.robot}"] = start(f"robot{k.robot}", agent_args(k.robot, True))
+            for name, p in procs.items():
+                if name in views:
+                    views[name].exit_code = p.poll()
+            if on_update is not None:
+                on_update(views)
+            team = [p for n, p in procs.items() if n != "router"]
+            codes = [p.poll() for p in team] + [None] * sum(f"robot{r}" not in procs for r in job.joins)
+            if any(c not in (None, 0) for c in codes):
+                bad = [n for n, p in procs.items() if n != "router" and p.poll() not in (None, 0)]
+                raise KimeraMultiError(f"{bad[0]} exited with code {procs[bad[0]].poll()}; "
+                                       f"see {out / 'logs' / (bad[0] + '.log')}")
+            if all(c == 0 for c in codes):
+                break
+            if time.monotonic() > deadline:
+                raise KimeraMultiError(f"the team did not finish within {job.timeout:.0f} s; logs in {out / 'logs'}")
+            await asyncio.sleep(0.1)
+    finally:
+        if observer is not None:
+            await observer.close()
+        for p in procs.values():
+            if p.poll() is None:
+                p.terminate()
+        for p in procs.values():
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        for fh in logs:
+            fh.close()

@@ -1,0 +1,194 @@
+"""One robot, the server or a router as an OS process on Zenoh: the workflows behind
+``kimera-multi agent``, ``server`` and ``router`` (core → workflow → CLI).
+
+An agent process builds its :class:`Agent` (or restores it from its checkpoint), opens one Zenoh
+session, runs its :class:`AgentNode` over keyframes from a source until the team's final
+optimisation, and writes ``OUT/robotI/``. Checkpoints go to ``OUT/robotI/checkpoint.kmc`` every
+``checkpoint_every`` seconds (atomically); ``resume`` restores the agent and continues its
+source at the next keyframe.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kimera_multi_py.agent.agent import Agent, AgentParams, KeyframeInput
+from kimera_multi_py.agent.checkpoint import load_checkpoint, save_checkpoint
+from kimera_multi_py.agent.node import AgentNode, NodeParams
+from kimera_multi_py.agent.outputs import outcome_of, own_graph, write_outcome
+from kimera_multi_py.agent.sources import KeyframeSource, SimSource, source_from_spec
+from kimera_multi_py.comms import runtime
+from kimera_multi_py.comms.zenoh_bus import ZenohBus
+from kimera_multi_py.consensus.pgo import PgoParams
+from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
+from kimera_multi_py.consensus.team_pgo import ScheduleParams
+from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.sim.runner import agent_params
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_NAME = "checkpoint.kmc"
+
+
+@dataclass
+class Connection:
+    """How a process joins the team's Zenoh network (the same flags for every process)."""
+
+    team: str = "t0"
+    connect: Sequence[str] = ()
+    listen: Sequence[str] = ()
+    zenoh_config: str | None = None
+    mode: str | None = None  # zenoh mode (peer, client, router); default peer without a file
+
+    def bus(self, robot: int) -> ZenohBus:
+        return ZenohBus(self.team, robot, mode=self.mode, listen=list(self.listen), connect=list(self.connect),
+                        config_file=self.zenoh_config)
+
+
+@dataclass
+class AgentJob:
+    robot: int
+    source: str  # sim:SCENARIO[:SEED] or a recorded folder
+    out_dir: Path
+    connection: Connection = field(default_factory=Connection)
+    rate: float = math.inf
+    checkpoint_every: float = 10.0
+    resume: bool = False
+    centralized: bool = False
+    pgo_period: float = 60.0
+
+
+def run_agent(job: AgentJob) -> dict[str, Any]:
+    """Run one robot to the end of the team's run; return a small summary."""
+    return runtime.run(_agent(job))
+
+
+def checkpoint_path(out_dir: Path, robot: int) -> Path:
+    return Path(out_dir) / f"robot{robot}" / CHECKPOINT_NAME
+
+
+async def _agent(job: AgentJob) -> dict[str, Any]:
+    t0 = time.monotonic()
+    if job.robot < 0 or job.robot > 25:
+        raise ConfigError("robot", f"robot id must be in 0..25, got {job.robot}")
+    ckpt = checkpoint_path(job.out_dir, job.robot)
+    ckpt.parent.mkdir(parents=True, exist_ok=True)
+    extra: dict[str, Any] = {}
+    params = params_for(source_from_spec(job.source, job.robot, 0))
+    if job.centralized:
+        params = replace(params, server=SERVER_ID)
+    if job.resume and ckpt.exists():
+        agent, extra = load_checkpoint(ckpt)
+        if agent.robot != job.robot:
+            raise ConfigError("resume", f"{ckpt} holds robot {agent.robot}, not robot {job.robot}")
+        log.info("robot %d resumes at keyframe %d", job.robot, agent.num_keyframes, extra={"robot": job.robot})
+    else:
+        agent = Agent(job.robot, None, params)
+    start = agent.num_keyframes
+    resume = json.loads(extra["source"]) if isinstance(extra.get("source"), str) else None
+    source = source_from_spec(job.source, job.robot, start, resume)
+    schedule = ScheduleParams(period=job.pgo_period, round_timeout=0.5, final_grace=2.0)
+    bus = job.connection.bus(job.robot)
+    node = AgentNode(agent, bus, PgoParams(robust=True, max_rounds=600), schedule,
+                     NodeParams(server=params.server, state_period=1.0))
+    if node.pgo is not None:
+        node.pgo.epoch = node.pgo.completed = int(extra.get("epoch", 0))
+    last = time.monotonic()
+
+    def on_keyframe(kf: KeyframeInput) -> None:
+        nonlocal last
+        if time.monotonic() - last >= job.checkpoint_every:
+            last = time.monotonic()
+            save_checkpoint(ckpt, agent, _node_state(node, source))
+
+    try:
+        await node.start()
+        await node.run(iter(source), rate=job.rate, on_keyframe=on_keyframe)
+        save_checkpoint(ckpt, agent, _node_state(node, source))
+        write_outcome(job.out_dir, outcome_of(node), own_graph(agent))
+    finally:
+        await node.close()
+        await bus.close()
+    return {"robot": job.robot, "keyframes": agent.num_keyframes, "resumed_at": start if job.resume else None,
+            "epochs": node.pgo.stats.epochs if node.pgo is not None else 0, "wall_s": time.monotonic() - t0}
+
+
+def _node_state(node: AgentNode, source: KeyframeSource) -> dict[str, Any]:
+    # the source's state as JSON text: a simulator's generator state holds 128-bit integers
+    state = json.dumps(source.state()) if hasattr(source, "state") else None
+    return {"epoch": node.pgo.completed if node.pgo is not None else 0, "next_keyframe": node.agent.num_keyframes,
+            "source": state}
+
+
+def params_for(source: KeyframeSource) -> AgentParams:
+    """The agent's noise model: the scenario's for the simulator, the recording's sensor info
+    (``odometry.rot_sigma_deg``, ``odometry.trans_sigma``, ``keyframe_distance``) otherwise."""
+    if isinstance(source, SimSource):
+        return agent_params(source.sim.cfg)
+    sensor = getattr(source, "manifest", {}).get("sensor", {})
+    odo = sensor.get("odometry") or {}
+    try:
+        rot = max(float(np.deg2rad(float(odo.get("rot_sigma_deg", 0.5)))), 1e-4)
+        trans = max(float(odo.get("trans_sigma", 0.03)), 1e-3)
+        dist = float(sensor.get("keyframe_distance", 0.5))
+    except (TypeError, ValueError) as exc:
+        raise ConfigError("manifest.sensor", f"bad odometry noise model: {exc}") from None
+    return AgentParams(odom_sigmas=(rot, trans), keyframe_distance=dist)
+
+
+# ---------------------------------------------------------------------------- server
+@dataclass
+class ServerJob:
+    out_dir: Path
+    connection: Connection = field(default_factory=Connection)
+    pgo_period: float = 60.0
+    closure_sigmas: tuple[float, float] = (0.05, 0.15)
+    odom_sigmas: tuple[float, float] = (0.0087, 0.03)
+
+
+def run_server(job: ServerJob) -> dict[str, Any]:
+    return runtime.run(_server(job))
+
+
+async def _server(job: ServerJob) -> dict[str, Any]:
+    bus = job.connection.bus(SERVER_ID)
+    server = Server(SERVER_ID, None, job.closure_sigmas, job.odom_sigmas)
+    node = ServerNode(server, bus, ScheduleParams(period=job.pgo_period, final_grace=2.0))
+    try:
+        await node.start()
+        await node.run()
+    finally:
+        await node.close()
+        await bus.close()
+    d = Path(job.out_dir) / "server"
+    d.mkdir(parents=True, exist_ok=True)
+    weights = [[a, ka, b, kb, w] for (a, ka, b, kb), w in sorted(server.stats.weights.items())]
+    (d / "weights.json").write_text(json.dumps({"version": 1, "weights": weights, "solves": server.stats.solves}))
+    return {"solves": server.stats.solves, "poses": server.stats.poses}
+
+
+# ---------------------------------------------------------------------------- router
+def run_router(listen: Sequence[str], zenoh_config: str | None = None, stop: asyncio.Event | None = None) -> None:
+    """A Zenoh router inside this process (no ``zenohd`` needed) until interrupted."""
+    import zenoh
+
+    from kimera_multi_py.comms.zenoh_bus import zenoh_config as make_config
+
+    conf = make_config("router", listen, (), zenoh_config, False)
+    with zenoh.open(conf):
+        log.info("router listening on %s", ", ".join(listen))
+        try:
+            while stop is None or not stop.is_set():
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            pass

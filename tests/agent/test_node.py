@@ -1,0 +1,99 @@
+"""AgentNode as the whole robot: nodes that run on their own clocks, with no orchestrator."""
+
+import asyncio
+import math
+
+import numpy as np
+import pytest
+
+from kimera_multi_py.agent.agent import Agent
+from kimera_multi_py.agent.node import AgentNode, NodeParams
+from kimera_multi_py.comms import LoopbackNetwork
+from kimera_multi_py.comms.messages import AgentState, PgoEpoch, PgoStatus
+from kimera_multi_py.consensus.pgo import PgoParams
+from kimera_multi_py.consensus.team_pgo import EPOCH_ROUNDS, ScheduleParams
+from kimera_multi_py.eval.metrics import ate_rmse
+from kimera_multi_py.sim import Simulation, load_scenario
+from kimera_multi_py.sim.runner import agent_params, keyframe_input
+
+from ..sim.helpers import TINY
+
+
+def _run_free(sim, period=20.0):
+    """Every node runs its own loop (``AgentNode.run``) on wall-clock timers; nothing steps them."""
+    async def main():
+        net = LoopbackNetwork(team="t0", seed=0)
+        schedule = ScheduleParams(period=period, round_timeout=0.2, final_grace=0.2)
+        nodes = [AgentNode(Agent(r, None, agent_params(sim.cfg)), net.bus(r), PgoParams(robust=True, max_rounds=200),
+                           schedule, NodeParams()) for r in range(sim.num_robots)]
+        for n in nodes:
+            await n.start()
+        streams = [[keyframe_input(kf) for kf in sim.keyframes(r)] for r in range(sim.num_robots)]
+        await asyncio.wait_for(asyncio.gather(*(n.run(s, rate=math.inf, linger=0.2)
+                                                 for n, s in zip(nodes, streams, strict=True))), 120)
+        for n in nodes:
+            await n.close()
+        return nodes
+
+    return asyncio.run(main())
+
+
+@pytest.fixture(scope="module")
+def tiny_free():
+    sim = Simulation(load_scenario(TINY), seed=0)
+    return sim, _run_free(sim)
+
+
+def test_free_running_nodes_finish_together_and_optimise(tiny_free):
+    sim, nodes = tiny_free
+    assert all(n.complete and n.finished for n in nodes)
+    # every node took part in the same epochs, the last one final, opened by the lowest id
+    assert len({n.pgo.completed for n in nodes}) == 1 and nodes[0].pgo.completed >= 2
+    assert nodes[0].pgo.stats.opened == nodes[0].pgo.completed and nodes[1].pgo.stats.opened == 0
+    assert all(n.pgo.final_done for n in nodes)
+    # the inter-robot closures reached the solver, and robot 1 was aligned into robot 0's frame
+    last = nodes[1].pgo.last_pgo
+    assert last is not None and last.aligned and len(last.local.inter_edge) > 0
+    for n in nodes:
+        assert n.agent.num_keyframes == len(sim.plans[n.robot].poses)
+        assert sum(n.errors.values()) == 0
+
+
+def test_free_running_estimates_are_in_one_frame(tiny_free):
+    """Robots' final estimates, aligned to the world once for the whole team, are not worse than
+    each robot's own dead reckoning anchored at its true start."""
+    sim, nodes = tiny_free
+    est = np.concatenate([np.array(n.agent.poses)[:, :3, 3] for n in nodes])
+    true = np.concatenate([sim.plans[n.robot].poses[:, :3, 3] for n in nodes])
+    team = ate_rmse(est, true)
+    dead = np.concatenate([(sim.plans[n.robot].poses[0] @ np.array(n.agent.dead_reckoning))[:, :3, 3]
+                           for n in nodes])
+    assert team < 2 * ate_rmse(dead, true)  # one frame: a robot left in its own frame would be metres off
+    assert team < 0.5
+
+
+def test_epoch_tags_keep_other_epochs_out():
+    """A status of epoch 1 must not satisfy a round of epoch 2, and an older epoch is ignored."""
+    async def main():
+        net = LoopbackNetwork(team="t0", seed=0)
+        sim = Simulation(load_scenario(TINY), seed=0)
+        node = AgentNode(Agent(1, None, agent_params(sim.cfg)), net.bus(1), schedule=ScheduleParams(round_timeout=None))
+        await node.start()
+        for kf, _ in zip(sim.keyframes(1), range(5), strict=False):
+            await node.process_keyframe(keyframe_input(kf))
+        pgo = node.pgo
+        members = np.array([0, 1], np.int64)
+        pgo.handle(PgoEpoch(robot=0, epoch=2, members=members, pairs=np.array([[0, 1]]), final=False), {0})
+        assert pgo.session is not None and pgo.session.epoch == 2
+        pgo.handle(PgoStatus(robot=0, round=1 * EPOCH_ROUNDS + 7, ready=True, cost=0.0, rel_change=0.0), {0})
+        assert pgo.session.seen == {}
+        pgo.handle(PgoStatus(robot=0, round=2 * EPOCH_ROUNDS + 3, ready=True, cost=0.0, rel_change=0.0), {0})
+        assert pgo.session.seen == {0: 3}
+        pgo.handle(PgoEpoch(robot=0, epoch=1, members=members, pairs=np.zeros((0, 2)), final=False), {0})
+        assert pgo.session.epoch == 2  # an old epoch does not replace the running one
+        # a newer epoch heard of through a peer's state is not re-run from an old announcement
+        pgo.handle(AgentState(robot=0, keyframes=5, stamp=1.0, finished=False, epoch=5, complete=False,
+                              closures=0, rounds=0, bytes_sent=0), {0})
+        await node.close()
+
+    asyncio.run(main())
