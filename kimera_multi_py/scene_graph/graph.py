@@ -8,8 +8,9 @@ octree it was built from; the graph is pure data, with no file or network access
 Inputs
     ``objects``: object landmarks (:class:`~kimera_multi_py.mapping.objects.Landmark`, using
     ``id``, the most likely non-free class, ``position`` (the box centre) and ``aabb()``), or
-    tuples ``(id, class, centroid, box_lo, box_hi)`` with ``class`` an id or a name. Ids must be
-    unique.
+    tuples ``(id, class, centroid, box_lo, box_hi)`` with ``class`` an id or a name, or dicts with
+    those keys (``id``, ``class``, ``centroid``, ``lo``, ``hi``: a ``RobotOutcome``'s objects). Ids must
+    be unique.
     ``trajectories``: ``{robot index: (stamps (n,), poses (n, 4, 4))}``, keyframe poses in the
     map frame; robot ``i`` has the letter ``chr(ord('a') + i)``.
 """
@@ -118,7 +119,12 @@ def as_objects(objects: Iterable[Any]) -> _Objects:
     """Normalise landmarks or ``(id, class, centroid, box_lo, box_hi)`` tuples."""
     rows = []
     for i, ob in enumerate(objects):
-        if hasattr(ob, "aabb") and hasattr(ob, "position"):  # a Landmark: its box centre is its position
+        if isinstance(ob, Mapping):  # a RobotOutcome's object: {"id", "class", "centroid", "lo", "hi", ...}
+            try:
+                rows.append((int(ob["id"]), _class_id(ob["class"]), ob["centroid"], ob["lo"], ob["hi"]))
+            except KeyError as exc:
+                raise SceneGraphError(f"objects[{i}]: missing key {exc}") from None
+        elif hasattr(ob, "aabb") and hasattr(ob, "position"):  # a Landmark: its box centre is its position
             lo, hi = ob.aabb()
             counts = getattr(ob, "class_counts", None)
             label = int(np.argmax(counts[1:])) + 1 if counts is not None else ob.label  # never "free"

@@ -84,3 +84,14 @@ def test_team_objects_have_unique_ids(tree) -> None:
     objs = team_objects({0: [lm], 2: [lm]})
     assert [o[0] for o in objs] == [0, 2 << 24]
     assert build_scene_graph(tree, objs).object_ids.tolist() == [0, 2 << 24]
+
+
+def test_outcome_objects_as_dicts(tree) -> None:
+    from kimera_multi_py.scene_graph import SceneGraphError, build_scene_graph
+
+    ob = {"id": 3, "class": 5, "centroid": [6.0, 2.0, 0.5], "lo": [5.8, 1.8, 0.0], "hi": [6.2, 2.2, 0.9],
+          "sightings": 9}
+    g = build_scene_graph(tree, [ob])
+    assert g.object_ids.tolist() == [3] and g.object_class.tolist() == [5]
+    with pytest.raises(SceneGraphError, match="missing key 'hi'"):
+        build_scene_graph(tree, [{k: v for k, v in ob.items() if k != "hi"}])
