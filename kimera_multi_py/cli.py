@@ -125,6 +125,7 @@ def _register_commands() -> None:
 
     register(app)
     cli_team.register(app)
+    __import__("kimera_multi_py.scene_graph.cli_query", fromlist=["register"]).register(app)
 
 
 _register_commands()

@@ -1,0 +1,109 @@
+"""Places and rooms on hand-made maps: two rooms and a door, an L-shaped room."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kimera_multi_py.scene_graph import SceneGraphError, SceneGraphParams, build_scene_graph
+from kimera_multi_py.scene_graph.grid import distance_field, occupancy_grid
+from kimera_multi_py.scene_graph.places import extract_places
+from tests.scene_graph.helpers import L_ROOM, TWO_ROOMS, add_box, box_world, octree_of
+
+
+@pytest.fixture(scope="module")
+def two_rooms():
+    c, free = box_world(*TWO_ROOMS)
+    free = add_box(c, free, (0.5, 0.5, 0.0), (1.7, 1.3, 0.75))  # a table in the west room
+    tree = octree_of(c, free)
+    objects = [(7, "table", (1.1, 0.9, 0.4), (0.5, 0.5, 0.0), (1.7, 1.3, 0.75)),
+               (8, "cabinet", (7.7, 3.6, 0.9), (7.45, 3.2, 0.0), (7.95, 3.95, 1.8))]
+    stamps = np.arange(5) * 10.0
+    poses = np.repeat(np.eye(4)[None], 5, axis=0)
+    poses[:, :3, 3] = [[1.0, 2.0, 1.0], [3.0, 2.0, 1.0], [4.0, 2.0, 1.0], [5.0, 2.0, 1.0], [7.0, 2.0, 1.0]]
+    return build_scene_graph(tree, objects, {0: (stamps, poses)})
+
+
+def _room_at(g, x: float, y: float) -> int:
+    """Room of the places in a 1 m square around (x, y)."""
+    near = np.all(np.abs(g.place_pos[:, :2] - [x, y]) < 0.5, axis=1) & (g.place_room >= 0)
+    rooms = np.unique(g.place_room[near])
+    assert len(rooms) == 1, f"places around ({x}, {y}) are in rooms {rooms}"
+    return int(rooms[0])
+
+
+def test_places_lie_in_free_space_with_their_clearance(two_rooms) -> None:
+    c, free = box_world(*TWO_ROOMS)
+    field = distance_field(occupancy_grid(octree_of(c, free)))
+    places = extract_places(field, SceneGraphParams())
+    assert len(places) > 50
+    assert places.clearance.min() >= 0.4 - 1e-6
+    np.testing.assert_allclose(field.clearance_at(places.positions), places.clearance, atol=1e-5)
+    # edges are short and keep their clearance
+    e = places.edges
+    assert np.all(places.edge_clearance >= 0.25)
+    assert np.linalg.norm(places.positions[e[:, 0]] - places.positions[e[:, 1]], axis=1).max() < 1.5
+
+
+def test_two_rooms_joined_by_a_door_stay_two(two_rooms) -> None:
+    g = two_rooms
+    assert g.num_rooms == 2
+    west, east = _room_at(g, 2.0, 2.0), _room_at(g, 6.0, 2.0)
+    assert west != east
+    # no place of one room lies inside the other room (the wall is at x = 4)
+    assert np.all(g.place_pos[g.place_room == west, 0] < 4.3)
+    assert np.all(g.place_pos[g.place_room == east, 0] > 3.7)
+    assert g.room_edges.tolist() == [[0, 1]]  # the door joins them
+    assert g.room_pos[west, 0] < 4.0 < g.room_pos[east, 0]
+
+
+def test_l_shaped_room_stays_one_room() -> None:
+    c, free = box_world(*L_ROOM)
+    g = build_scene_graph(octree_of(c, free))
+    assert g.num_rooms == 1
+    assert np.mean(g.place_room == 0) > 0.95
+    # both arms' far ends belong to it
+    assert _room_at(g, 5.0, 1.25) == _room_at(g, 1.25, 5.0) == 0
+
+
+def test_objects_and_agents_hang_below_places(two_rooms) -> None:
+    g = two_rooms
+    rooms = g.object_room()
+    assert rooms[0] == _room_at(g, 2.0, 2.0) and rooms[1] == _room_at(g, 6.0, 2.0)
+    assert np.all(g.agent_place >= 0)
+    assert g.place_room[g.agent_place[0]] == rooms[0] and g.place_room[g.agent_place[-1]] == rooms[1]
+    assert g.nodes_per_layer() == {"objects": 2, "agents": 5, "places": len(g.place_ids), "rooms": 2, "building": 1}
+
+
+def test_identical_maps_give_identical_graphs(two_rooms) -> None:
+    c, free = box_world(*TWO_ROOMS)
+    free = add_box(c, free, (0.5, 0.5, 0.0), (1.7, 1.3, 0.75))
+    a = build_scene_graph(octree_of(c, free))
+    np.testing.assert_array_equal(a.place_ids, two_rooms.place_ids)
+    np.testing.assert_array_equal(a.place_room, two_rooms.place_room)
+    assert len(np.unique(a.place_ids)) == len(a.place_ids)
+
+
+def test_bad_input_is_named(two_rooms) -> None:
+    c, free = box_world(*TWO_ROOMS)
+    tree = octree_of(c, free)
+    with pytest.raises(SceneGraphError, match="unknown object class"):
+        build_scene_graph(tree, [(1, "spaceship", (1, 1, 1), (0, 0, 0), (2, 2, 2))])
+    with pytest.raises(SceneGraphError, match="unique"):
+        build_scene_graph(tree, [(1, "chair", (1, 1, 1), (0, 0, 0), (2, 2, 2))] * 2)
+    with pytest.raises(SceneGraphError, match="3 stamps for 2 poses"):
+        build_scene_graph(tree, [], {0: (np.arange(3.0), np.repeat(np.eye(4)[None], 2, 0))})
+    with pytest.raises(SceneGraphError, match="must not decrease"):
+        build_scene_graph(tree, [], {0: (np.array([1.0, 0.0]), np.repeat(np.eye(4)[None], 2, 0))})
+    with pytest.raises(SceneGraphError, match="letter 'p'"):
+        build_scene_graph(tree, [], {15: (np.arange(1.0), np.eye(4)[None])})
+
+
+def test_ceiling_cut_needs_clearance_above_the_doors_half_width() -> None:
+    c, free = box_world(*TWO_ROOMS)  # the door is 1 m wide and full height
+    tree = octree_of(c, free)
+    assert build_scene_graph(tree, params=SceneGraphParams(room_method="ceiling")).num_rooms == 1
+    two = build_scene_graph(tree, params=SceneGraphParams(room_method="ceiling", ceiling_clearance=0.6))
+    assert two.num_rooms == 2
+    with pytest.raises(Exception, match="room_method"):
+        SceneGraphParams(room_method="magic")
