@@ -53,7 +53,8 @@ def test_launch_runs_three_agent_processes_to_a_team_estimate(clean, odometry_at
     lc = res["loop_closures"]
     assert lc["false_accepted_inter"] == 0 and lc["true_accepted_inter"] >= 10
     assert res["pgo_runs"] >= 2 and res["transport"] == "zenoh-processes"
-    assert res["team"]["ate_rmse_m"] < 0.8 * odometry_ate  # one team frame, better than dead reckoning
+    # one team frame, better than dead reckoning even when that is anchored at the true starts
+    assert res["team"]["ate_rmse_m"] < odometry_ate
     for r in range(3):
         d = out / f"robot{r}"
         for name in ("trajectory.tum", "map.bt", "map.ply", "objects.json", "graph.g2o", "traffic.json"):
@@ -127,4 +128,4 @@ def test_a_robot_joining_late_is_aligned_into_the_team(clean, tmp_path, odometry
              for c in json.loads((tmp_path / f"robot{r}" / "closures.json").read_text())["closures"]
              if c["weight"] is not None and c["weight"] >= 0.5}
     assert 2 in peers
-    assert res["team"]["ate_rmse_m"] < 0.8 * odometry_ate
+    assert res["team"]["ate_rmse_m"] < odometry_ate
