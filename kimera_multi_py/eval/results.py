@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 # Fields that measure the machine, not the algorithm: excluded when comparing runs.
-TIMING_KEYS = frozenset({"wall_s", "realtime_factor", "rays_per_s"})
+TIMING_KEYS = frozenset({"wall_s", "realtime_factor", "rays_per_s", "build_s"})
 
 
 @dataclass
@@ -43,12 +43,20 @@ class Results:
         return _rounded(out)
 
     def metrics(self) -> dict[str, Any]:
-        """``to_dict`` without machine timings: identical for identical seeds."""
-        return {k: v for k, v in self.to_dict().items() if k not in TIMING_KEYS}
+        """``to_dict`` without machine timings (at any depth): identical for identical seeds."""
+        return _untimed(self.to_dict())
 
     def write_json(self, path: str | Path) -> None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
+
+
+def _untimed(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _untimed(v) for k, v in obj.items() if k not in TIMING_KEYS}
+    if isinstance(obj, list):
+        return [_untimed(v) for v in obj]
+    return obj
 
 
 def _rounded(obj: Any) -> Any:

@@ -7,6 +7,7 @@ launch of N agent processes (outcomes read back from ``DIR/robotI/``).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -105,3 +106,35 @@ def traffic_totals(outcomes: Sequence[RobotOutcome]) -> dict[str, Any]:
         for topic, v in sent.items():
             per_topic[topic] = per_topic.get(topic, 0) + int(v["bytes"])
     return {"per_robot": per_robot, "per_topic": per_topic, "total": sum(per_robot.values())}
+
+
+def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray,
+                        out_dir: Path | None, robot_maps: dict[int, Any] | None = None,
+                        team_map: Any = None) -> dict[str, Any]:
+    """Every robot's scene graph (from its team map when there is one, else its own map), and the
+    team's (from the fused team map, with every robot's objects and trajectory), scored against
+    the simulator's rooms; writes ``robotI/dsg.json`` and ``dsg.json``.
+
+    The top-level figures are the team graph's (or robot 0's without a team map); ``robots`` holds
+    each robot's and ``agree`` whether the robots' graphs match."""
+    from kimera_multi_py.scene_graph import graphs_agree, scene_graph_and_outputs, team_objects
+
+    graphs, per_robot = [], {}
+    for o in outcomes:
+        octree = (robot_maps or {}).get(o.robot, o.octree)
+        path = out_dir / f"robot{o.robot}" / "dsg.json" if out_dir is not None else None
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        g, fig = scene_graph_and_outputs(octree, T_world_team, o.objects, {o.robot: (o.stamps, o.poses)}, world, path)
+        graphs.append(g)
+        per_robot[str(o.robot)] = fig
+    out: dict[str, Any] = dict(per_robot[str(outcomes[0].robot)])
+    if team_map is not None:
+        objects = team_objects({o.robot: o.objects for o in outcomes})
+        trajectories = {o.robot: (o.stamps, o.poses) for o in outcomes}
+        _, out = scene_graph_and_outputs(team_map, T_world_team, objects, trajectories, world,
+                                         out_dir / "dsg.json" if out_dir is not None else None)
+        out = dict(out)
+    out["robots"] = per_robot
+    out["agree"] = graphs_agree(graphs)
+    return out

@@ -46,7 +46,7 @@ from kimera_multi_py.consensus.workflow import open_buses
 from kimera_multi_py.errors import ConfigError
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import score_closures
-from kimera_multi_py.eval.team import team_results, trajectory_results
+from kimera_multi_py.eval.team import scene_graph_results, team_results, trajectory_results
 from kimera_multi_py.geometry import transform_points
 from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.tum import write_tum
@@ -305,6 +305,7 @@ class SimRunner:
                                       self.params.team_object_sightings))
             extra["pgo_runs"] = self._epochs()
             extra["transport"] = self.transport
+            extra["scene_graph"] = scene_graph_results(self.sim.world, self.outcomes, T_world_team, self.out_dir)
         return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
 

@@ -11,7 +11,7 @@ import numpy as np
 from kimera_multi_py.agent.outputs import read_outcome
 from kimera_multi_py.errors import DatasetError
 from kimera_multi_py.eval.results import Results
-from kimera_multi_py.eval.team import team_results, trajectory_results
+from kimera_multi_py.eval.team import scene_graph_results, team_results, trajectory_results
 from kimera_multi_py.io.tum import write_tum
 from kimera_multi_py.sim.runner import agent_params
 from kimera_multi_py.sim.scenario import ScenarioConfig
@@ -50,6 +50,7 @@ def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str,
                                                  agent_params(cfg).team_object_sightings))
     extra["pgo_runs"] = max(o.pgo_epochs for o in outcomes)
     extra["transport"] = "zenoh-processes"
+    extra["scene_graph"] = scene_graph_results(sim.world, outcomes, T, run_dir)
     for r, plan in enumerate(sim.plans):
         write_tum(run_dir / f"robot{r}_gt.tum", np.asarray(plan.stamps), plan.poses)
     return Results(scenario=cfg.name, mode=mode, seed=sim.seed, robots=robots, team=team,
