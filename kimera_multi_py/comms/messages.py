@@ -624,8 +624,9 @@ class SubmapEvidence(Message):
     """Map consensus (exact): the cells of ``source``'s submap ``submap`` that changed after
     version ``base``, as they are at ``version`` (absolute values, so re-applying is harmless).
 
-    ``codes`` are Morton codes on the submap's reference grid; ``values`` its integer evidence
-    (fixed-point log-odds sums) of classes 1..K. A robot at a version in ``[base, version)``
+    ``payload`` holds ``cells`` Morton codes on the submap's reference grid and their integer
+    evidence (fixed-point log-odds sums) of ``classes`` classes 1..K, losslessly compressed
+    (:mod:`kimera_multi_py.consensus.map_wire`). A robot at a version in ``[base, version)``
     applies it; relayed unchanged except for ``robot`` (the sender).
     """
 
@@ -634,8 +635,9 @@ class SubmapEvidence(Message):
     submap: int = count()
     base: int = count()
     version: int = count()
-    codes: np.ndarray = arr("int64", "n", lo=0)
-    values: np.ndarray = arr("int16", "n", "c")
+    cells: int = count()
+    classes: int = _f(Int(1, 255))
+    payload: np.ndarray = arr("uint8", "b")
 
 
 @message("SubmapPoses", keys.MAP_POSES)

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,7 @@ from kimera_multi_py.comms.messages import (
 )
 from kimera_multi_py.consensus.map_fusion import EvidenceMap, Key, octree_cells, view_rows
 from kimera_multi_py.consensus.map_laplacian import LaplacianState
+from kimera_multi_py.consensus.map_wire import pack_cells, unpack_cells
 from kimera_multi_py.consensus.roam import ROAM_NODE_BYTES, RoamFusion
 from kimera_multi_py.errors import MessageError
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
@@ -177,12 +179,10 @@ class MapConsensus:
             self.lap.handle(msg)
 
     def _on_evidence(self, msg: SubmapEvidence) -> None:
-        if msg.values.shape[1] != self.k:
-            raise MessageError(f"SubmapEvidence.values: expected {self.k} classes, got {msg.values.shape[1]}")
+        if msg.classes != self.k:
+            raise MessageError(f"SubmapEvidence.classes: expected {self.k} classes, got {msg.classes}")
         if msg.base >= msg.version:
             raise MessageError(f"SubmapEvidence: base {msg.base} not below version {msg.version}")
-        if len(msg.codes) > 1 and np.any(msg.codes[1:] <= msg.codes[:-1]):
-            raise MessageError("SubmapEvidence.codes: must be sorted and unique")
         if msg.source == self.robot:
             return
         key = (msg.source, msg.submap)
@@ -194,14 +194,15 @@ class MapConsensus:
         if msg.base > have:
             self.ignored["evidence_gap"] += 1  # the summary asks for it again
             return
-        rows = np.zeros((len(msg.codes), self.k + 1), np.int32)
-        rows[:, 1:] = msg.values
+        codes, values = unpack_cells(msg.payload, msg.cells, msg.classes, "SubmapEvidence.payload")
+        rows = np.zeros((len(codes), self.k + 1), np.int32)
+        rows[:, 1:] = values
         if h is None:
             h = self.held[key] = _Held(0, np.zeros(0, np.int64), np.zeros((0, self.k + 1), np.int32),
                                        np.zeros(0, np.int64), self._now)
-        self._merge(h, msg.codes, rows, msg.version)
+        self._merge(h, codes, rows, msg.version)
         h.version, h.got = msg.version, self._now
-        self.team.set_cells(key, msg.codes, rows)
+        self.team.set_cells(key, codes, rows)
 
     def _on_poses(self, msg: SubmapPoses) -> None:
         if msg.source == self.robot:
@@ -259,7 +260,7 @@ class MapConsensus:
         elif self.lap is not None:
             self.lap.mix(sorted(self.neighbours))
             self.lap.absorb_own(self.local)
-            msg = self.lap.message(self.robot, self.frame, len(self.neighbours & set(self.lap.copies)))
+            msg = self.lap.message(self.robot, self.frame, len(self.neighbours))
             if msg is not None:
                 out.append(msg)
         elif self.roam is not None:
@@ -314,42 +315,53 @@ class MapConsensus:
             h.rows = np.insert(h.rows, pos[new], rows[new], axis=0)
             h.marks = np.insert(h.marks, pos[new], version)
 
-    def _due(self, k: int, own: bool, have: int, want: int, got: float, sent: tuple[int, float] | None,
-             summary_time: float) -> bool:
-        """Should neighbour ``k`` (reported at version ``have``) be sent version ``want``?"""
-        if have >= want:
-            return False
-        if own and (sent is None or sent[0] < want):
-            return True  # a new own version goes out at once
-        last = max(got, sent[1]) if sent is not None else got
-        return summary_time > last  # k said it lacks this after we had it and last sent it
+    @staticmethod
+    def _belief(reported: int, summary_time: float, sent: tuple[int, float] | None) -> int:
+        """The version a neighbour holds as far as we know: its summary, or what we sent since."""
+        if sent is not None and sent[1] >= summary_time:
+            return max(reported, sent[0])
+        return reported
+
+    def _bases(self, nbrs: list[int], source: int, want: int, got: float, sent: tuple[int, float] | None,
+               reported: Callable[[int], int]) -> list[int]:
+        """The versions of the neighbours that should be sent version ``want`` of a source's data.
+
+        A robot's own data goes out at once to whoever lacks it; a relay waits until the
+        neighbour's summary, newer than our copy, says it still lacks it (it may have got it
+        from the source directly). Lost messages show up as a newer summary that still lacks
+        what we sent, and are sent again.
+        """
+        out = []
+        for k in nbrs:
+            if k == source:
+                continue
+            t = self._nbr[k][2] if k in self._nbr else -np.inf
+            have = self._belief(reported(k), t, sent)
+            if have < want and (source == self.robot or t > got):
+                out.append(have)
+        return out
 
     def _exact_messages(self) -> list[Message]:
         out: list[Message] = []
         nbrs = sorted(self.neighbours)
-        empty: tuple[dict[Key, int], dict[int, int], float] = ({}, {}, -np.inf)
         for src, (table, got) in sorted(self.poses.items()):
             sent = self._sent_poses.get(src)
-            due = [k for k in nbrs if k != src and self._due(
-                k, src == self.robot, self._nbr.get(k, empty)[1].get(src, 0), table.version, got, sent,
-                self._nbr.get(k, empty)[2])]
-            if due:
+            if self._bases(nbrs, src, table.version, got, sent,
+                           lambda k, s=src: self._nbr[k][1].get(s, 0) if k in self._nbr else 0):
                 out.append(SubmapPoses(robot=self.robot, source=table.source, version=table.version,
                                        frame=table.frame, submaps=table.submaps, T_ref=table.T_ref, T=table.T))
                 self._sent_poses[src] = (table.version, self._now)
         for key, h in sorted(self.held.items()):
             if h.version == 0:
                 continue
-            sent = self._sent.get(key)
-            bases = [self._nbr.get(k, empty)[0].get(key, 0) for k in nbrs if k != key[0] and self._due(
-                k, key[0] == self.robot, self._nbr.get(k, empty)[0].get(key, 0), h.version, h.got, sent,
-                self._nbr.get(k, empty)[2])]
+            bases = self._bases(nbrs, key[0], h.version, h.got, self._sent.get(key),
+                                lambda k, kk=key: self._nbr[k][0].get(kk, 0) if k in self._nbr else 0)
             if bases:
                 base = min(bases)
                 sel = h.marks > base
                 out.append(SubmapEvidence(robot=self.robot, source=key[0], submap=key[1], base=base,
-                                          version=h.version, codes=h.codes[sel],
-                                          values=h.rows[sel, 1:].astype(np.int16)))
+                                          version=h.version, cells=int(sel.sum()), classes=self.k,
+                                          payload=pack_cells(h.codes[sel], h.rows[sel, 1:].astype(np.int16))))
                 self._sent[key] = (h.version, self._now)
         summary = self._versions()
         content = summary.sources.tobytes() + summary.submaps.tobytes() + summary.versions.tobytes() + \

@@ -50,6 +50,32 @@ def records_of(robot: int, local: SubmapMap) -> list[SubmapRecord]:
     ]
 
 
+def union_sorted(*arrays: np.ndarray) -> np.ndarray:
+    """The sorted union of int64 code arrays (faster than ``np.union1d`` for large inputs)."""
+    parts = [np.asarray(x, dtype=np.int64) for x in arrays]
+    if not parts:
+        return np.zeros(0, np.int64)
+    base = max(parts, key=len)
+    if all(_subset(p, base) for p in parts if p is not base):
+        return base.copy()  # the common case once maps agree: no sort
+    a = np.concatenate(parts)
+    a.sort()
+    keep = np.empty(len(a), np.bool_)
+    keep[0] = True
+    np.not_equal(a[1:], a[:-1], out=keep[1:])
+    return a[keep]
+
+
+def _subset(small: np.ndarray, big: np.ndarray) -> bool:
+    """Whether the sorted codes ``small`` all occur in the sorted codes ``big``."""
+    if len(small) == 0:
+        return True
+    if len(small) > len(big):
+        return False
+    pos = np.searchsorted(big, small).clip(max=len(big) - 1)
+    return bool(np.all(big[pos] == small))
+
+
 def view_rows(tree: SemanticOctree, summed: np.ndarray) -> np.ndarray:
     """``clamp(prior + evidence)`` with column 0 = 0, as int16 rows of the octree view."""
     m = tree.model

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from kimera_multi_py.comms.messages import MapState
+from kimera_multi_py.consensus.map_fusion import union_sorted
 from kimera_multi_py.consensus.roam import sparse_diff
 from kimera_multi_py.errors import MessageError
 from kimera_multi_py.mapping.submaps import SubmapMap
@@ -78,21 +79,23 @@ class LaplacianState:
         if msg.full:
             c.codes, c.values = msg.codes.copy(), msg.values.copy()
             return
-        codes = np.union1d(c.codes, msg.codes)
+        codes = union_sorted(c.codes, msg.codes)
         values = np.zeros((len(codes), self.k1))
         values[np.searchsorted(codes, c.codes)] = c.values
         values[np.searchsorted(codes, msg.codes)] = msg.values
         c.codes, c.values = codes, values
 
     def mix(self, neighbours: list[int]) -> None:
-        """One consensus step with the neighbours' latest states (Metropolis-Hastings weights)."""
+        """One consensus step with the neighbours' latest states (Metropolis-Hastings weights).
+
+        ``d_i`` is the number of neighbours (what this robot announces as its degree), so that
+        ``a_ij = a_ji`` and the step conserves the sum of the states.
+        """
         peers = [j for j in neighbours if j in self.copies]
         if not peers:
             return
-        d_i = len(peers)
-        codes = self.codes
-        for j in peers:
-            codes = np.union1d(codes, self.copies[j].codes)
+        d_i = len(neighbours)
+        codes = union_sorted(self.codes, *(self.copies[j].codes for j in peers))
         e = np.zeros((len(codes), self.k1))
         e[np.searchsorted(codes, self.codes)] = self.values
         step = np.zeros_like(e)
@@ -135,7 +138,7 @@ class LaplacianState:
     def _add(self, codes: np.ndarray, rows: np.ndarray) -> None:
         if len(codes) == 0:
             return
-        allc = np.union1d(self.codes, codes)
+        allc = union_sorted(self.codes, codes)
         out = np.zeros((len(allc), self.k1))
         out[np.searchsorted(allc, self.codes)] = self.values
         out[np.searchsorted(allc, codes)] += rows

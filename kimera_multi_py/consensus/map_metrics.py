@@ -13,13 +13,14 @@ from typing import Any
 
 import numpy as np
 
+from kimera_multi_py.consensus.map_fusion import union_sorted
 from kimera_multi_py.mapping.semantic_octree import SCALE
 
 Cells = tuple[np.ndarray, np.ndarray]
 
 
 def _aligned(a: Cells, b: Cells, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    codes = np.union1d(a[0], b[0])
+    codes = union_sorted(a[0], b[0])
     out = []
     for c, r in (a, b):
         full = np.empty((len(codes), len(prior)), np.float64)

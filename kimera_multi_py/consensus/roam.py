@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from kimera_multi_py.comms.messages import RoamMap
-from kimera_multi_py.consensus.map_fusion import octree_cells
+from kimera_multi_py.consensus.map_fusion import octree_cells, union_sorted
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.mapping.submaps import SubmapMap
 from kimera_multi_py.errors import MessageError
@@ -26,7 +26,7 @@ def sparse_diff(
     new: tuple[np.ndarray, np.ndarray], old: tuple[np.ndarray, np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
     """``new - old`` of two sparse row sets (sorted codes), over the union of their codes."""
-    codes = np.union1d(new[0], old[0])
+    codes = union_sorted(new[0], old[0])
     out = np.zeros((len(codes), new[1].shape[1]), dtype=np.int64)
     out[np.searchsorted(codes, new[0])] += new[1]
     out[np.searchsorted(codes, old[0])] -= old[1]

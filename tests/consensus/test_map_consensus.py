@@ -10,6 +10,7 @@ from kimera_multi_py.comms.messages import SubmapEvidence, SubmapPoses
 from kimera_multi_py.consensus.map_consensus import MapConsensus, MapConsensusParams
 from kimera_multi_py.consensus.map_exchange import MapExchange, full_links
 from kimera_multi_py.consensus.map_fusion import centralised_team_map, octree_cells
+from kimera_multi_py.consensus.map_wire import pack_cells, unpack_cells
 from kimera_multi_py.consensus.map_metrics import agreement, occupancy_logodds, phi
 from kimera_multi_py.errors import MessageError
 from kimera_multi_py.geometry import inverse, make_pose, so3_exp, transform_points
@@ -147,14 +148,22 @@ def test_messages_from_non_neighbours_and_bad_content_are_refused() -> None:
     maps, nodes = team(2)
     node = nodes[0]
     node.set_neighbours({1})
-    bad = SubmapEvidence(robot=1, source=1, submap=0, base=2, version=2, codes=np.zeros(1, np.int64),
-                         values=np.zeros((1, K), np.int16))
+    cells = pack_cells(np.array([3, 9], np.int64), np.ones((2, K), np.int16))
+    bad = SubmapEvidence(robot=1, source=1, submap=0, base=2, version=2, cells=2, classes=K, payload=cells)
     with pytest.raises(MessageError, match="base"):
         node.handle(bad)
-    wrong_k = SubmapEvidence(robot=1, source=1, submap=0, base=0, version=1, codes=np.zeros(1, np.int64),
-                             values=np.zeros((1, K - 1), np.int16))
+    wrong_k = SubmapEvidence(robot=1, source=1, submap=0, base=0, version=1, cells=2, classes=K - 1, payload=cells)
     with pytest.raises(MessageError, match="classes"):
         node.handle(wrong_k)
+    short = SubmapEvidence(robot=1, source=1, submap=0, base=0, version=1, cells=3, classes=K, payload=cells)
+    with pytest.raises(MessageError, match="payload"):
+        node.handle(short)
+    garbage = SubmapEvidence(robot=1, source=1, submap=0, base=0, version=1, cells=2, classes=K,
+                             payload=np.arange(40, dtype=np.uint8))
+    with pytest.raises(MessageError, match="payload"):
+        node.handle(garbage)
+    unsorted = pack_cells(np.array([3, 9], np.int64), np.ones((2, K), np.int16))
+    assert unpack_cells(unsorted, 2, K, "x")[0].tolist() == [3, 9]
     stranger = SubmapPoses(robot=5, source=5, version=1, frame=0, submaps=np.zeros(1, np.int64),
                            T_ref=np.eye(4)[None], T=np.eye(4)[None])
     node.handle(stranger)
