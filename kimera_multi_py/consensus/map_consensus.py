@@ -260,9 +260,9 @@ class MapConsensus:
         elif self.lap is not None:
             self.lap.mix(sorted(self.neighbours))
             self.lap.absorb_own(self.local)
-            msg = self.lap.message(self.robot, self.frame, len(self.neighbours))
-            if msg is not None:
-                out.append(msg)
+            state = self.lap.message(self.robot, self.frame, len(self.neighbours))
+            if state is not None:
+                out.append(state)
         elif self.roam is not None:
             self.roam.absorb_own(self.local)
         return out
@@ -341,21 +341,25 @@ class MapConsensus:
                 out.append(have)
         return out
 
+    def _reported(self, key: Key) -> Callable[[int], int]:
+        return lambda k: self._nbr[k][0].get(key, 0) if k in self._nbr else 0
+
+    def _reported_poses(self, src: int) -> Callable[[int], int]:
+        return lambda k: self._nbr[k][1].get(src, 0) if k in self._nbr else 0
+
     def _exact_messages(self) -> list[Message]:
         out: list[Message] = []
         nbrs = sorted(self.neighbours)
         for src, (table, got) in sorted(self.poses.items()):
             sent = self._sent_poses.get(src)
-            if self._bases(nbrs, src, table.version, got, sent,
-                           lambda k, s=src: self._nbr[k][1].get(s, 0) if k in self._nbr else 0):
+            if self._bases(nbrs, src, table.version, got, sent, self._reported_poses(src)):
                 out.append(SubmapPoses(robot=self.robot, source=table.source, version=table.version,
                                        frame=table.frame, submaps=table.submaps, T_ref=table.T_ref, T=table.T))
                 self._sent_poses[src] = (table.version, self._now)
         for key, h in sorted(self.held.items()):
             if h.version == 0:
                 continue
-            bases = self._bases(nbrs, key[0], h.version, h.got, self._sent.get(key),
-                                lambda k, kk=key: self._nbr[k][0].get(kk, 0) if k in self._nbr else 0)
+            bases = self._bases(nbrs, key[0], h.version, h.got, self._sent.get(key), self._reported(key))
             if bases:
                 base = min(bases)
                 sel = h.marks > base

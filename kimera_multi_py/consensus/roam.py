@@ -14,9 +14,9 @@ import numpy as np
 
 from kimera_multi_py.comms.messages import RoamMap
 from kimera_multi_py.consensus.map_fusion import octree_cells, union_sorted
+from kimera_multi_py.errors import MessageError
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.mapping.submaps import SubmapMap
-from kimera_multi_py.errors import MessageError
 
 ROAM_NODE_BYTES = 36  # float occupancy, 3 B colour, 3 x (class colour + float) + others, child mask
 _I16 = np.iinfo(np.int16)

@@ -10,8 +10,8 @@ from kimera_multi_py.comms.messages import SubmapEvidence, SubmapPoses
 from kimera_multi_py.consensus.map_consensus import MapConsensus, MapConsensusParams
 from kimera_multi_py.consensus.map_exchange import MapExchange, full_links
 from kimera_multi_py.consensus.map_fusion import centralised_team_map, octree_cells
-from kimera_multi_py.consensus.map_wire import pack_cells, unpack_cells
 from kimera_multi_py.consensus.map_metrics import agreement, occupancy_logodds, phi
+from kimera_multi_py.consensus.map_wire import pack_cells, unpack_cells
 from kimera_multi_py.errors import MessageError
 from kimera_multi_py.geometry import inverse, make_pose, so3_exp, transform_points
 from kimera_multi_py.mapping import SemanticOctree, SubmapMap
@@ -209,7 +209,7 @@ def test_laplacian_phi_falls_monotonically_on_a_static_map() -> None:
     pairs = [(0, 1), (1, 2), (2, 3)]
     prior = maps[0].octree.model.prior_row
     values = []
-    for k in range(40):
+    for k in range(25):
         net.round(float(k))
         values.append(phi({r: n.team_cells() for r, n in nodes.items()}, pairs, prior)["phi"])
     assert values[-1] < 1e-3 * values[1]
