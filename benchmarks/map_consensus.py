@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -82,6 +83,8 @@ def main() -> None:
             t0 = time.perf_counter()
             nets[m].round(now)
             wall[m] += time.perf_counter() - t0
+            if rounds % 50 == 0:
+                print(f"round {rounds} {m}: {nets[m].total_bytes()} B, {wall[m]:.0f} s", file=sys.stderr, flush=True)
             if rounds % args.phi_every == 0:
                 pairs = sorted({(min(i, j), max(i, j)) for i, js in links(now).items() for j in js})
                 reports[m].record_phi(phi({r: n.team_cells() for r, n in nodes[m].items()}, pairs, prior))

@@ -676,8 +676,9 @@ class MapState(Message):
     """Map consensus (laplacian): a robot's consensus state at ``round`` in frame ``frame``.
 
     ``values[:, 0]`` is the averaged support count, ``values[:, 1:]`` the averaged evidence of
-    classes 1..K; ``full`` sends every cell, otherwise only the cells changed since the last
-    message. ``degree`` is the sender's neighbour count (Metropolis-Hastings weights).
+    classes 1..K; ``full`` marks a refresh of every cell, otherwise only the cells changed since
+    the last round travel. A round's cells may span several messages of the same ``round``.
+    ``degree`` is the sender's neighbour count (Metropolis-Hastings weights).
     """
 
     robot: int = robot_id()
@@ -693,17 +694,19 @@ class MapState(Message):
 class RoamMap(Message):
     """Map consensus (roam baseline): a robot's full pruned tree, as ROAM's code sends it.
 
-    Leaves in Morton order (start codes, levels, fixed-point rows of classes 1..K); ``nodes``
-    is the tree's node count with inner nodes, which ROAM's wire format pays 36 B each for.
+    ``payload`` holds ``leaves`` leaves in Morton order (start codes, levels, fixed-point rows of
+    ``classes`` classes 1..K), losslessly compressed so that a large tree fits in one message;
+    ``nodes`` is the tree's node count with inner nodes, for which ROAM's own (uncompressed)
+    wire format pays 36 B each.
     """
 
     robot: int = robot_id()
     round: int = count()
     frame: int = robot_id()
     nodes: int = count()
-    codes: np.ndarray = arr("int64", "n", lo=0)
-    levels: np.ndarray = arr("int8", "n", lo=0, hi=16)
-    values: np.ndarray = arr("int16", "n", "c")
+    leaves: int = count()
+    classes: int = _f(Int(1, 255))
+    payload: np.ndarray = arr("uint8", "b")
 
 
 @message("ObjectUpdate", keys.OBJECTS)

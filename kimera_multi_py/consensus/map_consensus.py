@@ -260,9 +260,7 @@ class MapConsensus:
         elif self.lap is not None:
             self.lap.mix(sorted(self.neighbours))
             self.lap.absorb_own(self.local)
-            state = self.lap.message(self.robot, self.frame, len(self.neighbours))
-            if state is not None:
-                out.append(state)
+            out += self.lap.message(self.robot, self.frame, len(self.neighbours))
         elif self.roam is not None:
             self.roam.absorb_own(self.local)
         return out

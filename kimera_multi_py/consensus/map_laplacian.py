@@ -73,13 +73,10 @@ class LaplacianState:
         if len(msg.codes) > 1 and np.any(msg.codes[1:] <= msg.codes[:-1]):
             raise MessageError("MapState.codes: must be sorted and unique")
         c = self.copies.setdefault(msg.robot, _Copy(self.k1))
-        if msg.round <= c.round:
-            return  # old or duplicated
+        if msg.round < c.round:
+            return  # old (a duplicate of the current round rewrites the same values)
         c.round, c.degree = msg.round, msg.degree
-        if msg.full:
-            c.codes, c.values = msg.codes.copy(), msg.values.copy()
-            return
-        codes = union_sorted(c.codes, msg.codes)
+        codes = union_sorted(c.codes, msg.codes)  # cells never disappear: a refresh overwrites all
         values = np.zeros((len(codes), self.k1))
         values[np.searchsorted(codes, c.codes)] = c.values
         values[np.searchsorted(codes, msg.codes)] = msg.values
@@ -107,8 +104,9 @@ class LaplacianState:
             step += a * (ej - e)
         self.codes, self.values = codes, e + self.epsilon * step
 
-    def message(self, robot: int, frame: int, degree: int) -> MapState | None:
-        """The cells changed since the last message (all of them every ``refresh_every`` rounds)."""
+    def message(self, robot: int, frame: int, degree: int, max_cells: int = 200_000) -> list[MapState]:
+        """The cells changed since the last round (all of them every ``refresh_every`` rounds),
+        in messages of at most ``max_cells`` cells."""
         self.round += 1
         full = self.round % self.refresh_every == 0
         if full:
@@ -121,10 +119,12 @@ class LaplacianState:
                 same = (sc[pos] == self.codes) & np.all(sv[pos] == self.values, axis=1)
             codes, values = self.codes[~same], self.values[~same]
             if len(codes) == 0:
-                return None
+                return []
         self._sent = (self.codes.copy(), self.values.copy())
-        return MapState(robot=robot, round=self.round, frame=frame, degree=degree, full=full,
-                        codes=codes.copy(), values=values.copy())
+        step = max(1, int(max_cells))
+        return [MapState(robot=robot, round=self.round, frame=frame, degree=degree, full=full,
+                         codes=codes[i:i + step].copy(), values=values[i:i + step].copy())
+                for i in range(0, len(codes), step)]
 
     def team_rows(self, team_size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``N e_i`` rounded: world codes, evidence rows (column 0 = 0) of live cells, support."""

@@ -57,3 +57,36 @@ def unpack_cells(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.nd
     codes = np.cumsum(steps, dtype=np.int64)
     values = _unshuffle(raw[8 * n:], "<i2", n * c).reshape(c, n).T.astype(np.int16)
     return codes, np.ascontiguousarray(values)
+
+
+def pack_leaves(codes: np.ndarray, levels: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """A uint8 payload of a tree's leaves: start codes, levels ``(n,)`` int8, rows ``(n, c)`` int16."""
+    cells = pack_cells(codes, values)
+    lev = zlib.compress(np.asarray(levels, dtype=np.int8).tobytes(), LEVEL)
+    head = np.array([len(lev)], dtype="<u4").view(np.uint8)
+    return np.concatenate([head, np.frombuffer(lev, np.uint8), cells])
+
+
+def unpack_leaves(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Start codes, levels and rows of a payload made by :func:`pack_leaves` (levels checked)."""
+    payload = np.ascontiguousarray(payload, dtype=np.uint8)
+    if len(payload) < 4:
+        raise MessageError(f"{where}: payload too short")
+    m = int(payload[:4].view("<u4")[0])
+    if 4 + m > len(payload):
+        raise MessageError(f"{where}: payload too short")
+    d = zlib.decompressobj()
+    try:
+        raw = d.decompress(payload[4:4 + m].tobytes(), n + 1)
+    except zlib.error as exc:
+        raise MessageError(f"{where}: corrupt payload ({exc})") from None
+    if len(raw) != n:
+        raise MessageError(f"{where}: payload does not hold {n} leaves")
+    levels = np.frombuffer(raw, np.int8).copy()
+    if n and (levels.min() < 0 or levels.max() > 16):
+        raise MessageError(f"{where}: leaf levels outside 0..16")
+    codes, values = unpack_cells(payload[4 + m:], n, c, where)
+    span = np.left_shift(np.int64(1), 3 * levels.astype(np.int64))
+    if np.any(codes & (span - 1)) or np.any(codes[:-1] + span[:-1] > codes[1:]):
+        raise MessageError(f"{where}: leaves must be aligned to their level, sorted and disjoint")
+    return codes, levels, values

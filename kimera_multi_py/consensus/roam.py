@@ -14,6 +14,7 @@ import numpy as np
 
 from kimera_multi_py.comms.messages import RoamMap
 from kimera_multi_py.consensus.map_fusion import octree_cells, union_sorted
+from kimera_multi_py.consensus.map_wire import pack_leaves, unpack_leaves
 from kimera_multi_py.errors import MessageError
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.mapping.submaps import SubmapMap
@@ -62,22 +63,19 @@ class RoamFusion:
     def message(self, robot: int, rnd: int, frame: int) -> RoamMap:
         """The full pruned tree as ROAM publishes it."""
         t = self.tree
-        return RoamMap(robot=robot, round=rnd, frame=frame, nodes=t.num_nodes, codes=t.codes.copy(),
-                       levels=t.levels.copy(), values=t.values[:, 1:].copy())
+        return RoamMap(robot=robot, round=rnd, frame=frame, nodes=t.num_nodes, leaves=t.num_leaves,
+                       classes=t.num_classes, payload=pack_leaves(t.codes, t.levels, t.values[:, 1:]))
 
     def fuse(self, msg: RoamMap) -> int:
         """``h_i <- clip(h_i + w h_j)`` over the peer's tree expanded to full depth; returns cells."""
         k = self.tree.num_classes
-        if msg.values.shape[1] != k:
-            raise MessageError(f"RoamMap.values: expected {k} classes, got {msg.values.shape[1]}")
-        span = np.left_shift(np.int64(1), 3 * msg.levels.astype(np.int64))
-        ends = msg.codes + span
-        if np.any(msg.codes & (span - 1)) or np.any(ends[:-1] > msg.codes[1:]):
-            raise MessageError("RoamMap.codes: leaves must be aligned to their level, sorted and disjoint")
+        if msg.classes != k:
+            raise MessageError(f"RoamMap.classes: expected {k} classes, got {msg.classes}")
+        leaf_codes, levels, values = unpack_leaves(msg.payload, msg.leaves, k, "RoamMap.payload")
         peer = self.tree.empty_like()
-        rows = np.zeros((len(msg.codes), k + 1), np.int16)
-        rows[:, 1:] = msg.values
-        peer._set_arrays(msg.codes, msg.levels, rows)
+        rows = np.zeros((len(leaf_codes), k + 1), np.int16)
+        rows[:, 1:] = values
+        peer._set_arrays(leaf_codes, levels, rows)
         codes, h_j = octree_cells(peer)
         if len(codes) == 0:
             return 0

@@ -14,7 +14,8 @@ from kimera_multi_py.consensus.map_fusion import (
     records_of,
     union_sorted,
 )
-from kimera_multi_py.consensus.map_wire import pack_cells, unpack_cells
+from kimera_multi_py.consensus.map_laplacian import LaplacianState
+from kimera_multi_py.consensus.map_wire import pack_cells, pack_leaves, unpack_cells, unpack_leaves
 from kimera_multi_py.errors import MessageError
 from kimera_multi_py.geometry import make_pose, so3_exp
 from kimera_multi_py.mapping.octree_io import export_team_map
@@ -89,3 +90,27 @@ def test_team_map_files_read_back_in_octomap(tmp_path) -> None:
     assert ot.readBinary(str(tmp_path / "robot1" / "team_map.bt"))
     assert ot.size() == tree.num_nodes and ot.getNumLeafNodes() == tree.num_leaves
     assert (tmp_path / "robot1" / "team_map.ply").read_bytes().startswith(b"ply\n")
+
+
+def test_tree_leaves_survive_the_wire_and_misaligned_leaves_are_refused() -> None:
+    tree = robot_map(0).octree
+    payload = pack_leaves(tree.codes, tree.levels, tree.values[:, 1:])
+    codes, levels, values = unpack_leaves(payload, tree.num_leaves, K, "w")
+    assert np.array_equal(codes, tree.codes) and np.array_equal(levels, tree.levels)
+    assert np.array_equal(values, tree.values[:, 1:])
+    assert np.any(tree.levels > 0)  # pruned leaves were on the wire
+    bad_levels = tree.levels.copy()
+    bad_levels[np.flatnonzero(tree.levels == 0)[0]] = 3  # a voxel claiming to be a big leaf
+    with pytest.raises(MessageError, match="aligned"):
+        unpack_leaves(pack_leaves(tree.codes, bad_levels, tree.values[:, 1:]), tree.num_leaves, K, "w")
+
+
+def test_laplacian_states_split_into_messages_rebuild_the_same_copy() -> None:
+    m = robot_map(1)
+    a, b = LaplacianState(K + 1), LaplacianState(K + 1)
+    a.absorb_own(m)
+    msgs = a.message(robot=1, frame=0, degree=1, max_cells=1000)
+    assert len(msgs) > 2 and all(len(x.codes) <= 1000 for x in msgs)
+    for x in reversed(msgs):  # any order within the round
+        b.handle(x)
+    assert np.array_equal(b.copies[1].codes, a.codes) and np.array_equal(b.copies[1].values, a.values)
