@@ -224,3 +224,13 @@ def test_neighbours_within_comm_range() -> None:
     assert neighbours_within(pos, None) == {0: {1, 2}, 1: {0, 2}, 2: {0, 1}}
     with pytest.raises(ValueError, match="comm_range"):
         neighbours_within(pos, -1.0)
+
+
+def test_a_server_without_a_map_fuses_centrally_and_serves_the_team_map_back() -> None:
+    maps, nodes = team(3)
+    server = MapConsensus(9, SubmapMap(RES, K), team_size=3)
+    server.set_frame(0)
+    star = {9: {0, 1, 2}, 0: {9}, 1: {9}, 2: {9}}
+    run(MapExchange({**nodes, 9: server}, links=star), 0.0, 8)
+    assert same(snapshot(server.team_map), snapshot(centralised_team_map(maps)))
+    assert_exact(maps, nodes)
