@@ -48,6 +48,7 @@ def main() -> None:
     ap.add_argument("--tail", type=float, default=30.0, help="seconds of exchange after the last keyframe")
     ap.add_argument("--comm-range", type=float, default=None)
     ap.add_argument("--drop", type=float, default=0.0)
+    ap.add_argument("--reorder", action="store_true", help="shuffle each round's deliveries (arrival order)")
     ap.add_argument("--phi-every", type=int, default=5, help="rounds between phi samples")
     ap.add_argument("--max-keyframes", type=int, default=None, help="per robot (for quick runs)")
     ap.add_argument("--json", action="store_true")
@@ -70,7 +71,7 @@ def main() -> None:
     def links(now: float) -> dict[int, set[int]]:
         return neighbours_within(position, args.comm_range)
 
-    nets = {m: MapExchange(nodes[m], links=links, drop=args.drop, seed=args.seed) for m in modes}
+    nets = {m: MapExchange(nodes[m], links=links, drop=args.drop, reorder=args.reorder, seed=args.seed) for m in modes}
     reports = {m: TeamMapReport(m, 0) for m in modes}
     wall = dict.fromkeys(modes, 0.0)
     prior = maps[0].octree.model.prior_row
@@ -121,7 +122,7 @@ def main() -> None:
     roam_ref = {r: nodes["roam"][r].roam_bytes for r in robots} if "roam" in nodes else None
     out: dict[str, object] = {
         "scenario": cfg.name, "robots": len(robots), "seed": args.seed, "keyframes": keyframes,
-        "period_s": period, "tail_s": args.tail, "comm_range": args.comm_range, "drop": args.drop,
+        "period_s": period, "tail_s": args.tail, "comm_range": args.comm_range, "drop": args.drop, "reorder": args.reorder,
         "rounds": rounds, "wall_s": round(total_wall, 1), "centralised_cells": int(len(ref[0])),
         "centralised_quality": map_quality(ref_tree, np.eye(4), centers, gt),
         "single_robot_quality": {str(r): map_quality(maps[r].octree, np.eye(4), centers, gt) for r in robots},
