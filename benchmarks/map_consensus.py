@@ -122,7 +122,8 @@ def main() -> None:
     roam_ref = {r: nodes["roam"][r].roam_bytes for r in robots} if "roam" in nodes else None
     out: dict[str, object] = {
         "scenario": cfg.name, "robots": len(robots), "seed": args.seed, "keyframes": keyframes,
-        "period_s": period, "tail_s": args.tail, "comm_range": args.comm_range, "drop": args.drop, "reorder": args.reorder,
+        "period_s": period, "tail_s": args.tail, "comm_range": args.comm_range, "drop": args.drop,
+        "reorder": args.reorder,
         "rounds": rounds, "wall_s": round(total_wall, 1), "centralised_cells": int(len(ref[0])),
         "centralised_quality": map_quality(ref_tree, np.eye(4), centers, gt),
         "single_robot_quality": {str(r): map_quality(maps[r].octree, np.eye(4), centers, gt) for r in robots},
