@@ -234,3 +234,28 @@ def test_a_server_without_a_map_fuses_centrally_and_serves_the_team_map_back() -
     run(MapExchange({**nodes, 9: server}, links=star), 0.0, 8)
     assert same(snapshot(server.team_map), snapshot(centralised_team_map(maps)))
     assert_exact(maps, nodes)
+
+
+def test_a_delta_on_top_of_a_lost_one_waits_until_the_lost_cells_are_resent() -> None:
+    maps, nodes = team(2)
+    a, b = nodes[0], nodes[1]
+    for n in nodes.values():
+        n.set_neighbours({0, 1})
+
+    def deliver(out, drop_evidence=False):
+        for m in out:
+            if not (drop_evidence and isinstance(m, SubmapEvidence)):
+                b.handle(m)
+
+    b.step(0.0)
+    deliver(a.step(0.0))
+    for n in nodes.values():  # summaries after round 0
+        for m in n.step(1.0):
+            (b if n is a else a).handle(m)
+    add_scan(maps[0], 1, np.array([0.3, 0.4, 1.2]), seed=91)
+    deliver(a.step(2.0), drop_evidence=True)  # version 2 of submap 1 is lost
+    add_scan(maps[0], 1, np.array([-0.3, 0.1, 1.1]), seed=92)
+    deliver(a.step(3.0))  # version 3 sent on top of version 2, which b does not have
+    run(MapExchange(nodes), 4.0, 6)
+    assert_exact(maps, nodes)
+    assert b.ignored["evidence_gap"] == 1
