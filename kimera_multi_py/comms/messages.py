@@ -619,6 +619,96 @@ class MapDelta(Message):
     scale: float = _f(Float(lo=1e-12))
 
 
+@message("SubmapEvidence", keys.MAP_EVIDENCE)
+class SubmapEvidence(Message):
+    """Map consensus (exact): the cells of ``source``'s submap ``submap`` that changed after
+    version ``base``, as they are at ``version`` (absolute values, so re-applying is harmless).
+
+    ``payload`` holds ``cells`` Morton codes on the submap's reference grid and their integer
+    evidence (fixed-point log-odds sums) of ``classes`` classes 1..K, losslessly compressed
+    (:mod:`kimera_multi_py.consensus.map_wire`). A robot at a version in ``[base, version)``
+    applies it; relayed unchanged except for ``robot`` (the sender).
+    """
+
+    robot: int = robot_id()
+    source: int = robot_id()
+    submap: int = count()
+    base: int = count()
+    version: int = count()
+    cells: int = count()
+    classes: int = _f(Int(1, 255))
+    payload: np.ndarray = arr("uint8", "b")
+
+
+@message("SubmapPoses", keys.MAP_POSES)
+class SubmapPoses(Message):
+    """Map consensus: where ``source``'s submaps are (version ``version`` of its pose table).
+
+    ``frame`` is the root robot of the world frame the poses ``T`` are in; ``T_ref`` are the
+    poses at which each submap's grid was laid down. Relayed unchanged except for ``robot``.
+    """
+
+    robot: int = robot_id()
+    source: int = robot_id()
+    version: int = count()
+    frame: int = robot_id()
+    submaps: np.ndarray = arr("int64", "n", lo=0)
+    T_ref: np.ndarray = arr("float64", "n", 4, 4)
+    T: np.ndarray = arr("float64", "n", 4, 4)
+
+
+@message("MapVersions", keys.MAP_VERSIONS)
+class MapVersions(Message):
+    """Map consensus: the versions of every submap and pose table a robot holds (a summary its
+    neighbours answer with what it lacks, which also recovers lost messages)."""
+
+    robot: int = robot_id()
+    frame: int = robot_id()
+    sources: np.ndarray = arr("int32", "m", lo=0, hi=MAX_ROBOT_ID)
+    submaps: np.ndarray = arr("int64", "m", lo=0)
+    versions: np.ndarray = arr("int64", "m", lo=0)
+    pose_sources: np.ndarray = arr("int32", "p", lo=0, hi=MAX_ROBOT_ID)
+    pose_versions: np.ndarray = arr("int64", "p", lo=0)
+
+
+@message("MapState", keys.MAP_STATE)
+class MapState(Message):
+    """Map consensus (laplacian): a robot's consensus state at ``round`` in frame ``frame``.
+
+    ``values[:, 0]`` is the averaged support count, ``values[:, 1:]`` the averaged evidence of
+    classes 1..K; ``full`` marks a refresh of every cell, otherwise only the cells changed since
+    the last round travel. A round's cells may span several messages of the same ``round``.
+    ``degree`` is the sender's neighbour count (Metropolis-Hastings weights).
+    """
+
+    robot: int = robot_id()
+    round: int = count()
+    frame: int = robot_id()
+    degree: int = count()
+    full: bool = _f(Bool())
+    codes: np.ndarray = arr("int64", "n", lo=0)
+    values: np.ndarray = arr("float64", "n", "c")
+
+
+@message("RoamMap", keys.MAP_ROAM)
+class RoamMap(Message):
+    """Map consensus (roam baseline): a robot's full pruned tree, as ROAM's code sends it.
+
+    ``payload`` holds ``leaves`` leaves in Morton order (start codes, levels, fixed-point rows of
+    ``classes`` classes 1..K), losslessly compressed so that a large tree fits in one message;
+    ``nodes`` is the tree's node count with inner nodes, for which ROAM's own (uncompressed)
+    wire format pays 36 B each.
+    """
+
+    robot: int = robot_id()
+    round: int = count()
+    frame: int = robot_id()
+    nodes: int = count()
+    leaves: int = count()
+    classes: int = _f(Int(1, 255))
+    payload: np.ndarray = arr("uint8", "b")
+
+
 @message("ObjectUpdate", keys.OBJECTS)
 class ObjectUpdate(Message):
     """Object landmarks of ``robot`` (in the world frame of robot ``frame``).

@@ -467,6 +467,20 @@ class SemanticOctree:
         self._blocks: dict[int, _Block] = {}
         self._flat_cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
+    def options(self) -> dict[str, object]:
+        """The keyword arguments that build an empty octree like this one."""
+        return {
+            **self.model.params(),
+            "dynamic_classes": self.dynamic_classes,
+            "top_k": self.top_k,
+            "free_margin": self.free_margin,
+            "surface_offset": self.surface_offset,
+        }
+
+    def empty_like(self, **overrides: object) -> SemanticOctree:
+        """An empty octree with this one's resolution, classes and options (``overrides`` win)."""
+        return SemanticOctree(self.resolution, self.num_classes, **{**self.options(), **overrides})  # type: ignore[arg-type]
+
     # ---- read access ----------------------------------------------------------------------
     def _flat(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All blocks' arrays concatenated in Morton order (cached until the next change)."""

@@ -42,7 +42,26 @@ class Submap:
     @property
     def correction(self) -> np.ndarray:
         """``C = T T_ref^-1``: how the submap moved since its cells were computed."""
-        return self.T @ inverse(self.T_ref)
+        return correction(self.T, self.T_ref)
+
+
+def correction(T: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
+    """``C = T T_ref^-1``: how a submap created at ``T_ref`` and now at ``T`` moved."""
+    return np.asarray(T, dtype=np.float64) @ inverse(np.asarray(T_ref, dtype=np.float64))
+
+
+def map_codes(ref_codes: np.ndarray, C: np.ndarray, resolution: float) -> np.ndarray:
+    """World codes of reference-grid cells moved by ``C`` (identity keeps them exactly).
+
+    Cell centres are moved and re-binned; this is the one definition every fusion of submap
+    evidence uses (a robot's map, the team map and the centralised fusion), so that all of them
+    put a submap's cells in the same world cells.
+    """
+    if len(ref_codes) == 0 or np.allclose(C, np.eye(4), rtol=0.0, atol=1e-12):
+        return np.array(ref_codes, dtype=np.int64)
+    centers = morton.node_centers(ref_codes, np.zeros(len(ref_codes), np.int8), resolution)
+    moved = transform_points(C, centers)
+    return morton.encode(morton.points_to_keys(moved, resolution))
 
 
 def _group_sum(codes: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -188,17 +207,13 @@ class SubmapMap:
             [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
         )
         C_old = s.correction
-        C_new = new_pose @ inverse(s.T_ref)
+        C_new = correction(new_pose, s.T_ref)
         d = transform_points(C_new, corners) - transform_points(C_old, corners)
         return float(np.linalg.norm(d, axis=1).max())
 
     def _map_codes(self, ref_codes: np.ndarray, C: np.ndarray) -> np.ndarray:
-        """World codes of reference-grid cells moved by ``C`` (identity keeps them exactly)."""
-        if len(ref_codes) == 0 or np.allclose(C, np.eye(4), rtol=0.0, atol=1e-12):
-            return ref_codes.copy()
-        centers = morton.node_centers(ref_codes, np.zeros(len(ref_codes), np.int8), self.resolution)
-        moved = transform_points(C, centers)
-        return morton.encode(morton.points_to_keys(moved, self.resolution))
+        """World codes of reference-grid cells moved by ``C`` (see :func:`map_codes`)."""
+        return map_codes(ref_codes, C, self.resolution)
 
     def _apply(self, codes: np.ndarray, rows: np.ndarray, support: np.ndarray) -> None:
         """Add rows and support counts at (possibly repeated) world codes; refresh the view."""

@@ -28,15 +28,22 @@ def submap_poses():
     }
 
 
-def build(skip=(), seed=0, **kw):
-    """Three submaps of two scans each; scans are given in each keyframe's sensor frame."""
+def build(skip=(), seed=0, moved=None, offset=(0.0, 0.0, 0.0), **kw):
+    """Three submaps of two scans each; scans are given in each keyframe's sensor frame.
+
+    ``moved`` maps a submap id to a world transform: that submap is created there instead (its
+    scans keep their pose in the submap, so they are integrated at the moved pose). ``offset``
+    moves every sensor origin (the default ones lie on voxel faces, where a ray cast from a
+    shifted origin may start one voxel over through rounding).
+    """
     m = SubmapMap(RES, K, dynamic_classes=[HUMAN], **kw)
+    moved = moved or {}
     for sid, T_ws in submap_poses().items():
         if sid in skip:
             continue
-        m.new_submap(sid, T_ws)
+        m.new_submap(sid, moved.get(sid, np.eye(4)) @ T_ws)
         for j in range(2):
-            o = SENSORS[2 * sid + j]
+            o = SENSORS[2 * sid + j] + np.asarray(offset)
             p, lab = room_scan(o, 3000, seed=seed + 10 * sid + j, noise=0.1)
             T_w_sensor = make_pose(so3_exp([0.1 * j, 0, 0.5 * sid]), o)
             T_s_sensor = inverse(T_ws) @ T_w_sensor
@@ -87,32 +94,15 @@ def test_moving_a_submap_away_and_back_restores_the_map_bit_for_bit():
 
 def test_moving_by_whole_voxels_equals_integrating_there():
     shift = make_pose(None, [0.3, -0.2, 0.1])
-    m = build()
-    m.move_submap(0, shift @ m.submaps[0].T)
-    ref = SubmapMap(RES, K, dynamic_classes=[HUMAN])
-    # the same scans, integrated with submap 0 created where it was moved to
-    orig = build()
-    for sid in (0, 1, 2):
-        ref.new_submap(sid, orig.submaps[sid].T)
-    for sid in (1, 2):
-        ref.submaps[sid] = orig.submaps[sid]
-    ref._fused = orig._fused
-    ref.octree = orig.octree
-    w0, rows0 = orig.contribution(0)
-    ref._apply(w0, -rows0, -np.ones(len(w0), np.int32))
-    shifted = transform_points(shift, _centers(w0))
-    from kimera_multi_py.mapping import morton
-
-    ref._apply(
-        morton.encode(morton.points_to_keys(shifted, RES)), rows0, np.ones(len(w0), np.int32)
-    )
+    mid = (0.05, 0.05, 0.05)  # sensor origins at voxel centres
+    m = build(offset=mid)
+    assert m.move_submap(0, shift @ m.submaps[0].T)
+    # independently: a fresh map whose submap 0 is created at the shifted pose, its scans
+    # ray-cast there from scratch
+    ref = build(moved={0: shift}, offset=mid)
     assert same(snapshot(ref.octree), snapshot(m.octree))
-
-
-def _centers(codes):
-    from kimera_multi_py.mapping import morton
-
-    return morton.node_centers(codes, np.zeros(len(codes), np.int8), RES)
+    assert same(ref.evidence(), m.evidence())
+    assert not same(snapshot(build(offset=mid).octree), snapshot(m.octree))
 
 
 def test_removing_a_submap_equals_never_adding_it():

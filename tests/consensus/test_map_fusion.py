@@ -1,0 +1,116 @@
+"""Team-map fusion pieces: the wire form of cells, order-free fusion, team-map files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kimera_multi_py.consensus.map_consensus import MapConsensus
+from kimera_multi_py.consensus.map_exchange import MapExchange
+from kimera_multi_py.consensus.map_fusion import (
+    EvidenceMap,
+    centralised_team_map,
+    octree_cells,
+    records_of,
+    union_sorted,
+)
+from kimera_multi_py.consensus.map_laplacian import LaplacianState
+from kimera_multi_py.consensus.map_wire import pack_cells, pack_leaves, unpack_cells, unpack_leaves
+from kimera_multi_py.errors import MessageError
+from kimera_multi_py.geometry import make_pose, so3_exp
+from kimera_multi_py.mapping.octree_io import export_team_map
+
+from ..mapping.helpers import K
+from .test_map_consensus import robot_map, same, snapshot
+
+
+def test_cells_survive_the_wire_and_bad_payloads_are_refused() -> None:
+    rng = np.random.default_rng(0)
+    codes = np.unique(rng.integers(0, 1 << 48, 500))
+    values = rng.integers(-32768, 32767, (len(codes), K), endpoint=True).astype(np.int16)
+    payload = pack_cells(codes, values)
+    got_codes, got_values = unpack_cells(payload, len(codes), K, "w")
+    assert np.array_equal(got_codes, codes) and np.array_equal(got_values, values)
+    assert unpack_cells(pack_cells(np.zeros(0, np.int64), np.zeros((0, K), np.int16)), 0, K, "w")[0].size == 0
+    with pytest.raises(MessageError, match="payload does not hold"):
+        unpack_cells(payload, len(codes) + 1, K, "w")  # a lie about the size
+    with pytest.raises(MessageError, match="corrupt"):
+        unpack_cells(np.frombuffer(b"not zlib at all", np.uint8), 1, K, "w")
+    with pytest.raises(ValueError, match="sorted"):
+        pack_cells(codes[::-1], values)
+
+
+def test_evidence_map_does_not_depend_on_the_order_of_updates() -> None:
+    maps = {r: robot_map(r) for r in range(3)}
+    records = [rec for r in maps for rec in records_of(r, maps[r])]
+    ref = centralised_team_map(maps)
+    rng = np.random.default_rng(1)
+    for trial in range(3):
+        em = EvidenceMap(maps[0].octree)
+        ops = []
+        for rec in records:
+            half = len(rec.codes) // 2
+            ops += [("cells", rec, slice(0, half)), ("cells", rec, slice(half, None)), ("pose", rec, None)]
+        for k in rng.permutation(len(ops)):
+            kind, rec, sl = ops[k]
+            if kind == "cells":
+                em.set_cells(rec.key, rec.codes[sl], rec.rows[sl])
+            else:
+                em.set_pose(rec.key, rec.T_ref, make_pose(so3_exp([0, 0, 0.3]), [0.5, 0, 0]) @ rec.T)
+                em.set_active(rec.key, True)
+                em.set_pose(rec.key, rec.T_ref, rec.T)  # moved away and back: exact
+        assert same(snapshot(em.octree), snapshot(ref)), trial
+        codes, rows, _ = em.evidence()
+        assert np.array_equal(codes, octree_cells(ref)[0])
+    em.set_active(records[0].key, False)
+    assert not same(snapshot(em.octree), snapshot(ref))
+
+
+def test_union_sorted_matches_numpy() -> None:
+    a, b = np.array([1, 4, 9]), np.array([2, 4, 10, 11])
+    assert union_sorted(a, b).tolist() == np.union1d(a, b).tolist()
+    assert union_sorted(a, a[:2]).tolist() == a.tolist()
+    assert union_sorted().size == 0
+
+
+def test_team_map_files_read_back_in_octomap(tmp_path) -> None:
+    import pyoctomap
+
+    maps = {r: robot_map(r) for r in range(2)}
+    nodes = {r: MapConsensus(r, maps[r], team_size=2) for r in maps}
+    for n in nodes.values():
+        n.set_frame(0)
+    net = MapExchange(nodes)
+    for k in range(4):
+        net.round(float(k))
+    tree = nodes[1].team_map
+    out = export_team_map(tree, tmp_path / "robot1")
+    assert out["bt_nodes"] == tree.num_nodes and out["ply_points"] > 0
+    ot = pyoctomap.OcTree(0.1)
+    assert ot.readBinary(str(tmp_path / "robot1" / "team_map.bt"))
+    assert ot.size() == tree.num_nodes and ot.getNumLeafNodes() == tree.num_leaves
+    assert (tmp_path / "robot1" / "team_map.ply").read_bytes().startswith(b"ply\n")
+
+
+def test_tree_leaves_survive_the_wire_and_misaligned_leaves_are_refused() -> None:
+    tree = robot_map(0).octree
+    payload = pack_leaves(tree.codes, tree.levels, tree.values[:, 1:])
+    codes, levels, values = unpack_leaves(payload, tree.num_leaves, K, "w")
+    assert np.array_equal(codes, tree.codes) and np.array_equal(levels, tree.levels)
+    assert np.array_equal(values, tree.values[:, 1:])
+    assert np.any(tree.levels > 0)  # pruned leaves were on the wire
+    bad_levels = tree.levels.copy()
+    bad_levels[np.flatnonzero(tree.levels == 0)[0]] = 3  # a voxel claiming to be a big leaf
+    with pytest.raises(MessageError, match="aligned"):
+        unpack_leaves(pack_leaves(tree.codes, bad_levels, tree.values[:, 1:]), tree.num_leaves, K, "w")
+
+
+def test_laplacian_states_split_into_messages_rebuild_the_same_copy() -> None:
+    m = robot_map(1)
+    a, b = LaplacianState(K + 1), LaplacianState(K + 1)
+    a.absorb_own(m)
+    msgs = a.message(robot=1, frame=0, degree=1, max_cells=1000)
+    assert len(msgs) > 2 and all(len(x.codes) <= 1000 for x in msgs)
+    for x in reversed(msgs):  # any order within the round
+        b.handle(x)
+    assert np.array_equal(b.copies[1].codes, a.codes) and np.array_equal(b.copies[1].values, a.values)
