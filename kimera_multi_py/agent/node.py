@@ -39,14 +39,24 @@ from kimera_multi_py.comms.messages import (
     LoopClosureRequest,
     LoopClosures,
     LoopClosuresAck,
+    MapState,
+    MapVersions,
     Message,
     PgoEpoch,
+    PublicPoses,
+    RoamMap,
+    SubmapEvidence,
+    SubmapPoses,
 )
+from kimera_multi_py.consensus.map_consensus import MapConsensus, get_map_consensus
 from kimera_multi_py.consensus.pgo import PgoParams
 from kimera_multi_py.consensus.team_pgo import ScheduleParams, TeamPgo
 from kimera_multi_py.errors import KimeraMultiError
 
 log = logging.getLogger(__name__)
+
+MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)
+MAP_MODES = ("off", "roam", "exact", "laplacian")
 
 @dataclass
 class NodeParams:
@@ -56,6 +66,7 @@ class NodeParams:
     state_period: float = 5.0  # clock s between AgentState messages (the tick's ``wall`` clock)
     resend_period: float = 5.0  # clock s between re-sends of unacknowledged closures
     server: int | None = None  # centralised mode: the server's id (then no team PGO)
+    map_consensus: str = "exact"  # off, roam, exact or laplacian (DESIGN §4.5)
 
 
 class AgentNode:
@@ -81,6 +92,15 @@ class AgentNode:
             self.pgo = TeamPgo(agent.robot, pgo_params or PgoParams(robust=True, max_rounds=600),
                                self.schedule, agent.local_graph, agent.apply_poses,
                                lambda: agent.robot_graph, self._accepted_inter)
+        if self.params.map_consensus not in MAP_MODES:
+            raise KimeraMultiError(f"map consensus: unknown mode {self.params.map_consensus!r} "
+                                   f"(available: {', '.join(MAP_MODES)})")
+        self.maps: MapConsensus | None = None
+        if self.params.map_consensus != "off":
+            self.maps = get_map_consensus(agent.robot, agent.map, self.params.map_consensus)
+        # one-hop map neighbours (None: whoever is alive; the simulation can apply a radio range)
+        self.map_neighbours: Callable[[], Iterable[int]] | None = None
+        self.frame = agent.robot  # root robot of the frame our poses are in
         self._sub: Subscription | None = None
         self._serve: Closeable | None = None
         self._presence: Stream[PresenceEvent] | None = None
@@ -183,7 +203,16 @@ class AgentNode:
             pending = self._unacked.get(msg.robot)
             if pending is not None and msg.batch >= pending.batch:
                 del self._unacked[msg.robot]
+        if isinstance(msg, MAP_MESSAGES):
+            if self.maps is not None:
+                try:
+                    self.maps.handle(msg)
+                except (KimeraMultiError, ValueError, KeyError, IndexError) as exc:
+                    self._refuse(type(msg).__name__, exc)
+            return
         if self.params.server is not None and msg.robot == self.params.server:
+            if isinstance(msg, PublicPoses) and self.agent.robot_graph:
+                self.frame = self._component_root(self.agent.robot_graph)
             await self.send(self._handle_agent(msg))
             if isinstance(msg, PgoEpoch) and msg.final and self.finished and not self.complete:
                 self.complete = True
@@ -246,12 +275,43 @@ class AgentNode:
             out.extend(self.pgo.tick(now, wall, self.alive(), self.finished, force))
             if self.pgo.completed != before:
                 self.epochs_seen += 1
+                last = self.pgo.last_pgo
+                if last is not None and last.aligned and last.local.robot_graph:
+                    self.frame = self._component_root(last.local.robot_graph)
                 out.append(self._state())
                 if self.pgo.final_done and self.finished:
                     self.complete = True
+        out.extend(self._map_step(wall))  # on the tick's clock: it goes on after the streams end
         for m in out:
             await self._publish(m)
         return len(out)
+
+    def _map_step(self, now: float) -> list[Message]:
+        if self.maps is None:
+            return []
+        if self.map_neighbours is not None:
+            neighbours = set(self.map_neighbours())
+        elif self.params.server is not None:
+            neighbours = {self.params.server} & set(self.bus.peers())
+        else:
+            neighbours = set(self.alive())
+        self.maps.set_neighbours(neighbours)
+        self.maps.set_frame(self.frame)
+        self.maps.set_team_size(len(self.alive()) + 1)
+        return self.maps.step(now)
+
+    def _component_root(self, pairs: Iterable[tuple[int, int]]) -> int:
+        """The lowest robot id connected to this one through ``pairs``."""
+        seen, todo = {self.robot}, [self.robot]
+        edges = [(int(a), int(b)) for a, b in pairs]
+        while todo:
+            r = todo.pop()
+            for a, b in edges:
+                for x, y in ((a, b), (b, a)):
+                    if x == r and y not in seen:
+                        seen.add(y)
+                        todo.append(y)
+        return min(seen)
 
     def blocked(self) -> bool:
         return self.pgo is not None and self.pgo.blocked()

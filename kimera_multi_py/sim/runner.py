@@ -31,30 +31,37 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from kimera_multi_py.agent.agent import Agent, AgentParams, KeyframeInput
-from kimera_multi_py.agent.node import AgentNode, NodeParams
+from kimera_multi_py.agent.node import MAP_MESSAGES, AgentNode, NodeParams
 from kimera_multi_py.agent.outputs import RobotOutcome, outcome_of, own_graph, write_outcome
 from kimera_multi_py.agent.team_graph import joint_graph
 from kimera_multi_py.comms.bus import Bus
+from kimera_multi_py.comms.comm_range import neighbours_within
+from kimera_multi_py.consensus.map_fusion import centralised_team_map, octree_cells
+from kimera_multi_py.consensus.map_metrics import TeamMapReport, phi, team_map_report
 from kimera_multi_py.consensus.pgo import PgoParams
 from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.consensus.workflow import open_buses
 from kimera_multi_py.errors import ConfigError
 from kimera_multi_py.eval.results import Results
-from kimera_multi_py.eval.slam import score_closures
+from kimera_multi_py.eval.slam import map_quality, score_closures
 from kimera_multi_py.eval.team import scene_graph_results, team_results, trajectory_results
 from kimera_multi_py.geometry import transform_points
 from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.tum import write_tum
+from kimera_multi_py.mapping.octree_io import export_team_map
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
 from kimera_multi_py.viz.rerun_viz import NullViz, Viz
 
 MODES = ("odometry", "distributed", "centralized")
+MAP_SETTLE_S = 15.0  # sim seconds the team keeps exchanging maps after its final optimisation
+PHI_EVERY_S = 10.0  # sim seconds between two records of the team maps' disagreement
 TRANSPORTS = ("loopback", "zenoh")
 Progress = Callable[[int, int], None]
 
@@ -99,7 +106,8 @@ class SimRunner:
                  on_progress: Progress | None = None, transport: str = "loopback",
                  pgo_period: float = 60.0, params: AgentParams | None = None,
                  pgo_params: PgoParams | None = None, join: dict[int, float] | None = None,
-                 leave: dict[int, float] | None = None) -> None:
+                 leave: dict[int, float] | None = None, map_consensus: str = "exact",
+                 comm_range: float | None = None) -> None:
         if mode not in MODES:
             raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
         if transport not in TRANSPORTS:
@@ -116,6 +124,11 @@ class SimRunner:
         # over Zenoh a round waits on the wall clock; over loopback until the network is quiet
         self.schedule = ScheduleParams(period=pgo_period, round_timeout=0.5 if transport == "zenoh" else None)
         self.clock = _SimClock()
+        self.map_mode = map_consensus
+        self.comm_range = comm_range
+        self.map_report: TeamMapReport | None = None
+        self._next_phi = 0.0
+        self._reference: Any = None
         # robot -> seconds after the others that it joins (its whole stream is shifted by that)
         self.join = {int(r): float(t) for r, t in (join or {}).items()}
         # robot -> time at which it leaves for good (its node closes; the rest of its stream is dropped)
@@ -171,7 +184,12 @@ class SimRunner:
         params = replace(self.params, server=SERVER_ID) if central else self.params
         async with open_buses(ids, self.transport, team="sim", seed=self.sim.seed) as buses:
             self.nodes = [AgentNode(Agent(r, None, params), buses[r], self.pgo_params, self.schedule,
-                                    NodeParams(server=params.server), clock=self.clock.now) for r in robots]
+                                    NodeParams(server=params.server, map_consensus=self.map_mode),
+                                    clock=self.clock.now) for r in robots]
+            if self.comm_range is not None:
+                for agent_node in self.nodes:
+                    agent_node.map_neighbours = lambda r=agent_node.robot: self._in_range(r)
+            self.map_report = TeamMapReport(self.map_mode, 0) if self.map_mode != "off" else None
             nodes: list[AgentNode | ServerNode] = list(self.nodes)
             if central:
                 self.server = ServerNode(Server(SERVER_ID, None, self.params.closure_sigmas, self.params.odom_sigmas),
@@ -197,6 +215,7 @@ class SimRunner:
                 await self._settle(nodes, buses)
                 self.tracks[kf.robot].add(kf)
                 self._step(done, kf, node.agent.poses[-1])
+                self._record_phi()
                 if self._epochs() > epochs:
                     epochs = self._epochs()
                     self._log_team(kf.stamp)
@@ -210,6 +229,10 @@ class SimRunner:
                     if self.clock.t - end > 10 * self.schedule.absent_timeout:
                         raise RuntimeError("the team stopped before its final optimisation")  # a bug
                     self.clock.t += 1.0
+            for _ in range(int(MAP_SETTLE_S)):  # map consensus relays what is still missing
+                self.clock.t += 1.0
+                await self._settle(nodes, buses)
+            self._record_phi(force=True)
             self._log_team()
             weights = self.server.server.stats.weights if self.server is not None else None
             self.outcomes = [outcome_of(n, weights) for n in self.nodes]
@@ -228,6 +251,25 @@ class SimRunner:
                 yield replace(kf, stamp=kf.stamp + dt)
 
         return heapq.merge(*(shifted(r) for r in range(self.sim.num_robots)), key=lambda kf: (kf.stamp, kf.robot))
+
+    def _in_range(self, robot: int) -> set[int]:
+        """The robots within radio range of ``robot`` now (by their true positions)."""
+        pos = {n.robot: self.tracks[n.robot].true[-1] for n in self.nodes
+               if self.tracks[n.robot].true and n._sub is not None}
+        if robot not in pos:
+            return set()
+        return neighbours_within(pos, self.comm_range)[robot]
+
+    def _record_phi(self, force: bool = False) -> None:
+        """φ between neighbouring robots' team maps, every ``PHI_EVERY_S`` of sim time."""
+        if self.map_report is None or (self.clock.t < self._next_phi and not force):
+            return
+        self._next_phi = self.clock.t + PHI_EVERY_S
+        live = [n for n in self.nodes if n.maps is not None and n._sub is not None]
+        cells = {n.robot: n.maps.team_cells() for n in live if n.maps is not None}
+        pairs = [(a.robot, b.robot) for i, a in enumerate(live) for b in live[i + 1:]]
+        self.map_report.record_phi(phi(cells, pairs, self.nodes[0].agent.map.octree.model.prior_row))
+        self.map_report.rounds += 1
 
     def _epochs(self) -> int:
         if self.server is not None:
@@ -305,9 +347,45 @@ class SimRunner:
                                       self.params.team_object_sightings))
             extra["pgo_runs"] = self._epochs()
             extra["transport"] = self.transport
-            extra["scene_graph"] = scene_graph_results(self.sim.world, self.outcomes, T_world_team, self.out_dir)
+            team_maps = None
+            if self.map_report is not None:
+                extra["map_consensus"], team_maps = self._map_results(T_world_team)
+            extra["scene_graph"] = scene_graph_results(self.sim.world, self.outcomes, T_world_team, self.out_dir,
+                                                       team_maps, self._reference_map())
         return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
+
+    def _reference_map(self) -> Any:
+        """The centralised fusion of every robot's evidence (the reference team map)."""
+        if not self.nodes:
+            return None
+        if self._reference is None:
+            self._reference = centralised_team_map({n.robot: n.agent.map for n in self.nodes})
+        return self._reference
+
+    def _map_results(self, T_world_team: np.ndarray) -> tuple[dict[str, Any], dict[int, Any]]:
+        """``results.json["map_consensus"]`` and each robot's team map."""
+        assert self.map_report is not None
+        ref = self._reference_map()
+        live = [n for n in self.nodes if n.maps is not None]
+        cells = {n.robot: n.maps.team_cells() for n in live if n.maps is not None}
+        map_topics = {m.TOPIC for m in MAP_MESSAGES}
+        sent = {n.robot: {t: int(v["bytes"]) for t, v in n.bus.counters.snapshot()["sent"].items()
+                          if t in map_topics} for n in live}
+        rep = team_map_report(self.map_mode, self.map_report.rounds, cells, octree_cells(ref),
+                              (ref.model.lo, ref.model.hi), sent,
+                              {n.robot: n.maps.roam_bytes for n in live if n.maps is not None}, self.map_report)
+        out = rep.to_dict()
+        grid = self.sim.world.gt_voxel_grid(ref.resolution)
+        centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
+        maps = {n.robot: n.maps.team_map for n in live if n.maps is not None}
+        out["team_map"] = {str(r): map_quality(t, T_world_team, centers, gt) for r, t in maps.items()}
+        out["centralised_fusion"] = map_quality(ref, T_world_team, centers, gt)
+        out["comm_range"] = self.comm_range
+        if self.out_dir is not None:
+            for r, t in maps.items():
+                export_team_map(t, self.out_dir / f"robot{r}")
+        return out, maps
 
     def _write_results(self, results: Results) -> None:
         if self.out_dir is None:
