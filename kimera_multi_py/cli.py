@@ -92,6 +92,9 @@ def sim(
     rerun: Annotated[bool, typer.Option("--rerun/--no-rerun", help="Write OUT/recording.rrd.")] = True,
     join: Annotated[list[str] | None, typer.Option("--join", help="I@T: robot I joins T s after the others "
                                                                    "(repeatable).")] = None,
+    map_consensus: Annotated[str, typer.Option("--map-consensus", help="off, roam, exact or laplacian.")] = "exact",
+    comm_range: Annotated[float | None, typer.Option("--comm-range", help="Radio range (m) for map "
+                                                                          "traffic; default unlimited.")] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Run the multi-robot simulation and evaluate it against ground truth."""
@@ -107,7 +110,8 @@ def sim(
                       TimeElapsedColumn(), console=err_console, transient=False) as progress:
             task = progress.add_task(f"{cfg.name} x{len(cfg.robots)}", total=None)
             runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz, transport=transport,
-                               join=dict(_robot_at(j, "join") for j in join or []),
+                               join=dict(_robot_at(j, "join") for j in join or []), map_consensus=map_consensus,
+                               comm_range=comm_range,
                                on_progress=lambda done, total: progress.update(task, completed=done, total=total))
             results = runner.run()
     except KimeraMultiError as exc:

@@ -17,6 +17,7 @@ Listen = Annotated[list[str] | None, typer.Option("--listen", help="Zenoh endpoi
 ZenohConfig = Annotated[Path | None, typer.Option("--zenoh-config", help="Zenoh JSON5 config (TLS, auth, ...).")]
 Team = Annotated[str, typer.Option("--team", help="Team id: teams on one network never mix.")]
 Verbose = Annotated[bool, typer.Option("--verbose", "-v")]
+MapMode = Annotated[str, typer.Option("--map-consensus", help="off, roam, exact or laplacian.")]
 
 
 def _rate(value: str) -> float:
@@ -53,16 +54,17 @@ def register(app: typer.Typer) -> None:
         resume: Annotated[bool, typer.Option("--resume", help="Restore OUT/robotI/checkpoint.kmc.")] = False,
         centralized: Annotated[bool, typer.Option("--centralized", help="A server optimises the team.")] = False,
         pgo_period: Annotated[float, typer.Option(help="Team-time seconds between PGO epochs.")] = 60.0,
+        map_consensus: MapMode = "exact",
         verbose: Verbose = False,
     ) -> None:
-        """Run one robot: its keyframes, loop closures, distributed PGO and outputs."""
+        """Run one robot: its keyframes, loop closures, distributed PGO, team map and outputs."""
         from kimera_multi_py.team.process import AgentJob, run_agent
 
         _setup_logging(verbose)
         try:
             conn = _connection(team, connect, listen, zenoh_config, "client" if connect and not listen else None)
             summary = run_agent(AgentJob(robot, source, out, conn, _rate(rate), checkpoint_every, resume,
-                                         centralized, pgo_period))
+                                         centralized, pgo_period, map_consensus))
         except KimeraMultiError as exc:
             raise fail(exc) from None
         console.print(f"robot {summary['robot']}: {summary['keyframes']} keyframes, {summary['epochs']} PGO epochs, "
@@ -114,6 +116,7 @@ def register(app: typer.Typer) -> None:
                                                                        "stream reaches T s.")] = None,
         checkpoint_every: Annotated[float, typer.Option(help="Seconds between agent checkpoints.")] = 5.0,
         timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 1800.0,
+        map_consensus: MapMode = "exact",
         verbose: Verbose = False,
     ) -> None:
         """Start a router and N agent processes (and the server) on 127.0.0.1, then evaluate."""
@@ -124,7 +127,7 @@ def register(app: typer.Typer) -> None:
         try:
             job = LaunchJob(scenario, robots, seed, mode, out, _rate(rate), [parse_kill(k) for k in kill or []],
                             dict(_robot_at(j, "join") for j in join or []), checkpoint_every, timeout=timeout,
-                            verbose=verbose)
+                            verbose=verbose, map_consensus=map_consensus)
             with Live(_table({}), console=console, refresh_per_second=4, transient=False) as live:
                 results = launch(job, lambda views: live.update(_table(views)))
         except KimeraMultiError as exc:

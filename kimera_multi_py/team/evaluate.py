@@ -9,10 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from kimera_multi_py.agent.outputs import read_outcome
-from kimera_multi_py.errors import DatasetError
+from kimera_multi_py.consensus.map_fusion import octree_cells
+from kimera_multi_py.errors import DatasetError, MapError
 from kimera_multi_py.eval.results import Results
+from kimera_multi_py.eval.slam import map_quality
 from kimera_multi_py.eval.team import scene_graph_results, team_results, trajectory_results
 from kimera_multi_py.io.tum import write_tum
+from kimera_multi_py.mapping.octree_io import load_octree
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.sim.runner import agent_params
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Simulation
@@ -27,6 +31,35 @@ def _server_weights(run_dir: Path) -> dict[tuple[int, int, int, int], float] | N
         return {(int(a), int(ka), int(b), int(kb)): float(w) for a, ka, b, kb, w in rows}
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise DatasetError(f"{path}: malformed server weights ({exc!r})") from None
+
+
+def _team_maps(run_dir: Path, robots: list[int]) -> dict[int, SemanticOctree]:
+    out = {}
+    for r in robots:
+        path = run_dir / f"robot{r}" / "team_map.kmo"
+        if path.exists():
+            try:
+                out[r] = load_octree(path)
+            except MapError as exc:
+                raise DatasetError(f"{path}: {exc}") from None
+    return out
+
+
+def team_map_figures(world: object, maps: dict[int, SemanticOctree], T: np.ndarray) -> dict[str, object]:
+    """Each robot's team map against the truth, and how far the robots' team maps agree (the
+    fraction of robot 0's cells whose values another robot holds identically)."""
+    grid = world.gt_voxel_grid(next(iter(maps.values())).resolution)  # type: ignore[attr-defined]
+    centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
+    first = min(maps)
+    ref_codes, ref_rows = octree_cells(maps[first])
+    same = {}
+    for r, tree in sorted(maps.items()):
+        codes, rows = octree_cells(tree)
+        common, ia, ib = np.intersect1d(ref_codes, codes, return_indices=True)
+        equal = np.all(ref_rows[ia] == rows[ib], axis=1).sum() if len(common) else 0
+        same[str(r)] = float(equal / max(len(ref_codes), len(codes), 1))
+    return {"team_map": {str(r): map_quality(t, T, centers, gt) for r, t in sorted(maps.items())},
+            f"identical_to_robot{first}": same}
 
 
 def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str, wall_s: float) -> Results:
@@ -50,7 +83,10 @@ def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str,
                                                  agent_params(cfg).team_object_sightings))
     extra["pgo_runs"] = max(o.pgo_epochs for o in outcomes)
     extra["transport"] = "zenoh-processes"
-    extra["scene_graph"] = scene_graph_results(sim.world, outcomes, T, run_dir)
+    team_maps = _team_maps(run_dir, [o.robot for o in outcomes])
+    if team_maps:
+        extra["map_consensus"] = team_map_figures(sim.world, team_maps, T)
+    extra["scene_graph"] = scene_graph_results(sim.world, outcomes, T, run_dir, team_maps or None)
     for r, plan in enumerate(sim.plans):
         write_tum(run_dir / f"robot{r}_gt.tum", np.asarray(plan.stamps), plan.poses)
     return Results(scenario=cfg.name, mode=mode, seed=sim.seed, robots=robots, team=team,

@@ -64,6 +64,7 @@ class LaunchJob:
     timeout: float = 1800.0
     team: str = "t0"
     verbose: bool = False
+    map_consensus: str = "exact"
 
 
 @dataclass
@@ -132,7 +133,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     def agent_args(r: int, resume: bool) -> list[str]:
         args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}",
                 "--out", str(out), "--rate", str(job.rate), "--checkpoint-every", str(job.checkpoint_every),
-                "--pgo-period", str(job.pgo_period), *conn]
+                "--pgo-period", str(job.pgo_period), "--map-consensus", job.map_consensus, *conn]
         if job.mode == "centralized":
             args.append("--centralized")
         return args + (["--resume"] if resume else [])

@@ -34,6 +34,7 @@ from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.errors import ConfigError
 from kimera_multi_py.io.g2o import write_g2o
+from kimera_multi_py.mapping.octree_io import export_team_map, save_octree
 from kimera_multi_py.sim.runner import agent_params
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,7 @@ class AgentJob:
     resume: bool = False
     centralized: bool = False
     pgo_period: float = 60.0
+    map_consensus: str = "exact"
 
 
 def run_agent(job: AgentJob) -> dict[str, Any]:
@@ -101,7 +103,7 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     schedule = ScheduleParams(period=job.pgo_period, round_timeout=0.5, final_grace=2.0)
     bus = job.connection.bus(job.robot)
     node = AgentNode(agent, bus, PgoParams(robust=True, max_rounds=600), schedule,
-                     NodeParams(server=params.server, state_period=1.0))
+                     NodeParams(server=params.server, state_period=1.0, map_consensus=job.map_consensus))
     if node.pgo is not None:
         node.pgo.epoch = node.pgo.completed = int(extra.get("epoch", 0))
     last = time.monotonic()
@@ -114,9 +116,14 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
 
     try:
         await node.start()
-        await node.run(iter(source), rate=job.rate, on_keyframe=on_keyframe)
+        # with map consensus, linger a few map periods so the last evidence is relayed
+        await node.run(iter(source), rate=job.rate, on_keyframe=on_keyframe,
+                       linger=2.0 if node.maps is None else 6.0)
         save_checkpoint(ckpt, agent, _node_state(node, source))
-        write_outcome(job.out_dir, outcome_of(node), own_graph(agent))
+        d = write_outcome(job.out_dir, outcome_of(node), own_graph(agent))
+        if node.maps is not None:
+            export_team_map(node.maps.team_map, d)
+            save_octree(node.maps.team_map, d / "team_map.kmo")
     finally:
         await node.close()
         await bus.close()
