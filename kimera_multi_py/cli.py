@@ -95,6 +95,7 @@ def sim(
     map_consensus: Annotated[str, typer.Option("--map-consensus", help="off, roam, exact or laplacian.")] = "exact",
     comm_range: Annotated[float | None, typer.Option("--comm-range", help="Radio range (m) for map "
                                                                           "traffic; default unlimited.")] = None,
+    drop: Annotated[float, typer.Option("--drop", help="Loopback: drop this fraction of messages.")] = 0.0,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Run the multi-robot simulation and evaluate it against ground truth."""
@@ -111,7 +112,7 @@ def sim(
             task = progress.add_task(f"{cfg.name} x{len(cfg.robots)}", total=None)
             runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz, transport=transport,
                                join=dict(_robot_at(j, "join") for j in join or []), map_consensus=map_consensus,
-                               comm_range=comm_range,
+                               comm_range=comm_range, drop=drop,
                                on_progress=lambda done, total: progress.update(task, completed=done, total=total))
             results = runner.run()
     except KimeraMultiError as exc:

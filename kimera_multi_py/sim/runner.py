@@ -107,7 +107,7 @@ class SimRunner:
                  pgo_period: float = 60.0, params: AgentParams | None = None,
                  pgo_params: PgoParams | None = None, join: dict[int, float] | None = None,
                  leave: dict[int, float] | None = None, map_consensus: str = "exact",
-                 comm_range: float | None = None) -> None:
+                 comm_range: float | None = None, drop: float = 0.0) -> None:
         if mode not in MODES:
             raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
         if transport not in TRANSPORTS:
@@ -125,6 +125,7 @@ class SimRunner:
         self.schedule = ScheduleParams(period=pgo_period, round_timeout=0.5 if transport == "zenoh" else None)
         self.clock = _SimClock()
         self.map_mode = map_consensus
+        self.drop = drop
         self.comm_range = comm_range
         self.map_report: TeamMapReport | None = None
         self._next_phi = 0.0
@@ -182,7 +183,7 @@ class SimRunner:
         central = self.mode == "centralized"
         ids = robots + ([SERVER_ID] if central else [])
         params = replace(self.params, server=SERVER_ID) if central else self.params
-        async with open_buses(ids, self.transport, team="sim", seed=self.sim.seed) as buses:
+        async with open_buses(ids, self.transport, drop=self.drop, team="sim", seed=self.sim.seed) as buses:
             self.nodes = [AgentNode(Agent(r, None, params), buses[r], self.pgo_params, self.schedule,
                                     NodeParams(server=params.server, map_consensus=self.map_mode),
                                     clock=self.clock.now) for r in robots]

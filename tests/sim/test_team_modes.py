@@ -43,6 +43,22 @@ def test_team_results_have_the_fields_and_the_pipeline_ran(runs):
     assert "map" not in runs["odometry"]
 
 
+def test_every_robot_ends_with_the_centralised_fusion_of_all_evidence(runs, tmp_path_factory):
+    """Exact map consensus inside the nodes: each robot's team map equals the centralised fusion of
+    every robot's evidence, value for value, for a small fraction of ROAM's bytes."""
+    mc = runs["distributed"]["map_consensus"]
+    assert mc["mode"] == "exact" and mc["rounds"] >= 2
+    for robot in ("0", "1"):
+        assert mc["agreement"][robot]["label"] == 1.0 and mc["agreement"][robot]["identical"] == 1.0
+        assert mc["team_map"][robot] == mc["centralised_fusion"]
+        # the team map knows at least what the robot's own map knows
+        assert mc["team_map"][robot]["observed_cells"] >= runs["distributed"]["map"][robot]["observed_cells"]
+    assert mc["phi"][-1] == 0.0
+    assert 0 < mc["bytes_ratio_vs_roam"] <= 0.1
+    sg = runs["distributed"]["scene_graph"]
+    assert sg["agree"]["places"] and sg["agree"]["rooms"]  # graphs built from one team map match
+
+
 def test_same_seed_same_team_metrics(runs, tmp_path):
     SimRunner(load_scenario(TINY), seed=0, mode="centralized", out_dir=tmp_path).run()
     again = json.loads((tmp_path / "results.json").read_text())
