@@ -269,8 +269,18 @@ class SimRunner:
         live = [n for n in self.nodes if n.maps is not None and n._sub is not None]
         cells = {n.robot: n.maps.team_cells() for n in live if n.maps is not None}
         pairs = [(a.robot, b.robot) for i, a in enumerate(live) for b in live[i + 1:]]
-        self.map_report.record_phi(phi(cells, pairs, self.nodes[0].agent.map.octree.model.prior_row))
+        value = phi(cells, pairs, self.nodes[0].agent.map.octree.model.prior_row)
+        self.map_report.record_phi(value)
         self.map_report.rounds += 1
+        self.viz.log_scalar("map_consensus/phi", self.clock.t, value["phi"])
+        if force and not isinstance(self.viz, NullViz):  # the end: each team map, placed like the team
+            T = self.tracks[0].true[0] if self.tracks[0].true else np.eye(4)
+            for n in live:
+                assert n.maps is not None
+                tm = n.maps.team_map
+                lv, occ = tm.leaves(), tm.occupied_leaves()
+                self.viz.log_voxels(f"team_map/r{n.robot}", self.clock.t, transform_points(T, lv.centers[occ]),
+                                    np.argmax(lv.logodds[occ], axis=1))
 
     def _epochs(self) -> int:
         if self.server is not None:

@@ -25,6 +25,8 @@ class Viz(Protocol):
                      points_sensor: np.ndarray, labels: np.ndarray) -> None: ...
     def log_team(self, stamp: float, trajectories: list[np.ndarray], closures: Closures, voxels: Voxels,
                  objects: Boxes) -> None: ...
+    def log_scalar(self, path: str, stamp: float, value: float) -> None: ...
+    def log_voxels(self, path: str, stamp: float, centers: np.ndarray, labels: np.ndarray) -> None: ...
     def close(self) -> None: ...
 
 
@@ -40,6 +42,12 @@ class NullViz:
 
     def log_team(self, stamp: float, trajectories: list[np.ndarray], closures: Closures, voxels: Voxels,
                  objects: Boxes) -> None:
+        pass
+
+    def log_scalar(self, path: str, stamp: float, value: float) -> None:
+        pass
+
+    def log_voxels(self, path: str, stamp: float, centers: np.ndarray, labels: np.ndarray) -> None:
         pass
 
     def close(self) -> None:
@@ -103,6 +111,17 @@ class RerunViz:
         if len(c):
             self.rec.log("team/objects", rr.Boxes3D(centers=c, sizes=size, colors=CLASS_COLORS[lab],
                                                     labels=[CLASS_NAMES[i] for i in lab]))
+
+    def log_scalar(self, path: str, stamp: float, value: float) -> None:
+        """One point of a time series (a plot in the viewer), e.g. the team maps' disagreement φ."""
+        self.rec.set_time("sim", duration=float(stamp))
+        self.rec.log(path, self.rr.Scalars(float(value)))
+
+    def log_voxels(self, path: str, stamp: float, centers: np.ndarray, labels: np.ndarray) -> None:
+        """Occupied cells coloured by class, e.g. a robot's team map (world frame)."""
+        self.rec.set_time("sim", duration=float(stamp))
+        if len(centers):
+            self.rec.log(path, self.rr.Points3D(centers, colors=CLASS_COLORS[labels], radii=0.05))
 
     def close(self) -> None:
         self.rec.flush()
