@@ -25,7 +25,7 @@ from kimera_multi_py.sim import load_scenario
 from kimera_multi_py.sim.runner import SimRunner
 cfg = load_scenario({scenario!r}, robots={robots})
 with tempfile.TemporaryDirectory() as d:
-    res = SimRunner(cfg, seed={seed}, mode={mode!r}, out_dir=d).run().to_dict()
+    res = SimRunner(cfg, seed={seed}, mode={mode!r}, out_dir=d, map_consensus={map_consensus!r}).run().to_dict()
 n = len(res["robots"])
 print(json.dumps({{
     "robots": n, "keyframes": res["team"]["keyframes"], "sim_seconds": res["sim_seconds"],
@@ -41,8 +41,9 @@ print(json.dumps({{
 """
 
 
-def run_one(scenario: str, robots: int, seed: int, mode: str) -> dict:
-    code = _CHILD.format(repo=str(REPO), scenario=scenario, robots=robots, seed=seed, mode=mode)
+def run_one(scenario: str, robots: int, seed: int, mode: str, map_consensus: str) -> dict:
+    code = _CHILD.format(repo=str(REPO), scenario=scenario, robots=robots, seed=seed, mode=mode,
+                         map_consensus=map_consensus)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -53,9 +54,13 @@ def main() -> None:
     ap.add_argument("--robots", type=int, nargs="+", default=[2, 4, 8])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--mode", default="distributed")
+    ap.add_argument("--map-consensus", default="exact", help="off, roam, exact or laplacian")
     ap.add_argument("--json", action="store_true", help="print the JSON summary only")
     args = ap.parse_args()
-    runs = [run_one(args.scenario, n, args.seed, args.mode) for n in sorted(args.robots)]
+    runs = []
+    for n in sorted(args.robots):
+        runs.append(run_one(args.scenario, n, args.seed, args.mode, args.map_consensus))
+        print(json.dumps(runs[-1]), file=sys.stderr, flush=True)  # progress: one run per line
     ref = runs[0]
     for r in runs:
         r["vs_smallest"] = {
@@ -63,7 +68,8 @@ def main() -> None:
             "realtime_factor": r["realtime_factor"] / ref["realtime_factor"],
             "peak_rss": r["peak_rss_mb"] / ref["peak_rss_mb"],
         }
-    summary = {"scenario": Path(args.scenario).name, "seed": args.seed, "mode": args.mode, "runs": runs}
+    summary = {"scenario": Path(args.scenario).name, "seed": args.seed, "mode": args.mode,
+               "map_consensus": args.map_consensus, "runs": runs}
     if args.json:
         print(json.dumps(summary, indent=1))
         return
