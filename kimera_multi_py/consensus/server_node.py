@@ -19,14 +19,30 @@ import numpy as np
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Subscription
-from kimera_multi_py.comms.messages import AgentState, KeyframeOdometry, LoopClosures, Message, PgoEpoch, PublicPoses
+from kimera_multi_py.comms.messages import (
+    AgentState,
+    KeyframeOdometry,
+    LoopClosures,
+    MapState,
+    MapVersions,
+    Message,
+    PgoEpoch,
+    PublicPoses,
+    RoamMap,
+    SubmapEvidence,
+    SubmapPoses,
+)
+from kimera_multi_py.consensus.map_consensus import MapConsensus, get_map_consensus
 from kimera_multi_py.consensus.server import solve_centralized
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
+from kimera_multi_py.errors import KimeraMultiError
 from kimera_multi_py.io.pose_graph import PoseGraph, robot_key, split_key
+from kimera_multi_py.mapping.submaps import SubmapMap
 
 log = logging.getLogger(__name__)
 
 SERVER_ID = 999  # the centralised server's id on the bus (agents are 0..25)
+MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)
 
 
 @dataclass
@@ -150,6 +166,13 @@ class ServerNode:
         self._finished_since: float | None = None
         self._final_keyframes: dict[int, int] = {}
         self._final: PgoEpoch | None = None
+        self.maps: MapConsensus | None = None  # the team map: every robot's evidence, fused here
+
+    def fuse_maps(self, local: SubmapMap, mode: str = "exact") -> None:
+        """Also fuse every robot's map evidence (a star: the agents' only map neighbour) and serve
+        the team map back. ``local`` is an empty map with the agents' map parameters."""
+        self.maps = get_map_consensus(self.robot, local, mode)
+        self.maps.set_frame(0)  # the joint graph's frame: the lowest robot's
 
     @property
     def robot(self) -> int:
@@ -172,6 +195,14 @@ class ServerNode:
             if isinstance(msg, AgentState):
                 self.states[msg.robot] = msg
                 continue
+            if isinstance(msg, MAP_MESSAGES):
+                if self.maps is not None:
+                    try:
+                        self.maps.handle(msg)
+                    except (KimeraMultiError, ValueError, KeyError, IndexError) as exc:
+                        self.server.stats.refused += 1
+                        log.warning("server refused %s from robot %d: %s", type(msg).__name__, msg.robot, exc)
+                continue
             try:
                 self.server.handle(msg)
             except ValueError as exc:
@@ -183,10 +214,17 @@ class ServerNode:
         """Solve on the period, and the final solve when every stream is over."""
         now = self.clock()
         wall = time.monotonic() if wall is None else wall
+        sent = 0
+        if self.maps is not None:
+            self.maps.set_neighbours({r for r in self.bus.peers() if r != self.robot})
+            self.maps.set_team_size(max(1, len(self.states)))
+            for m in self.maps.step(wall):
+                await self.bus.publish(self.bus.key(m.TOPIC), m)
+                sent += 1
         if self._all_finished(wall):
             counts = {r: s.keyframes for r, s in self.states.items()}
             if counts == self._final_keyframes:
-                return 0
+                return sent
             self._final_keyframes = counts
             await self.optimise()
             self._final = PgoEpoch(robot=self.robot, epoch=self.server.round,
@@ -198,8 +236,8 @@ class ServerNode:
         if now - self._solved_at >= self.schedule.period and self.server.odometry:
             self._solved_at = now
             await self.optimise()
-            return 1
-        return 0
+            return sent + 1
+        return sent
 
     def blocked(self) -> bool:
         return False

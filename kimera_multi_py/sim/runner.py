@@ -54,6 +54,7 @@ from kimera_multi_py.eval.team import scene_graph_results, team_results, traject
 from kimera_multi_py.geometry import transform_points
 from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.tum import write_tum
+from kimera_multi_py.mapping.config import get_submap_map
 from kimera_multi_py.mapping.octree_io import export_team_map
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
@@ -195,6 +196,8 @@ class SimRunner:
             if central:
                 self.server = ServerNode(Server(SERVER_ID, None, self.params.closure_sigmas, self.params.odom_sigmas),
                                          buses[-1], self.schedule, clock=self.clock.now)
+                if self.map_mode != "off":
+                    self.server.fuse_maps(get_submap_map(params.mapping), self.map_mode)
                 nodes.append(self.server)
             for node in nodes:
                 if node.robot not in self.join:

@@ -34,6 +34,7 @@ from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.errors import ConfigError
 from kimera_multi_py.io.g2o import write_g2o
+from kimera_multi_py.mapping.config import MappingConfig, get_submap_map
 from kimera_multi_py.mapping.octree_io import export_team_map, save_octree
 from kimera_multi_py.sim.runner import agent_params
 
@@ -172,6 +173,7 @@ async def _server(job: ServerJob) -> dict[str, Any]:
     bus = job.connection.bus(SERVER_ID)
     server = Server(SERVER_ID, None, job.closure_sigmas, job.odom_sigmas)
     node = ServerNode(server, bus, ScheduleParams(period=job.pgo_period, final_grace=2.0))
+    node.fuse_maps(get_submap_map(MappingConfig()))  # the agents' default map parameters
     try:
         await node.start()
         await node.run()
@@ -180,6 +182,8 @@ async def _server(job: ServerJob) -> dict[str, Any]:
         await bus.close()
     d = Path(job.out_dir) / "server"
     d.mkdir(parents=True, exist_ok=True)
+    if node.maps is not None:
+        export_team_map(node.maps.team_map, d)
     graph, _ = server.graph()
     if graph.num_poses:
         write_g2o(d / "graph.g2o", graph)

@@ -55,6 +55,8 @@ def test_every_robot_ends_with_the_centralised_fusion_of_all_evidence(runs, tmp_
         assert mc["team_map"][robot]["observed_cells"] >= runs["distributed"]["map"][robot]["observed_cells"]
     assert mc["phi"][-1] == 0.0
     assert 0 < mc["bytes_ratio_vs_roam"] <= 0.1
+    central = runs["centralized"]["map_consensus"]  # the server fuses everyone's evidence and serves it back
+    assert all(central["agreement"][r]["identical"] == 1.0 for r in ("0", "1"))
     sg = runs["distributed"]["scene_graph"]
     assert sg["agree"]["places"] and sg["agree"]["rooms"]  # graphs built from one team map match
 
