@@ -39,23 +39,17 @@ from kimera_multi_py.comms.messages import (
     LoopClosureRequest,
     LoopClosures,
     LoopClosuresAck,
-    MapState,
-    MapVersions,
     Message,
     PgoEpoch,
     PublicPoses,
-    RoamMap,
-    SubmapEvidence,
-    SubmapPoses,
 )
-from kimera_multi_py.consensus.map_consensus import MapConsensus, get_map_consensus
+from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
 from kimera_multi_py.consensus.pgo import PgoParams
 from kimera_multi_py.consensus.team_pgo import ScheduleParams, TeamPgo
 from kimera_multi_py.errors import KimeraMultiError
 
 log = logging.getLogger(__name__)
 
-MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)
 MAP_MODES = ("off", "roam", "exact", "laplacian")
 
 @dataclass

@@ -60,6 +60,7 @@ from kimera_multi_py.mapping.submaps import SubmapMap
 log = logging.getLogger(__name__)
 
 MODES = ("roam", "exact", "laplacian")
+MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)  # what a MapConsensus handles
 
 
 @dataclass

@@ -19,20 +19,8 @@ import numpy as np
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Subscription
-from kimera_multi_py.comms.messages import (
-    AgentState,
-    KeyframeOdometry,
-    LoopClosures,
-    MapState,
-    MapVersions,
-    Message,
-    PgoEpoch,
-    PublicPoses,
-    RoamMap,
-    SubmapEvidence,
-    SubmapPoses,
-)
-from kimera_multi_py.consensus.map_consensus import MapConsensus, get_map_consensus
+from kimera_multi_py.comms.messages import AgentState, KeyframeOdometry, LoopClosures, Message, PgoEpoch, PublicPoses
+from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
 from kimera_multi_py.consensus.server import solve_centralized
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.errors import KimeraMultiError
@@ -42,7 +30,6 @@ from kimera_multi_py.mapping.submaps import SubmapMap
 log = logging.getLogger(__name__)
 
 SERVER_ID = 999  # the centralised server's id on the bus (agents are 0..25)
-MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)
 
 
 @dataclass

@@ -36,11 +36,12 @@ from typing import Any
 import numpy as np
 
 from kimera_multi_py.agent.agent import Agent, AgentParams, KeyframeInput
-from kimera_multi_py.agent.node import MAP_MESSAGES, AgentNode, NodeParams
+from kimera_multi_py.agent.node import AgentNode, NodeParams
 from kimera_multi_py.agent.outputs import RobotOutcome, outcome_of, own_graph, write_outcome
 from kimera_multi_py.agent.team_graph import joint_graph
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.comm_range import neighbours_within
+from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES
 from kimera_multi_py.consensus.map_fusion import centralised_team_map, octree_cells
 from kimera_multi_py.consensus.map_metrics import TeamMapReport, phi, team_map_report
 from kimera_multi_py.consensus.pgo import PgoParams
