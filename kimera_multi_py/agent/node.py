@@ -29,6 +29,8 @@ from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
+import networkx as nx
+
 from kimera_multi_py.agent.agent import MAX_AGENT_ID, Agent, KeyframeInput
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, BusClosedError, Closeable, PresenceEvent, Stream, Subscription
@@ -296,16 +298,10 @@ class AgentNode:
 
     def _component_root(self, pairs: Iterable[tuple[int, int]]) -> int:
         """The lowest robot id connected to this one through ``pairs``."""
-        seen, todo = {self.robot}, [self.robot]
-        edges = [(int(a), int(b)) for a, b in pairs]
-        while todo:
-            r = todo.pop()
-            for a, b in edges:
-                for x, y in ((a, b), (b, a)):
-                    if x == r and y not in seen:
-                        seen.add(y)
-                        todo.append(y)
-        return min(seen)
+        g = nx.Graph()
+        g.add_node(self.robot)
+        g.add_edges_from((int(a), int(b)) for a, b in pairs)
+        return min(nx.node_connected_component(g, self.robot))
 
     def blocked(self) -> bool:
         return self.pgo is not None and self.pgo.blocked()

@@ -94,6 +94,7 @@ def test_epoch_tags_keep_other_epochs_out():
         # a newer epoch heard of through a peer's state is not re-run from an old announcement
         pgo.handle(AgentState(robot=0, keyframes=5, stamp=1.0, finished=False, epoch=5, complete=False,
                               closures=0, rounds=0, bytes_sent=0), {0})
+        assert pgo.session.epoch == 2 and pgo.epoch == 2  # a running epoch is not skipped by a peer's state
         await node.close()
 
     asyncio.run(main())
