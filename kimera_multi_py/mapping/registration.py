@@ -120,6 +120,12 @@ class Constrained:
     information: np.ndarray  # (6, 6)
     ratios: np.ndarray  # (6,) generalised eigenvalues H v = λ Ω v, ascending
     degenerate: bool  # some direction was dropped
+    basis: np.ndarray  # (6, m) the kept directions, in the prior's whitened coordinates
+    whiten: np.ndarray  # (6, 6) Lᵀ: a tangent vector d in whitened coordinates is Lᵀ d
+
+    def prior_distance(self, d: np.ndarray) -> float:
+        """Squared Mahalanobis length (under the prior) of the kept part of tangent vector ``d``."""
+        return float(np.sum((self.basis.T @ (self.whiten @ np.asarray(d, dtype=np.float64))) ** 2))
 
 
 def constrained_information(information: np.ndarray, prior: np.ndarray, min_ratio: float) -> Constrained:
@@ -140,7 +146,7 @@ def constrained_information(information: np.ndarray, prior: np.ndarray, min_rati
     lam, V = np.linalg.eigh(M)
     keep = lam >= min_ratio
     kept = L @ (V * np.where(keep, lam, 0.0)) @ V.T @ L.T
-    return Constrained(0.5 * (kept + kept.T), lam, bool(not keep.all()))
+    return Constrained(0.5 * (kept + kept.T), lam, bool(not keep.all()), V[:, keep], L.T)
 
 
 def fuse(Z0: np.ndarray, info0: np.ndarray, Z1: np.ndarray, info1: np.ndarray, iterations: int = 3) -> np.ndarray:

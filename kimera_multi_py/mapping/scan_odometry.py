@@ -78,13 +78,12 @@ class ScanOdometry:
             self.stats.failed += 1
             return odometry
         Z = inverse(prev) @ res.T
-        d = se3_log(inverse(odometry) @ Z)
-        if float(d @ self.odom_information @ d) > self.gate:
-            self.stats.gated += 1
-            return odometry
         kept = constrained_information(res.information, self.odom_information, self.min_ratio)
         if not np.any(kept.information):
             self.stats.degenerate += 1
+            return odometry
+        if kept.prior_distance(se3_log(inverse(odometry) @ Z)) > self.gate:
+            self.stats.gated += 1
             return odometry
         self.stats.registered += 1
         self.stats.degenerate += kept.degenerate

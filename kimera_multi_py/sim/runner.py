@@ -44,6 +44,7 @@ from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.consensus.workflow import open_buses
 from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.eval.accuracy import ScanRecord, accuracy_results
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import score_closures
 from kimera_multi_py.eval.team import team_results, trajectory_results
@@ -66,9 +67,11 @@ class _Track:
     stamps: list[float] = field(default_factory=list)
     est: list[np.ndarray] = field(default_factory=list)
     true: list[np.ndarray] = field(default_factory=list)
+    scans: list[ScanRecord] = field(default_factory=list)  # for the team map (evaluation only)
 
     def add(self, kf: Keyframe) -> np.ndarray:
         pose = kf.odometry.copy() if not self.est else self.est[-1] @ kf.odometry
+        self.scans.append(ScanRecord(kf.scan.points().astype(np.float32), kf.scan.labels, kf.scan.max_range))
         self.stamps.append(kf.stamp)
         self.est.append(pose)
         self.true.append(kf.true_pose)
@@ -288,6 +291,8 @@ class SimRunner:
             extra.update(team_results(self.sim.world, truth, self.outcomes, T_world_team,
                                       self.params.team_object_sightings))
             extra["pgo_runs"] = self._epochs()
+            extra.update(accuracy_results(self.sim.world, self.params.mapping, truth, [tr.scans for tr in self.tracks],
+                                          self.agents, self.outcomes, T_world_team))
             extra["transport"] = self.transport
         return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
