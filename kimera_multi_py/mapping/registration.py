@@ -123,6 +123,11 @@ class Constrained:
     basis: np.ndarray  # (6, m) the kept directions, in the prior's whitened coordinates
     whiten: np.ndarray  # (6, 6) Lᵀ: a tangent vector d in whitened coordinates is Lᵀ d
 
+    def project(self, d: np.ndarray) -> np.ndarray:
+        """The part of tangent vector ``d`` in the kept directions (zero along dropped ones)."""
+        w = self.basis @ (self.basis.T @ (self.whiten @ np.asarray(d, dtype=np.float64)))
+        return np.linalg.solve(self.whiten, w)
+
     def prior_distance(self, d: np.ndarray) -> float:
         """Squared Mahalanobis length (under the prior) of the kept part of tangent vector ``d``."""
         return float(np.sum((self.basis.T @ (self.whiten @ np.asarray(d, dtype=np.float64))) ** 2))

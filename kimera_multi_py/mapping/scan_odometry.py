@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kimera_multi_py.geometry import inverse, se3_log, transform_points
+from kimera_multi_py.geometry import inverse, se3_exp, se3_log, transform_points
 from kimera_multi_py.mapping.registration import ScanRegistration, constrained_information, fuse
 
 
@@ -82,10 +82,14 @@ class ScanOdometry:
         if not np.any(kept.information):
             self.stats.degenerate += 1
             return odometry
-        if kept.prior_distance(se3_log(inverse(odometry) @ Z)) > self.gate:
+        d = se3_log(inverse(odometry) @ Z)
+        if kept.prior_distance(d) > self.gate:
             self.stats.gated += 1
             return odometry
         self.stats.registered += 1
         self.stats.degenerate += kept.degenerate
+        # the factor's measurement: the registration where it knows, the odometry where it does not
+        # (a degenerate registration slides along the corridor; no use of Z may see that)
+        Z = odometry @ se3_exp(kept.project(d))
         self.edges[k] = (Z, kept.information)
         return fuse(odometry, self.odom_information, Z, kept.information)
