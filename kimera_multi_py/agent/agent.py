@@ -86,6 +86,9 @@ class AgentParams:
     icp_min_overlap: float = 0.1
     icp_max_correction: tuple[float, float] = (0.5, np.deg2rad(10.0))  # larger refinements are not trusted
     closure_correspondence: tuple[float, ...] = (0.6, 0.3, 0.15)  # GICP stages refining a closure (m)
+    revisit_radius: float = 1.0  # intra-robot closures by place: older keyframes this close (m), 0 = off
+    revisit_angle: float = np.deg2rad(45.0)  # ... and facing within this angle
+    revisit_overlap: float = 0.4  # fraction of the cloud within the last correspondence distance
     # scan-to-map odometry (registration of each scan to the last reg_window keyframes' scans)
     registration: bool = True
     reg_window: int = 8
@@ -242,6 +245,7 @@ class Agent:
             out.append(KeyframeOdometry(robot=self.robot, keyframes=np.array([kf.index], dtype=np.int64),
                                         odometry=step[None]))
         if kf.index % self.params.descriptor_every == 0:
+            out += self._revisits(kf.index)
             c = self._constellation(kf.index)
             if c is not None:
                 self.constellations[kf.index] = c
@@ -265,12 +269,45 @@ class Agent:
         xyz = transform_points(inverse(self.poses[k]), xyz_world)
         classes = np.array([lm.label for lm in lms])
         desc = constellation_descriptor(xyz, _CLASS_TO_SLOT[classes], self.spec)
+        cloud, cloud_labels = self._window_cloud(k)
+        return Constellation(k, self.stamps[k], xyz, classes, desc, cloud, cloud_labels)
+
+    def _window_cloud(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The semantic cloud of the ``descriptor_window`` keyframes up to ``k``, in ``k``'s frame."""
         first = max(0, k - self.params.descriptor_window + 1)
         inv = inverse(self.poses[k])
         parts = [transform_points(inv @ self.poses[j], self.kf_clouds[j][0]) for j in range(first, k + 1)]
         labels = np.concatenate([self.kf_clouds[j][1] for j in range(first, k + 1)])
-        cloud, cloud_labels = voxel_downsample(np.concatenate(parts), labels, self.params.cloud_voxel)
-        return Constellation(k, self.stamps[k], xyz, classes, desc, cloud, cloud_labels)
+        return voxel_downsample(np.concatenate(parts), labels, self.params.cloud_voxel)
+
+    def _revisits(self, k: int) -> list[Message]:
+        """Intra-robot closures by place, not by appearance: the nearest older keyframe (by the
+        current estimate, at least ``intra_min_gap`` back, facing within ``revisit_angle``) within
+        ``revisit_radius`` is registered against this one (GICP on the windows' clouds) and, when
+        the clouds overlap well, goes to PCM like any closure. Corridors and doorways have too
+        few objects for a constellation, and twin rooms are never that close by odometry."""
+        p = self.params
+        if p.revisit_radius <= 0 or k < p.intra_min_gap:
+            return []
+        P = np.array(self.poses[: k - p.intra_min_gap + 1: p.descriptor_every])
+        cos = np.einsum("ni,i->n", P[:, :3, 0], self.poses[k][:3, 0])
+        d = np.linalg.norm(P[:, :3, 3] - self.poses[k][:3, 3], axis=1)
+        d[cos < np.cos(p.revisit_angle)] = np.inf
+        if not np.isfinite(d.min()) or d.min() > p.revisit_radius or not self._spend(self.robot, self.stamps[k]):
+            return []
+        old = int(np.argmin(d)) * p.descriptor_every
+        self.stats.candidates += 1
+        guess = inverse(self.poses[old]) @ self.poses[k]
+        res = self.closure_registration.register(self._window_cloud(old)[0], self._window_cloud(k)[0], guess)
+        step = None if res is None else inverse(guess) @ res.T
+        max_t, max_r = p.icp_max_correction
+        if (res is None or step is None or not res.converged or res.overlap < p.revisit_overlap
+                or np.linalg.norm(step[:3, 3]) > max_t or np.linalg.norm(so3_log(step[:3, :3])) > max_r):
+            self.stats.rejected_verification += 1
+            return []
+        self.stats.verified += 1
+        return self._add_closure(self.robot, Closure(old, self.robot, k, res.T, res.inliers,
+                                                     self.dead_reckoning[old], self.dead_reckoning[k]))
 
     # ---- loop closures --------------------------------------------------------------------
     def _verifier(self, peer: int) -> bool:
