@@ -23,6 +23,8 @@ from kimera_multi_py.eval.metrics import align_se3, occupancy_f1, semantic_miou
 from kimera_multi_py.geometry import relative, so3_log, transform_points
 from kimera_multi_py.mapping.config import MappingConfig, get_octree
 
+_SCAN_COUNTS = ("registered", "degenerate", "gated", "failed")
+
 
 @dataclass
 class ScanRecord:
@@ -102,7 +104,7 @@ def accuracy_results(world: Any, mapping: MappingConfig, truth: Sequence[np.ndar
     dr_world, dr_ate = _world(truth, dr, anchored=True)
     reg_world, reg_ate = _world(truth, reg, anchored=True)
     est_world, est_ate = _world(truth, [T_world_team @ o.poses for o in outcomes], anchored=False)
-    team_map = team_map_quality(mapping, scans, est_world, centers, gt)
+    team_map: dict[str, Any] = dict(team_map_quality(mapping, scans, est_world, centers, gt))
     team_map["true_poses"] = team_map_quality(mapping, scans, list(truth), centers, gt)
     team_map["dead_reckoning"] = team_map_quality(mapping, scans, dr_world, centers, gt)
     team_map["registration_odometry"] = team_map_quality(mapping, scans, reg_world, centers, gt)
@@ -113,8 +115,7 @@ def accuracy_results(world: Any, mapping: MappingConfig, truth: Sequence[np.ndar
         "ate_rmse_m": {"dead_reckoning": dr_ate, "registration_odometry": reg_ate, "full_system": est_ate},
         "drift_per_distance": {"dead_reckoning": _drift(truth, dr), "registration_odometry": _drift(truth, reg)},
         "closure_error": closure_errors(truth, outcomes),
-        "scan_odometry": {"registered": sum(s.registered for s in stats), "degenerate": sum(s.degenerate for s in stats),
-                          "gated": sum(s.gated for s in stats), "failed": sum(s.failed for s in stats)},
+        "scan_odometry": {k: sum(getattr(s, k) for s in stats) for k in _SCAN_COUNTS},
         "front_end_ms_per_keyframe": {
             "total": 1000 * sum(a.front_end_seconds for a in agents) / keyframes,
             "registration": 1000 * sum(s.seconds for s in stats) / keyframes},
