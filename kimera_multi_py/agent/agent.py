@@ -5,8 +5,10 @@ runtime (:mod:`.node`, :class:`~kimera_multi_py.sim.runner.SimRunner`) moves the
 owns:
 
 * its pose graph: dead-reckoned poses in its own odometry frame (never changed, used by PCM),
-  the current estimate (moved by PGO, in the team frame once aligned), odometry edges and
-  intra-robot loop closures;
+  the current estimate (moved by PGO, in the team frame once aligned), odometry edges, scan
+  registration edges (:class:`~kimera_multi_py.mapping.scan_odometry.ScanOdometry`: each scan
+  registered to the last keyframes' scans; its Hessian is the factor's information, zero in
+  degenerate directions; the estimate chains the fusion of both) and intra-robot loop closures;
 * submaps feeding a semantic octree (:class:`SubmapMap`) and an object map, both re-anchored
   exactly when PGO moves the submaps;
 * its loop-closure front end. Every ``descriptor_every`` keyframes the objects seen over the
@@ -14,8 +16,10 @@ owns:
   descriptor is published (only the descriptor). A robot compares other robots' descriptors
   with its own; for a pair of robots the lower id verifies (within a budget of candidates per
   period), fetching the full constellation with a query, verifying it geometrically (max
-  clique + Umeyama) and passing every verified closure of the pair through PCM. The accepted
-  set is published as ``LoopClosures``; both robots then hold the edges for PGO.
+  clique + Umeyama, then GICP on the fetched cloud) and passing every verified closure of the
+  pair through PCM. The accepted set is published as ``LoopClosures``; both robots then hold
+  the edges for PGO. Intra-robot closures come from constellations and from places: an older
+  keyframe near the current estimate is registered against this one (:meth:`Agent._revisits`).
 """
 
 from __future__ import annotations
