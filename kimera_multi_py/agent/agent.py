@@ -486,7 +486,7 @@ class Agent:
                 self.robot_graph.add(pair)
             if msg.peer != self.robot:
                 return []
-            ack = [LoopClosuresAck(robot=self.robot, peer=msg.robot, batch=msg.batch)]
+            ack: list[Message] = [LoopClosuresAck(robot=self.robot, peer=msg.robot, batch=msg.batch)]
             if msg.batch < self._peer_batch.get(msg.robot, -1):
                 return ack  # an older batch re-sent late: the newer one stands
             self._peer_batch[msg.robot] = msg.batch
