@@ -5,8 +5,10 @@ runtime (:mod:`.node`, :class:`~kimera_multi_py.sim.runner.SimRunner`) moves the
 owns:
 
 * its pose graph: dead-reckoned poses in its own odometry frame (never changed, used by PCM),
-  the current estimate (moved by PGO, in the team frame once aligned), odometry edges and
-  intra-robot loop closures;
+  the current estimate (moved by PGO, in the team frame once aligned), odometry edges, scan
+  registration edges (:class:`~kimera_multi_py.mapping.scan_odometry.ScanOdometry`: each scan
+  registered to the last keyframes' scans; its Hessian is the factor's information, zero in
+  degenerate directions; the estimate chains the fusion of both) and intra-robot loop closures;
 * submaps feeding a semantic octree (:class:`SubmapMap`) and an object map, both re-anchored
   exactly when PGO moves the submaps;
 * its loop-closure front end. Every ``descriptor_every`` keyframes the objects seen over the
@@ -14,13 +16,16 @@ owns:
   descriptor is published (only the descriptor). A robot compares other robots' descriptors
   with its own; for a pair of robots the lower id verifies (within a budget of candidates per
   period), fetching the full constellation with a query, verifying it geometrically (max
-  clique + Umeyama) and passing every verified closure of the pair through PCM. The accepted
-  set is published as ``LoopClosures``; both robots then hold the edges for PGO.
+  clique + Umeyama, then GICP on the fetched cloud) and passing every verified closure of the
+  pair through PCM. The accepted set is published as ``LoopClosures``; both robots then hold
+  the edges for PGO. Intra-robot closures come from constellations and from places: an older
+  keyframe near the current estimate is registered against this one (:meth:`Agent._revisits`).
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,7 +33,6 @@ import numpy as np
 from kimera_multi_py.agent.loop_closure import (
     DescriptorSpec,
     constellation_descriptor,
-    refine_icp,
     similarity,
     verify,
     voxel_downsample,
@@ -48,6 +52,8 @@ from kimera_multi_py.consensus.pgo import LocalGraph
 from kimera_multi_py.geometry import inverse, so3_log, transform_points
 from kimera_multi_py.io.pose_graph import robot_key, split_key
 from kimera_multi_py.mapping.config import MappingConfig, get_object_map, get_submap_map
+from kimera_multi_py.mapping.registration import ScanRegistration
+from kimera_multi_py.mapping.scan_odometry import ScanOdometry
 from kimera_multi_py.semantics import NUM_CLASSES, OBJECT_CLASSES, class_id
 
 log = logging.getLogger(__name__)
@@ -82,10 +88,26 @@ class AgentParams:
     intra_min_gap: int = 40  # keyframes between an intra-robot closure's ends
     cloud_voxel: float = 0.2  # downsampling of the semantic cloud kept per keyframe for ICP
     icp_min_overlap: float = 0.1
-    icp_max_correction: tuple[float, float] = (0.5, np.deg2rad(10.0))  # larger ICP moves are not trusted
+    icp_max_correction: tuple[float, float] = (0.5, np.deg2rad(10.0))  # larger refinements are not trusted
+    closure_correspondence: tuple[float, ...] = (0.6, 0.3, 0.15)  # GICP stages refining a closure (m)
+    revisit_radius: float = 1.0  # intra-robot closures by place: older keyframes this close (m), 0 = off
+    revisit_angle: float = np.deg2rad(45.0)  # ... and facing within this angle
+    revisit_overlap: float = 0.4  # fraction of the cloud within the last correspondence distance
+    # scan-to-map odometry (registration of each scan to the last reg_window keyframes' scans)
+    registration: bool = True
+    reg_window: int = 8
+    reg_voxel: float = 0.1
+    reg_correspondence: tuple[float, ...] = (0.5, 0.2)
+    reg_point_sigma: float = 0.02  # per-point noise along a surface (m)
+    reg_information_scale: float = 1.0  # discount of the GICP Hessian for correlated points
+    reg_min_ratio: float = 1.0  # directions with less information than the odometry's are dropped
+    reg_gate: float = 25.0  # squared Mahalanobis distance to the odometry beyond which it is not used
     team_object_sightings: int = 5  # sightings before a landmark enters the team's object map
     server: int | None = None  # centralised mode: the server's id (odometry streams to it)
     pcm: PcmNoise | None = None  # default: drift from odom_sigmas, closure noise from closure_sigmas
+
+    def odom_information(self) -> np.ndarray:
+        return np.diag(np.repeat(1.0 / np.square(self.odom_sigmas), 3))
 
     def pcm_noise(self) -> PcmNoise:
         """PCM's drift model: the per-keyframe odometry noise as a random walk per metre."""
@@ -156,6 +178,15 @@ class Agent:
         self.objects = get_object_map(p.mapping)
         self.stamps: list[float] = []
         self.odometry: list[np.ndarray] = []
+        self.steps: list[np.ndarray] = []  # the chained step: odometry fused with scan registration
+        self.scan_odometry = (ScanOdometry(ScanRegistration(p.reg_voxel, p.reg_correspondence,
+                                                           point_sigma=p.reg_point_sigma,
+                                                           information_scale=p.reg_information_scale),
+                                           p.odom_information(), p.reg_window, p.reg_min_ratio, p.reg_gate)
+                              if p.registration else None)
+        self.closure_registration = ScanRegistration(p.cloud_voxel, p.closure_correspondence,
+                                                     point_sigma=p.reg_point_sigma)
+        self.front_end_seconds = 0.0  # wall time in process_keyframe (a machine measure)
         self.dead_reckoning: list[np.ndarray] = []  # own frame, fixed
         self.poses: list[np.ndarray] = []  # current estimate (team frame once aligned)
         self.submap_of: list[int] = []
@@ -184,13 +215,18 @@ class Agent:
         if kf.index != self.num_keyframes:
             raise ValueError(f"robot {self.robot}: keyframe {kf.index} out of order "
                              f"(expected {self.num_keyframes})")
+        t0 = time.perf_counter()
         odom = np.eye(4) if kf.index == 0 else np.asarray(kf.odometry, dtype=float)
         if not np.all(np.isfinite(odom)):
             raise ValueError(f"robot {self.robot}: non-finite odometry at keyframe {kf.index}")
+        hits = np.asarray(kf.hit, dtype=bool)
+        static = hits & ~np.isin(kf.labels, self.map.octree.dynamic_classes)
+        step = odom if self.scan_odometry is None else self.scan_odometry.step(kf.index, odom, kf.points[static])
         dr = odom.copy() if kf.index == 0 else self.dead_reckoning[-1] @ odom
-        pose = odom.copy() if kf.index == 0 else self.poses[-1] @ odom
+        pose = odom.copy() if kf.index == 0 else self.poses[-1] @ step
         self.stamps.append(kf.stamp)
         self.odometry.append(odom)
+        self.steps.append(step)
         self.dead_reckoning.append(dr)
         self.poses.append(pose)
         # mapping: a new submap every keyframes_per_submap keyframes, anchored at its first pose
@@ -203,17 +239,17 @@ class Agent:
         self.submap_of.append(sid)
         T_sub = inverse(self.map.submaps[sid].T) @ pose
         self.map.integrate(sid, T_sub, kf.points, kf.labels, kf.max_range)
-        hits = np.asarray(kf.hit, dtype=bool)
         seen = self.objects.update(transform_points(pose, kf.points[hits]), kf.labels[hits], sid, kf.index)
         self.kf_landmarks.append(seen)
         # the semantic cloud for ICP: walls and objects (floor and ceiling add bytes, not constraints)
-        static = hits & ~np.isin(kf.labels, [*self.map.octree.dynamic_classes, *_FLOOR_CEILING])
-        self.kf_clouds.append(voxel_downsample(kf.points[static], kf.labels[static], self.params.cloud_voxel))
+        walls = static & ~np.isin(kf.labels, _FLOOR_CEILING)
+        self.kf_clouds.append(voxel_downsample(kf.points[walls], kf.labels[walls], self.params.cloud_voxel))
         out: list[Message] = []
-        if self.params.server is not None:
+        if self.params.server is not None:  # the server's odometry factor: the registration-refined step
             out.append(KeyframeOdometry(robot=self.robot, keyframes=np.array([kf.index], dtype=np.int64),
-                                        odometry=odom[None]))
+                                        odometry=step[None]))
         if kf.index % self.params.descriptor_every == 0:
+            out += self._revisits(kf.index)
             c = self._constellation(kf.index)
             if c is not None:
                 self.constellations[kf.index] = c
@@ -223,6 +259,7 @@ class Agent:
                 for peer, descs in sorted(self.peer_descriptors.items()):
                     for peer_kf, d in descs:
                         out += self._maybe_request(peer, peer_kf, d, kf.stamp, own=[c])
+        self.front_end_seconds += time.perf_counter() - t0
         return out
 
     def _constellation(self, k: int) -> Constellation | None:
@@ -236,12 +273,45 @@ class Agent:
         xyz = transform_points(inverse(self.poses[k]), xyz_world)
         classes = np.array([lm.label for lm in lms])
         desc = constellation_descriptor(xyz, _CLASS_TO_SLOT[classes], self.spec)
+        cloud, cloud_labels = self._window_cloud(k)
+        return Constellation(k, self.stamps[k], xyz, classes, desc, cloud, cloud_labels)
+
+    def _window_cloud(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The semantic cloud of the ``descriptor_window`` keyframes up to ``k``, in ``k``'s frame."""
         first = max(0, k - self.params.descriptor_window + 1)
         inv = inverse(self.poses[k])
         parts = [transform_points(inv @ self.poses[j], self.kf_clouds[j][0]) for j in range(first, k + 1)]
         labels = np.concatenate([self.kf_clouds[j][1] for j in range(first, k + 1)])
-        cloud, cloud_labels = voxel_downsample(np.concatenate(parts), labels, self.params.cloud_voxel)
-        return Constellation(k, self.stamps[k], xyz, classes, desc, cloud, cloud_labels)
+        return voxel_downsample(np.concatenate(parts), labels, self.params.cloud_voxel)
+
+    def _revisits(self, k: int) -> list[Message]:
+        """Intra-robot closures by place, not by appearance: the nearest older keyframe (by the
+        current estimate, at least ``intra_min_gap`` back, facing within ``revisit_angle``) within
+        ``revisit_radius`` is registered against this one (GICP on the windows' clouds) and, when
+        the clouds overlap well, goes to PCM like any closure. Corridors and doorways have too
+        few objects for a constellation, and twin rooms are never that close by odometry."""
+        p = self.params
+        if p.revisit_radius <= 0 or k < p.intra_min_gap:
+            return []
+        P = np.array(self.poses[: k - p.intra_min_gap + 1: p.descriptor_every])
+        cos = np.einsum("ni,i->n", P[:, :3, 0], self.poses[k][:3, 0])
+        d = np.linalg.norm(P[:, :3, 3] - self.poses[k][:3, 3], axis=1)
+        d[cos < np.cos(p.revisit_angle)] = np.inf
+        if not np.isfinite(d.min()) or d.min() > p.revisit_radius or not self._spend(self.robot, self.stamps[k]):
+            return []
+        old = int(np.argmin(d)) * p.descriptor_every
+        self.stats.candidates += 1
+        guess = inverse(self.poses[old]) @ self.poses[k]
+        res = self.closure_registration.register(self._window_cloud(old)[0], self._window_cloud(k)[0], guess)
+        step = None if res is None else inverse(guess) @ res.T
+        max_t, max_r = p.icp_max_correction
+        if (res is None or step is None or not res.converged or res.overlap < p.revisit_overlap
+                or np.linalg.norm(step[:3, 3]) > max_t or np.linalg.norm(so3_log(step[:3, :3])) > max_r):
+            self.stats.rejected_verification += 1
+            return []
+        self.stats.verified += 1
+        return self._add_closure(self.robot, Closure(old, self.robot, k, res.T, res.inliers,
+                                                     self.dead_reckoning[old], self.dead_reckoning[k]))
 
     # ---- loop closures --------------------------------------------------------------------
     def _verifier(self, peer: int) -> bool:
@@ -306,22 +376,21 @@ class Agent:
 
     def _verify(self, own: Constellation, xyz: np.ndarray, classes: np.ndarray, cloud: np.ndarray,
                 cloud_labels: np.ndarray) -> tuple[np.ndarray, int] | None:
-        """Objects first (max clique + Umeyama), then class-consistent ICP on the semantic clouds."""
+        """Objects first (max clique + Umeyama), then GICP of the fetched cloud onto ours from there."""
         v = verify(own.xyz, own.classes, np.asarray(xyz, float), np.asarray(classes), eps=self.params.verify_eps,
                    min_inliers=self.params.min_inliers)
         if not v.accepted:
             self.stats.rejected_verification += 1
             return None
         self.stats.verified += 1
-        refined = refine_icp(own.cloud, own.cloud_labels, cloud, cloud_labels, v.T,
-                             min_overlap=self.params.icp_min_overlap)
-        if refined is None:
+        refined = self.closure_registration.register(own.cloud, np.asarray(cloud, dtype=float), v.T)
+        if refined is None or not refined.converged or refined.overlap < self.params.icp_min_overlap:
             return v.T, v.num_inliers
-        step = inverse(v.T) @ refined[0]
+        step = inverse(v.T) @ refined.T
         max_t, max_r = self.params.icp_max_correction
         if np.linalg.norm(step[:3, 3]) > max_t or np.linalg.norm(so3_log(step[:3, :3])) > max_r:
             return v.T, v.num_inliers
-        return refined[0], v.num_inliers
+        return refined.T, v.num_inliers
 
     def _intra_closures(self, c: Constellation) -> list[Message]:
         """Intra-robot candidates against our own older keyframes (same machinery, no query)."""
@@ -417,7 +486,7 @@ class Agent:
                 self.robot_graph.add(pair)
             if msg.peer != self.robot:
                 return []
-            ack = [LoopClosuresAck(robot=self.robot, peer=msg.robot, batch=msg.batch)]
+            ack: list[Message] = [LoopClosuresAck(robot=self.robot, peer=msg.robot, batch=msg.batch)]
             if msg.batch < self._peer_batch.get(msg.robot, -1):
                 return ack  # an older batch re-sent late: the newer one stands
             self._peer_batch[msg.robot] = msg.batch
@@ -435,13 +504,23 @@ class Agent:
         return np.diag(np.repeat(1.0 / np.square(sigmas), 3))
 
     def intra_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Odometry and accepted intra-robot closures: ``(i, j, Z, info, is_odometry)``."""
+        """Odometry, scan registrations and accepted intra-robot closures: ``(i, j, Z, info, is_odometry)``.
+
+        A registration factor joins the odometry factor of its keyframe step; both are trusted
+        (``is_odometry``), its information is the registration's (zero where degenerate)."""
         n = self.num_keyframes
         i = list(range(n - 1))
         j = list(range(1, n))
         Z = list(self.odometry[1:])
         info = [self._info(self.params.odom_sigmas)] * (n - 1)
         odo = [True] * (n - 1)
+        if self.scan_odometry is not None:
+            for k, (Zr, Ir) in sorted(self.scan_odometry.edges.items()):
+                i.append(k - 1)
+                j.append(k)
+                Z.append(Zr)
+                info.append(Ir)
+                odo.append(True)
         for c in self.closures.get(self.robot, []):
             if c.accepted:
                 i.append(c.own_kf)
@@ -492,8 +571,8 @@ class Agent:
             raise ValueError(f"robot {self.robot}: bad optimised poses of shape {poses.shape}")
         if m < self.num_keyframes:
             tail = [poses[-1]]
-            for odo in self.odometry[m:]:
-                tail.append(tail[-1] @ odo)
+            for step in self.steps[m:]:
+                tail.append(tail[-1] @ step)
             poses = np.concatenate([poses, np.array(tail[1:])])
         self.poses = list(poses)
         moved = 0

@@ -64,7 +64,7 @@ from kimera_multi_py.errors import CheckpointError
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 _HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
 
@@ -85,6 +85,9 @@ ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.mapping.config.OctreeConfig",
     "kimera_multi_py.mapping.objects.Landmark",
     "kimera_multi_py.mapping.objects.ObjectMap",
+    "kimera_multi_py.mapping.registration.ScanRegistration",
+    "kimera_multi_py.mapping.scan_odometry.ScanOdometry",
+    "kimera_multi_py.mapping.scan_odometry.ScanOdometryStats",
     "kimera_multi_py.mapping.semantic_octree.ObservationModel",
     "kimera_multi_py.mapping.semantic_octree.SemanticOctree",
     "kimera_multi_py.mapping.semantic_octree._Block",

@@ -7,6 +7,8 @@
 * **Verification** (TEASER-style). Class-consistent correspondences between two object
   sets, the maximum clique of pairwise-distance-consistent correspondences (exact, networkx),
   then a Umeyama pose on the clique. Accepted with enough inliers that span more than a line.
+  The agent then refines the pose by GICP on the semantic clouds
+  (:class:`~kimera_multi_py.mapping.registration.ScanRegistration`).
 """
 
 from __future__ import annotations
@@ -133,44 +135,3 @@ def voxel_downsample(xyz: np.ndarray, labels: np.ndarray, voxel: float) -> tuple
     _, first = np.unique(np.column_stack([keys, np.asarray(labels).reshape(-1, 1)]), axis=0, return_index=True)
     first.sort()
     return xyz[first], np.asarray(labels)[first]
-
-
-def refine_icp(src: np.ndarray, src_cls: np.ndarray, dst: np.ndarray, dst_cls: np.ndarray, T0: np.ndarray,
-               radii: tuple[float, ...] = (0.5, 0.3, 0.2, 0.15, 0.1, 0.1, 0.1), min_overlap: float = 0.3
-               ) -> tuple[np.ndarray, float, float] | None:
-    """Class-consistent point-to-point ICP of ``dst`` onto ``src`` from ``T0``.
-
-    Returns ``(T, overlap, rms)`` (overlap = fraction of ``dst`` points matched at the last,
-    tightest radius), or None when too little overlaps.
-    """
-    from scipy.spatial import cKDTree
-
-    src = np.asarray(src, dtype=float).reshape(-1, 3)
-    dst = np.asarray(dst, dtype=float).reshape(-1, 3)
-    if len(src) < 10 or len(dst) < 10:
-        return None
-    tree = cKDTree(src)
-    T = np.asarray(T0, dtype=float).copy()
-    src_cls = np.asarray(src_cls)
-    dst_cls = np.asarray(dst_cls)
-    ok = np.zeros(len(dst), dtype=bool)
-    d = np.full(len(dst), np.inf)
-    for r in radii:
-        moved = dst @ T[:3, :3].T + T[:3, 3]
-        d, idx = tree.query(moved, distance_upper_bound=r)
-        found = np.isfinite(d)
-        ok = found.copy()
-        ok[found] &= src_cls[idx[found]] == dst_cls[found]
-        if ok.sum() < 10:
-            return None
-        R, t, _ = umeyama(dst[ok], src[idx[ok]])
-        T = make_pose(R, t)
-    moved = dst @ T[:3, :3].T + T[:3, 3]
-    d, idx = tree.query(moved, distance_upper_bound=radii[-1])
-    found = np.isfinite(d)
-    ok = found.copy()
-    ok[found] &= src_cls[idx[found]] == dst_cls[found]
-    overlap = float(ok.mean())
-    if overlap < min_overlap:
-        return None
-    return T, overlap, float(np.sqrt(np.mean(d[ok] ** 2)))

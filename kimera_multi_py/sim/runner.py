@@ -49,6 +49,7 @@ from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.consensus.workflow import open_buses
 from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.eval.accuracy import ScanRecord, accuracy_results
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import map_quality, score_closures
 from kimera_multi_py.eval.team import scene_graph_results, team_results, trajectory_results
@@ -75,9 +76,11 @@ class _Track:
     stamps: list[float] = field(default_factory=list)
     est: list[np.ndarray] = field(default_factory=list)
     true: list[np.ndarray] = field(default_factory=list)
+    scans: list[ScanRecord] = field(default_factory=list)  # for the team map (evaluation only)
 
     def add(self, kf: Keyframe) -> np.ndarray:
         pose = kf.odometry.copy() if not self.est else self.est[-1] @ kf.odometry
+        self.scans.append(ScanRecord(kf.scan.points().astype(np.float32), kf.scan.labels, kf.scan.max_range))
         self.stamps.append(kf.stamp)
         self.est.append(pose)
         self.true.append(kf.true_pose)
@@ -361,6 +364,8 @@ class SimRunner:
             extra.update(team_results(self.sim.world, truth, self.outcomes, T_world_team,
                                       self.params.team_object_sightings))
             extra["pgo_runs"] = self._epochs()
+            extra.update(accuracy_results(self.sim.world, self.params.mapping, truth, [tr.scans for tr in self.tracks],
+                                          self.agents, self.outcomes, T_world_team))
             extra["transport"] = self.transport
             team_maps = None
             if self.map_report is not None:

@@ -123,7 +123,7 @@ def _foreign_class(doc):
 
 
 BAD_FILES = {
-    "version": (lambda d: _rewrite(d, version=FORMAT_VERSION + 1), "format version 2"),
+    "version": (lambda d: _rewrite(d, version=FORMAT_VERSION + 1), f"format version {FORMAT_VERSION + 1}"),
     "truncated": (lambda d: d[: len(d) // 2], "truncated checkpoint payload"),
     "truncated header": (lambda d: d[:12], "truncated checkpoint (incomplete header)"),
     "empty": (lambda d: b"", "bad magic"),

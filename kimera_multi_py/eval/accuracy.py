@@ -1,0 +1,122 @@
+"""Metric accuracy of a team run, separated by cause (issue 13).
+
+* :func:`team_map_quality`: every keyframe of every robot integrated into one semantic octree at
+  given world poses, scored against the world's voxel grid. At the final estimated poses it is
+  the map the team can have; at the true poses (same scans, same sensor model) the ceiling.
+* :func:`closure_errors`: how far accepted loop closures are from the truth (median
+  translation and rotation), inter- and intra-robot separately.
+* :func:`accuracy_results`: the figures above plus the ATE of dead reckoning, of the
+  registration-refined odometry and of the full system, and the front end's cost per keyframe.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from kimera_multi_py.agent.agent import Agent
+from kimera_multi_py.agent.outputs import RobotOutcome
+from kimera_multi_py.eval.metrics import align_se3, occupancy_f1, semantic_miou
+from kimera_multi_py.geometry import relative, so3_log, transform_points
+from kimera_multi_py.mapping.config import MappingConfig, get_octree
+
+_SCAN_COUNTS = ("registered", "degenerate", "gated", "failed")
+
+
+@dataclass
+class ScanRecord:
+    """One keyframe's scan as the agent saw it (sensor frame; misses at ``max_range``)."""
+
+    points: np.ndarray  # (n, 3)
+    labels: np.ndarray  # (n,)
+    max_range: float
+
+
+def team_map_quality(mapping: MappingConfig, scans: Sequence[Sequence[ScanRecord]],
+                     poses: Sequence[np.ndarray], centers: np.ndarray, gt_labels: np.ndarray) -> dict[str, float]:
+    """Occupancy F1 and semantic mIoU of all robots' scans fused at world ``poses`` (per robot
+    ``(n, 4, 4)``), with the agents' octree parameters, on the ground-truth grid
+    ``centers``/``gt_labels``."""
+    octree = get_octree(mapping.octree)
+    for robot_scans, robot_poses in zip(scans, poses, strict=True):
+        if len(robot_scans) != len(robot_poses):
+            raise ValueError(f"team map: {len(robot_scans)} scans for {len(robot_poses)} poses")
+        for s, T in zip(robot_scans, robot_poses, strict=True):
+            octree.insert_scan(T[:3, 3], transform_points(T, s.points), s.labels, s.max_range)
+    pred = octree.class_at(centers)
+    return {"occupancy_f1": occupancy_f1(pred, gt_labels), "semantic_miou": semantic_miou(pred, gt_labels)}
+
+
+def closure_errors(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome]) -> dict[str, dict[str, float]]:
+    """Median error of the closures the back end kept (PCM-accepted, weight >= 0.5), against
+    the true relative poses: ``{"inter"|"intra": {count, median_trans_m, median_rot_deg}}``."""
+    rows: dict[str, list[tuple[float, float]]] = {"inter": [], "intra": []}
+    for o in outcomes:
+        for c in o.closures:
+            if not c.accepted or (c.weight if c.weight is not None else 0.0) < 0.5:
+                continue
+            E = relative(c.Z, relative(truth[o.robot][c.own_kf], truth[c.peer][c.peer_kf]))
+            rows["intra" if c.peer == o.robot else "inter"].append(
+                (float(np.linalg.norm(E[:3, 3])), float(np.degrees(np.linalg.norm(so3_log(E[:3, :3]))))))
+    out = {}
+    for kind, r in rows.items():
+        a = np.array(r).reshape(-1, 2)
+        out[kind] = {"count": len(a), "median_trans_m": float(np.median(a[:, 0])) if len(a) else float("nan"),
+                     "median_rot_deg": float(np.median(a[:, 1])) if len(a) else float("nan")}
+    return out
+
+
+def _world(truth: Sequence[np.ndarray], est: Sequence[np.ndarray], anchored: bool) -> tuple[list[np.ndarray], float]:
+    """Estimates placed in the world (anchored at each robot's true start if ``anchored``, then
+    one SE(3) alignment over the team) and the team ATE."""
+    placed = [t[0] @ e if anchored else e for t, e in zip(truth, est, strict=True)]
+    e_all = np.concatenate([p[:, :3, 3] for p in placed])
+    t_all = np.concatenate([t[:, :3, 3] for t in truth])
+    T = align_se3(e_all, t_all)
+    world = [T @ p for p in placed]
+    err = np.concatenate([w[:, :3, 3] for w in world]) - t_all
+    return world, float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+
+
+def _drift(truth: Sequence[np.ndarray], est: Sequence[np.ndarray]) -> float:
+    """Mean over robots of the final position error of an anchored chain / distance travelled."""
+    out = []
+    for t, e in zip(truth, est, strict=True):
+        length = float(np.linalg.norm(np.diff(t[:, :3, 3], axis=0), axis=1).sum())
+        end = (t[0] @ e[-1])[:3, 3] - t[-1, :3, 3]
+        out.append(float(np.linalg.norm(end)) / length if length > 0 else 0.0)
+    return float(np.mean(out))
+
+
+def accuracy_results(world: Any, mapping: MappingConfig, truth: Sequence[np.ndarray],
+                     scans: Sequence[Sequence[ScanRecord]], agents: Sequence[Agent],
+                     outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray) -> dict[str, Any]:
+    """``team_map``, ``ate_rmse_m`` per estimate, ``drift``, ``closure_error``, ``scan_odometry``
+    and ``front_end_ms_per_keyframe`` (a machine timing) of a team run."""
+    grid = world.gt_voxel_grid(mapping.octree.resolution)
+    centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
+    dr = [np.array(a.dead_reckoning) for a in agents]
+    reg = [np.array(a.scan_odometry.poses) if a.scan_odometry is not None else np.array(a.dead_reckoning)
+           for a in agents]
+    dr_world, dr_ate = _world(truth, dr, anchored=True)
+    reg_world, reg_ate = _world(truth, reg, anchored=True)
+    est_world, est_ate = _world(truth, [T_world_team @ o.poses for o in outcomes], anchored=False)
+    team_map: dict[str, Any] = dict(team_map_quality(mapping, scans, est_world, centers, gt))
+    team_map["true_poses"] = team_map_quality(mapping, scans, list(truth), centers, gt)
+    team_map["dead_reckoning"] = team_map_quality(mapping, scans, dr_world, centers, gt)
+    team_map["registration_odometry"] = team_map_quality(mapping, scans, reg_world, centers, gt)
+    stats = [a.scan_odometry.stats for a in agents if a.scan_odometry is not None]
+    keyframes = max(sum(a.num_keyframes for a in agents), 1)
+    return {
+        "team_map": team_map,
+        "ate_rmse_m": {"dead_reckoning": dr_ate, "registration_odometry": reg_ate, "full_system": est_ate},
+        "drift_per_distance": {"dead_reckoning": _drift(truth, dr), "registration_odometry": _drift(truth, reg)},
+        "closure_error": closure_errors(truth, outcomes),
+        "scan_odometry": {k: sum(getattr(s, k) for s in stats) for k in _SCAN_COUNTS},
+        "front_end_ms_per_keyframe": {
+            "total": 1000 * sum(a.front_end_seconds for a in agents) / keyframes,
+            "registration": 1000 * sum(s.seconds for s in stats) / keyframes},
+    }

@@ -1,0 +1,80 @@
+import numpy as np
+import pytest
+
+from kimera_multi_py.agent.agent import Agent, AgentParams
+from kimera_multi_py.agent.sources import keyframe_input
+from kimera_multi_py.eval.metrics import ate_rmse
+from kimera_multi_py.sim import Simulation, load_scenario
+from kimera_multi_py.sim.runner import SimRunner
+
+from ..sim.helpers import REPO, TINY
+
+SMALL = REPO / "sims" / "small.toml"
+
+
+@pytest.fixture(scope="module")
+def small_robot():
+    sim = Simulation(load_scenario(SMALL), seed=0)
+    kfs = [kf for kf, _ in zip(sim.keyframes(0), range(60), strict=False)]
+    return sim, kfs
+
+
+def _run(kfs, **params):
+    agent = Agent(0, None, AgentParams(**params))
+    for kf in kfs:
+        agent.process_keyframe(keyframe_input(kf))
+    return agent
+
+
+def test_registration_factors_join_the_odometry_as_trusted_edges(small_robot):
+    _, kfs = small_robot
+    agent = _run(kfs)
+    i, j, Z, info, odo = agent.intra_edges()
+    n = agent.num_keyframes
+    reg = np.arange(len(i)) >= n - 1
+    reg &= odo
+    assert reg.sum() == len(agent.scan_odometry.edges) > n // 2
+    assert np.all(j[reg] == i[reg] + 1) and np.all(odo[: n - 1])
+    assert all(np.linalg.eigvalsh(I).min() > -1e-6 * np.abs(I).max() for I in info[reg])
+    # the estimate chains the fused steps, not the raw odometry
+    chained = [np.eye(4)]
+    for s in agent.steps[1:]:
+        chained.append(chained[-1] @ s)
+    assert np.allclose(np.array(chained), np.array(agent.poses))
+    assert not np.allclose(np.array(agent.poses), np.array(agent.dead_reckoning))
+    # a PGO correction of the first half: the rest follows by the fused steps
+    half = n // 2
+    agent.apply_poses(np.array(agent.poses[:half]))
+    assert np.allclose(np.array(agent.poses), np.array(chained))
+
+
+def test_without_registration_the_agent_is_dead_reckoning(small_robot):
+    _, kfs = small_robot
+    agent = _run(kfs, registration=False)
+    assert agent.scan_odometry is None
+    assert np.allclose(np.array(agent.poses), np.array(agent.dead_reckoning))
+    assert len(agent.intra_edges()[0]) == agent.num_keyframes - 1 + sum(
+        c.accepted for c in agent.closures.get(0, []))
+
+
+def test_registration_refined_odometry_drifts_less_than_dead_reckoning(small_robot):
+    _, kfs = small_robot
+    agent = _run(kfs)
+    true = np.array([kf.true_pose for kf in kfs])
+    reg = true[0] @ np.array(agent.scan_odometry.poses)
+    dead = true[0] @ np.array(agent.dead_reckoning)
+    assert ate_rmse(reg[:, :3, 3], true[:, :3, 3]) < ate_rmse(dead[:, :3, 3], true[:, :3, 3])
+
+
+@pytest.mark.slow
+def test_tiny_end_to_end_reports_accuracy_by_cause():
+    d = SimRunner(load_scenario(TINY), 0, "distributed").run().to_dict()
+    ate = d["ate_rmse_m"]
+    assert ate["registration_odometry"] < ate["dead_reckoning"]
+    tm = d["team_map"]
+    assert 0 <= tm["occupancy_f1"] <= 1 and 0 <= tm["semantic_miou"] <= 1
+    assert tm["true_poses"]["occupancy_f1"] > 0.9  # the ceiling: the same scans at the true poses
+    assert tm["true_poses"]["occupancy_f1"] > tm["dead_reckoning"]["occupancy_f1"]
+    assert d["closure_error"]["inter"]["count"] == d["loop_closures"]["accepted_inter"]
+    assert d["front_end_ms_per_keyframe"]["total"] > d["front_end_ms_per_keyframe"]["registration"] > 0
+    assert d["scan_odometry"]["registered"] > 0
