@@ -57,12 +57,13 @@ def measure(scenario: str, robots: int, seed: int, mode: str) -> dict[str, Any]:
     odom = [np.array(tr.est) for tr in runner.tracks]
     outcomes = runner.outcomes
     est = [o.poses for o in outcomes]
-    report = [dict(getattr(o, "alignment", {}) or {}) for o in outcomes]
-    excluded = [bool(a.get("excluded", False)) for a in report]
-    # excluded robots stay in their own odometry frame: scored as dead reckoning from their true start
-    scored = [truth[r][0] @ odom[r] if excluded[r] else est[r] for r in range(len(est))]
+    report = [dict(o.alignment) for o in outcomes]
+    excluded = [a.get("status") == "excluded" for a in report]
+    # excluded robots stay in their own frame: anchored at their true start, like dead reckoning
+    own = [r for r in range(len(est)) if excluded[r]]
+    scored = [np.linalg.inv(truth[0][0]) @ truth[r][0] @ est[r] if excluded[r] else est[r] for r in range(len(est))]
     _, odo_team, _ = trajectory_results(truth, odom, anchored=True)
-    _, team, T_wt = trajectory_results(truth, scored, anchored=False)
+    _, team, T_wt = trajectory_results(truth, est, anchored=False, own_frame=own)
     frames = []
     for r, (e, t) in enumerate(zip(scored, truth, strict=True)):
         if excluded[r]:
@@ -133,8 +134,9 @@ def summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {"runs": len(runs), **{k: sum(bool(c.get(k)) for c in checks) for k in keys}}
     central = {(r["scenario"], r["robots"], r["seed"]): r for r in runs
                if r.get("mode") == "centralized" and "error" not in r}
-    pairs = [(r, central[(r["scenario"], r["robots"], r["seed"])]) for r in runs
-             if r.get("mode") == "distributed" and "error" not in r and (r["scenario"], r["robots"], r["seed"]) in central]
+    dist = [r for r in runs if r.get("mode") == "distributed" and "error" not in r]
+    pairs = [(r, central[(r["scenario"], r["robots"], r["seed"])]) for r in dist
+             if (r["scenario"], r["robots"], r["seed"]) in central]
     if pairs:
         out["distributed_vs_centralized"] = [
             {"scenario": d["scenario"], "robots": d["robots"], "seed": d["seed"],
