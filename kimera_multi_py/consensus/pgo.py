@@ -27,6 +27,19 @@ robots without inter-robot edges simply wait (their edges are ignored by the oth
 Optionally (``distributed_init``) the team first runs block Gauss–Seidel on the chordal
 relaxation (:mod:`.chordal`) until every robot has settled; the leader then sends ``start``.
 
+Robust frame alignment (``align_hypotheses``, issue 11): the known inter-robot edges are
+clustered into frame hypotheses (:func:`.alignment.frame_hypotheses`), each supported by the
+number of distinct places its closures come from, over every neighbour at once. A robot adopts
+the hypothesis that leads the runner-up by ``align_min_margin`` places and rests on at least
+``align_min_places``; a lone single-place group with no competitor is adopted only once no
+more edges can arrive, and reported as such. Otherwise the robot stays out of the team frame for
+the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
+:attr:`PgoAgent.alignment` and the log. Every epoch builds a fresh agent, so the decision is
+revisited as closures accumulate: a robot aligned into an alias frame switches once the true
+hypothesis leads. Edges outside the adopted hypothesis start at weight 0. At the end of an
+epoch (:meth:`PgoAgent.final_poses`) an estimate that bends away from the robot's own odometry
+beyond its drift model (:func:`.alignment.odometry_disagreement`) is not adopted either.
+
 Robust mode: GNC-TLS weights (:mod:`.robust`) on loop closures and inter-robot edges (odometry
 is trusted). The lowest robot id is the leader: it sends ``update_weights`` when every robot is
 ready (or after a round cap) and ``stop`` when the team is done. GNC runs with *one* ``μ`` for
