@@ -301,6 +301,7 @@ class PgoAgent:
         # what the frame rests on (JSON-ready): status, hypothesis, support, margin, reason
         self.alignment: dict[str, object] = {"status": "root" if self.root else "unaligned"}
         self._no_peer_rounds = 0
+        self._tried = b""  # the known-edge mask of the last alignment attempt
         self._base: gtsam.NonlinearFactorGraph | None = None
         self._values = to_values(local.keys, self.poses)
 
@@ -399,9 +400,13 @@ class PgoAgent:
         """Robust alignment: adopt the frame hypothesis that clearly leads (module docstring)."""
         p = self.params
         lg = self.local
+        self.wait_rounds += 1
+        signature = known.tobytes()
+        if self.excluded and signature == self._tried:
+            return  # nothing new to decide on
+        self._tried = signature
         hyps = self._hypotheses(known)
         best, margin = decide(hyps, p.align_min_places, p.align_min_margin)
-        self.wait_rounds += 1
         final = bool(known.all()) or self.wait_rounds >= p.align_patience
         if best is None and final and (not hyps or hyps[0].size < 3):
             # no group of mutually consistent edges at all (sparse or noisy edges, not
