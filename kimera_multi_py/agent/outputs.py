@@ -55,6 +55,9 @@ class RobotOutcome:
     front_end: dict[str, int]
     traffic: dict[str, Any] = field(default_factory=dict)
     pgo_epochs: int = 0
+    # the frame decision of the last PGO epoch (consensus.pgo.PgoAgent.alignment): status
+    # (root / aligned / excluded / unaligned), hypothesis, support (places), margin, reason
+    alignment: dict[str, Any] = field(default_factory=dict)
 
 
 def _weights(node: Any) -> dict[tuple[int, int, int], float]:
@@ -95,10 +98,12 @@ def outcome_of(node: Any, server_weights: dict[tuple[int, int, int, int], float]
     s = agent.stats
     traffic = {"counters": node.bus.counters.snapshot(), "refused": dict(node.errors)}
     epochs = node.pgo.stats.epochs if getattr(node, "pgo", None) is not None else 0
+    last = getattr(getattr(node, "pgo", None), "last_pgo", None)
+    alignment = dict(getattr(last, "alignment", {}) or {})
     return RobotOutcome(agent.robot, np.array(agent.stamps), np.array(agent.poses).reshape(-1, 4, 4),
                         agent.map.octree, objects, rows,
                         {"candidates": s.candidates, "verified": s.verified,
-                         "rejected_verification": s.rejected_verification}, traffic, epochs)
+                         "rejected_verification": s.rejected_verification}, traffic, epochs, alignment)
 
 
 def own_graph(agent: Agent) -> PoseGraph:
@@ -122,7 +127,7 @@ def write_outcome(out_dir: str | Path, outcome: RobotOutcome, graph: PoseGraph |
                                      "objects": outcome.objects})
     _write_json(d / "closures.json", {
         "version": OUTCOME_VERSION, "robot": outcome.robot, "front_end": outcome.front_end,
-        "pgo_epochs": outcome.pgo_epochs,
+        "pgo_epochs": outcome.pgo_epochs, "alignment": outcome.alignment,
         "closures": [{"own_kf": c.own_kf, "peer": c.peer, "peer_kf": c.peer_kf, "Z": c.Z.tolist(),
                       "accepted": c.accepted, "weight": c.weight} for c in outcome.closures]})
     _write_json(d / "traffic.json", outcome.traffic)
@@ -165,6 +170,7 @@ def read_outcome(run_dir: str | Path, robot: int) -> RobotOutcome:
                            bool(c["accepted"]), None if c["weight"] is None else float(c["weight"]))
                 for c in cl["closures"]]
         return RobotOutcome(robot, stamps, poses, octree, list(objs["objects"]), rows,
-                            {k: int(v) for k, v in cl["front_end"].items()}, traffic, int(cl.get("pgo_epochs", 0)))
+                            {k: int(v) for k, v in cl["front_end"].items()}, traffic, int(cl.get("pgo_epochs", 0)),
+                            dict(cl.get("alignment") or {}))
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{d}: malformed outputs ({exc!r})") from None

@@ -124,24 +124,16 @@ def align_frames(own: np.ndarray, neighbour: np.ndarray, measurement: np.ndarray
     return Alignment(make_pose(R, t), inliers, ok)
 
 
-def supported_edges(own: np.ndarray, neighbour: np.ndarray, measurement: np.ndarray,
-                    own_is_i: np.ndarray, rotation_threshold: float = 0.5,
-                    translation_tolerance: float = 1.0, lever_ratio: float = 0.1,
-                    min_support: int = 1) -> np.ndarray:
-    """Inter-robot edges whose frame hypothesis at least ``min_support`` other edges share.
+def agreement(own: np.ndarray, neighbour: np.ndarray, measurement: np.ndarray, own_is_i: np.ndarray,
+              rotation_threshold: float = 0.5, translation_tolerance: float = 1.0,
+              lever_ratio: float = 0.1) -> np.ndarray:
+    """``(k, k)`` symmetric mask: edges ``e`` and ``f`` propose the same frame transform.
 
-    Edge ``e`` proposes ``T_e`` (team ← own frame). Edge ``f`` supports it when ``T_e`` predicts
-    ``f``'s neighbour pose within ``rotation_threshold`` (rad) and ``translation_tolerance`` plus
-    ``lever_ratio`` times the distance between the two own poses (rotation error and drift
-    grow with it), or the other way round. Unlike :func:`align_frames` this keeps *every*
-    consistent group, not only the largest: aliased closures (identical places) come in
-    mutually consistent groups that can outnumber the true group for one robot pair, and only
-    the joint graph can tell them apart (GNC's job). An unsupported edge agrees with no other:
-    a random outlier.
+    Edge ``e`` proposes ``T_e`` (team ← own frame). ``f`` agrees when ``T_e`` predicts ``f``'s
+    neighbour pose within ``rotation_threshold`` (rad) and ``translation_tolerance`` plus
+    ``lever_ratio`` times the distance between the two own poses (rotation error and drift grow
+    with it), or the other way round. The diagonal is False.
     """
-    k = len(own)
-    if k == 0:
-        return np.zeros(0, dtype=bool)
     P = predicted_neighbours(own, measurement, own_is_i)
     T = neighbour @ inverse(P)
     R, t = T[:, :3, :3], T[:, :3, 3]
@@ -156,4 +148,177 @@ def supported_edges(own: np.ndarray, neighbour: np.ndarray, measurement: np.ndar
         d_t <= translation_tolerance + lever_ratio * lever)
     ok = ok | ok.T
     np.fill_diagonal(ok, False)
+    return np.asarray(ok)
+
+
+def supported_edges(own: np.ndarray, neighbour: np.ndarray, measurement: np.ndarray,
+                    own_is_i: np.ndarray, rotation_threshold: float = 0.5,
+                    translation_tolerance: float = 1.0, lever_ratio: float = 0.1,
+                    min_support: int = 1) -> np.ndarray:
+    """Inter-robot edges whose frame hypothesis at least ``min_support`` other edges share
+    (see :func:`agreement`).
+
+    Unlike :func:`align_frames` this keeps *every* consistent group, not only the largest:
+    aliased closures (identical places) come in mutually consistent groups that can outnumber
+    the true group for one robot pair. An unsupported edge agrees with no other: a random outlier.
+    """
+    if len(own) == 0:
+        return np.zeros(0, dtype=bool)
+    ok = agreement(own, neighbour, measurement, own_is_i, rotation_threshold, translation_tolerance, lever_ratio)
     return np.asarray(ok.sum(1) >= min_support)
+
+
+@dataclass
+class FrameHypothesis:
+    """One candidate frame transform and the evidence for it.
+
+    ``edges`` index the measurements it explains; ``places`` is its support: the number of
+    distinct places (per neighbour robot, own poses closer than ``place_radius`` chained into
+    one place) those measurements come from. An aliased group (two identical rooms) is one
+    place; the true frame explains closures wherever the robots' paths really overlap.
+    """
+
+    T: np.ndarray
+    edges: np.ndarray
+    places: int
+    peers: tuple[int, ...]
+
+    @property
+    def size(self) -> int:
+        return len(self.edges)
+
+
+def count_places(points: np.ndarray, radius: float) -> int:
+    """Connected components of ``points (n, 3)`` under single linkage at ``radius``."""
+    if len(points) == 0:
+        return 0
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    d = np.linalg.norm(points[:, None] - points[None], axis=2)
+    n, _ = connected_components(csr_matrix(d <= radius), directed=False)
+    return int(n)
+
+
+def frame_hypotheses(own: np.ndarray, neighbour: np.ndarray, measurement: np.ndarray, own_is_i: np.ndarray,
+                     peers: np.ndarray, rotation_threshold: float = 0.2, translation_tolerance: float = 1.0,
+                     lever_ratio: float = 0.05, place_radius: float = 2.0, min_edges: int = 2,
+                     max_hypotheses: int = 8, merge_distance: float = 2.5) -> list[FrameHypothesis]:
+    """The distinct frame hypotheses the measurements propose, best supported first.
+
+    Greedy clustering of :func:`agreement`: the edge most others agree with seeds a group, the
+    group's transform is re-estimated robustly (:func:`align_frames`) and its inliers leave the
+    pool; repeat. Hypotheses that move the robot's closure poses by less than ``merge_distance``
+    are one (drift splits a true group; identical rooms sit further apart). Ranked by
+    ``places``, then by size. Every neighbour's measurements vote in the
+    same (team) frame, so the true hypothesis gathers support across robots and places, while
+    each aliased one is confined to the places that look alike.
+    """
+    k = len(own)
+    out: list[FrameHypothesis] = []
+    if k == 0:
+        return out
+    peers = np.asarray(peers)
+    ok = agreement(own, neighbour, measurement, own_is_i, rotation_threshold, translation_tolerance, lever_ratio)
+    left = np.ones(k, dtype=bool)
+    while left.sum() >= min_edges and len(out) < max_hypotheses:
+        score = (ok & left[None, :]).sum(1) * left
+        seed = int(np.argmax(score))
+        group = np.flatnonzero(left & (ok[seed] | (np.arange(k) == seed)))
+        if len(group) < min_edges:
+            break
+        res = align_frames(own[group], neighbour[group], measurement[group], own_is_i[group],
+                           rotation_threshold=rotation_threshold, min_inliers=min_edges)
+        members = group[res.inliers] if res.inliers.sum() >= min_edges else group
+        T = res.T if res.inliers.sum() >= min_edges else align_frames(
+            own[group], neighbour[group], measurement[group], own_is_i[group], min_inliers=1).T
+        left[members] = False
+        left[seed] = False
+        places = sum(count_places(own[members[peers[members] == p], :3, 3], place_radius)
+                     for p in np.unique(peers[members]))
+        out.append(FrameHypothesis(T, members, int(places), tuple(int(p) for p in np.unique(peers[members]))))
+    out = _merge_close(out, own, peers, merge_distance, place_radius)
+    out.sort(key=lambda h: (-h.places, -h.size))
+    return out
+
+
+def _merge_close(hyps: list[FrameHypothesis], own: np.ndarray, peers: np.ndarray, distance: float,
+                 place_radius: float) -> list[FrameHypothesis]:
+    """Join hypotheses whose transforms move the robot's closure poses by less than ``distance``
+    (a true group that drift over long lever arms split; aliases sit a room apart)."""
+    hyps = list(hyps)
+    merged = True
+    while merged and len(hyps) > 1:
+        merged = False
+        for a in range(len(hyps)):
+            for b in range(a + 1, len(hyps)):
+                ha, hb = hyps[a], hyps[b]
+                pts = own[np.concatenate([ha.edges, hb.edges]), :3, 3]
+                D = inverse(ha.T) @ hb.T
+                move = np.linalg.norm(pts @ D[:3, :3].T + D[:3, 3] - pts, axis=1).max()
+                if move > distance:
+                    continue
+                edges = np.concatenate([ha.edges, hb.edges])
+                places = sum(count_places(own[edges[peers[edges] == p], :3, 3], place_radius)
+                             for p in np.unique(peers[edges]))
+                big = ha if ha.size >= hb.size else hb
+                hyps[a] = FrameHypothesis(big.T, edges, int(places), tuple(int(p) for p in np.unique(peers[edges])))
+                del hyps[b]
+                merged = True
+                break
+            if merged:
+                break
+    return hyps
+
+
+def decide(hypotheses: list[FrameHypothesis], min_places: int = 2, min_margin: int = 1,
+           min_edges: int = 3) -> tuple[FrameHypothesis | None, int]:
+    """The hypothesis that clearly leads, or None; and its margin in places over the runner-up.
+
+    A frame resting on a single place (one group, which an alias would look like) or tied with
+    another hypothesis is not decided: the robot waits for more evidence (or stays out of the
+    team frame).
+    """
+    if not hypotheses:
+        return None, 0
+    best = hypotheses[0]
+    second = hypotheses[1].places if len(hypotheses) > 1 else 0
+    margin = best.places - second
+    if best.places >= min_places and margin >= min_margin and best.size >= min_edges:
+        return best, margin
+    return None, margin
+
+
+def drift_sigmas(odometry_xyz: np.ndarray, sigma_rot: float, sigma_trans: float) -> np.ndarray:
+    """Per-keyframe position standard deviation of dead reckoning ``(n,)`` (m).
+
+    A random walk per keyframe of ``sigma_trans`` (m, per axis) plus the lever arm of the
+    accumulated heading error: a rotation error ``δθ_m`` at keyframe ``m`` moves keyframe ``k``
+    by ``|p_k − p_m| δθ_m``, so ``σ_k² = k σ_t² + 2 σ_r² Σ_{m<k} |p_k − p_m|²``. The real path's
+    geometry bounds the lever arm (a robot touring a floor stays within it), which the
+    straight-line ``L³/3`` bound does not.
+    """
+    p = np.asarray(odometry_xyz, dtype=float)
+    n = len(p)
+    k = np.arange(n)
+    S = np.vstack([np.zeros(3), np.cumsum(p, axis=0)[:-1]]) if n else np.zeros((0, 3))
+    Q = np.concatenate([[0.0], np.cumsum((p**2).sum(1))[:-1]]) if n else np.zeros(0)
+    lever2 = np.maximum(k * (p**2).sum(1) - 2.0 * (p * S).sum(1) + Q, 0.0)
+    return np.asarray(np.sqrt(k * sigma_trans**2 + 2.0 * sigma_rot**2 * lever2))
+
+
+def odometry_disagreement(poses: np.ndarray, odometry: np.ndarray, sigma_rot: float, sigma_trans: float,
+                          z: float = 4.0, floor: float = 0.5) -> float:
+    """How far an estimate bends away from the robot's own dead reckoning, in units of its drift
+    model: ``max_k |dev_k| / (z·σ_max + floor)`` after one rigid alignment of the estimate onto
+    the odometry (the frame does not matter, the shape does). Above 1: the estimate disagrees
+    with the robot's odometry beyond what drift explains (false closures bent it)."""
+    from kimera_multi_py.geometry import umeyama
+
+    P, D = np.asarray(poses)[:, :3, 3], np.asarray(odometry)[:, :3, 3]
+    if len(P) < 3:
+        return 0.0
+    R, t, _ = umeyama(P, D)
+    dev = np.linalg.norm(P @ R.T + t - D, axis=1)
+    sigma = float(drift_sigmas(D, sigma_rot, sigma_trans).max())
+    return float(dev.max() / (z * sigma + floor))

@@ -111,3 +111,40 @@ def pcm(Z: np.ndarray, A_i: np.ndarray, B_j: np.ndarray, path_a: np.ndarray, pat
         mask[best] = True
         left = np.setdiff1d(left, best)
     return mask
+
+
+def odometry_consistent_path(Z: np.ndarray, kf_i: np.ndarray, kf_j: np.ndarray, dead_reckoning: np.ndarray,
+                             noise: PcmNoise, keyframe_distance: float) -> np.ndarray:
+    """Intra-robot closures ``Z ≈ D_i^{-1} D_j`` that agree with the robot's own odometry (mask),
+    with the drift model taken along the robot's real path.
+
+    :func:`odometry_consistent` bounds the translation drift that heading error causes by a
+    straight line (``σ_r² L³/3``): over a long tour that admits a room-sized error (a robot that
+    drove 120 m through a 24 m floor may be "11 m" off), so identical rooms 6 m apart pass. The
+    lever arm is really the distance from each intermediate keyframe to the closure's end:
+    ``σ_r² d Σ_m |p_j − p_m|²`` over the keyframes ``m`` between the ends, which stays room-sized.
+    ``dead_reckoning``: ``(n, 4, 4)`` the robot's odometry-chained poses; ``kf_i``/``kf_j``
+    keyframe indices of the closures' ends; ``keyframe_distance`` the nominal metres per keyframe.
+    """
+    Z = np.asarray(Z, dtype=float).reshape(-1, 4, 4)
+    D = np.asarray(dead_reckoning, dtype=float)
+    a, b = np.asarray(kf_i, dtype=int), np.asarray(kf_j, dtype=int)
+    if len(Z) == 0:
+        return np.zeros(0, dtype=bool)
+    if np.any(a < 0) or np.any(b < 0) or np.any(np.maximum(a, b) >= len(D)):
+        raise ValueError(f"closure keyframes outside the {len(D)} dead-reckoning poses")
+    xi = se3_log(inverse(Z) @ inverse(D[a]) @ D[b])
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    p = D[:, :3, 3]
+    S = np.vstack([np.zeros(3), np.cumsum(p, axis=0)])  # S[k] = Σ_{m<k} p_m
+    Q = np.concatenate([[0.0], np.cumsum((p**2).sum(1))])
+    end = p[hi]
+    count = (hi - lo).astype(float)
+    lever2 = np.maximum(count * (end**2).sum(1) - 2.0 * (end * (S[hi] - S[lo])).sum(1) + Q[hi] - Q[lo], 0.0)
+    span = count * keyframe_distance
+    var_rot = noise.closure_rot**2 + noise.odom_rot_per_m**2 * span
+    # heading error of 2 axes perpendicular to each lever arm, per keyframe (variance per m x d)
+    var_trans = (noise.closure_trans**2 + noise.odom_trans_per_m**2 * span
+                 + 2.0 * noise.odom_rot_per_m**2 * keyframe_distance * lever2)
+    r2 = (xi[:, :3] ** 2).sum(-1) / var_rot + (xi[:, 3:] ** 2).sum(-1) / var_trans
+    return np.asarray(r2 <= chi2.ppf(noise.probability, 6))

@@ -6,7 +6,7 @@ launch of N agent processes (outcomes read back from ``DIR/robotI/``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -18,13 +18,16 @@ from kimera_multi_py.eval.results import RobotResult
 from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures, world_boxes
 
 
-def trajectory_results(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarray], anchored: bool
-                       ) -> tuple[list[RobotResult], dict[str, Any], np.ndarray]:
+def trajectory_results(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarray], anchored: bool,
+                       own_frame: Collection[int] = ()) -> tuple[list[RobotResult], dict[str, Any], np.ndarray]:
     """Per-robot and team ATE. ``anchored``: each estimate is in its own odometry frame and is
-    anchored at the robot's true start (dead reckoning); otherwise all share the team frame.
+    anchored at the robot's true start (dead reckoning); otherwise all share the team frame,
+    except the robots in ``own_frame`` (kept out of the team frame), anchored like dead reckoning.
     Returns ``(robots, team, T_world_team)``."""
     robots, team_est, team_true = [], [], []
     for i, (true, est) in enumerate(zip(truth, estimates, strict=True)):
+        if not anchored and i in own_frame:  # dead-reckoning anchor, expressed in robot 0's frame
+            est = np.linalg.inv(truth[0][0]) @ true[0] @ est
         if len(est) != len(true):
             raise ValueError(f"robot {i}: {len(est)} estimated poses for {len(true)} true keyframes")
         length = float(np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1).sum())
@@ -56,6 +59,7 @@ def team_results(world: Any, truth: Sequence[np.ndarray], outcomes: Sequence[Rob
                              np.array([o.centroid for o in world.objects]))
     objects["landmarks"] = len(objs)
     return {"map": maps, "objects": objects, "loop_closures": closure_stats(truth, outcomes),
+            "alignment": alignment_report(outcomes),
             "bytes_sent": traffic_totals(outcomes),
             "refused_messages": {o.robot: dict(o.traffic.get("refused", {})) for o in outcomes}}
 
@@ -95,6 +99,20 @@ def closure_stats(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome])
         "accepted_intra": int((~inter & final).sum()),
         "false_accepted_intra": int((~inter & final & ~true).sum()),
     }
+
+
+def alignment_report(outcomes: Sequence[RobotOutcome]) -> dict[str, dict[str, Any]]:
+    """Per robot, the frame decision of its last PGO epoch: ``status`` (root / aligned /
+    excluded: kept out of the team frame, in its own frame), ``hypothesis`` (4x4, own → team
+    frame), ``support`` (distinct places its closures come from), ``margin`` (places over the
+    runner-up hypothesis), ``reason`` when excluded, ``drift_ratio`` (estimate against its own
+    odometry, in units of its drift model)."""
+    return {str(o.robot): dict(o.alignment) for o in outcomes}
+
+
+def excluded_robots(outcomes: Sequence[RobotOutcome]) -> list[int]:
+    """Robots that kept themselves out of the team frame (their estimate is in their own frame)."""
+    return [o.robot for o in outcomes if o.alignment.get("status") == "excluded"]
 
 
 def traffic_totals(outcomes: Sequence[RobotOutcome]) -> dict[str, Any]:
