@@ -47,7 +47,7 @@ from kimera_multi_py.comms.messages import (
     Message,
     PublicPoses,
 )
-from kimera_multi_py.consensus.pcm import PcmNoise, odometry_consistent, pcm
+from kimera_multi_py.consensus.pcm import PcmNoise, odometry_consistent_path, pcm
 from kimera_multi_py.consensus.pgo import LocalGraph
 from kimera_multi_py.geometry import inverse, so3_log, transform_points
 from kimera_multi_py.io.pose_graph import robot_key, split_key
@@ -422,8 +422,11 @@ class Agent:
         pb = np.array([c.peer_kf for c in group]) * d
         noise = self.params.pcm_noise()
         keep = pcm(Z, A, B, pa, pb, noise, min_size=self.params.pcm_min_size, groups=self.params.pcm_groups)
-        if peer == self.robot:  # intra-robot: each closure must also agree with odometry alone
-            keep &= odometry_consistent(Z, A, B, pa, pb, noise)
+        if peer == self.robot:  # intra-robot: each closure must also agree with odometry alone,
+            # its drift taken along the real path (a straight-line bound admits room-sized aliases)
+            keep &= odometry_consistent_path(Z, np.array([c.own_kf for c in group]),
+                                             np.array([c.peer_kf for c in group]), np.asarray(self.dead_reckoning),
+                                             noise, d)
         for c, k in zip(group, keep, strict=True):
             c.accepted = bool(k)
         if [c.accepted for c in group] == before and not closure.accepted:

@@ -130,6 +130,10 @@ class PgoParams:
     align_min_places: int = 2
     align_min_margin: int = 1
     align_early_margin: int = 1
+    # no hypothesis leads when the epoch's evidence is in: "consensus" aligns by the robust
+    # consensus of every edge and leaves the choice to GNC; "exclude" keeps the robot out of the
+    # team frame (its own frame) for the epoch
+    align_tie: str = "consensus"
     place_radius: float = 2.0  # m: own closure poses closer than this are one place
     # safety: an estimate that bends away from the robot's own odometry beyond its drift model
     # (odometry_disagreement > 1) is not adopted; the robot falls back to its own frame
@@ -418,9 +422,16 @@ class PgoAgent:
             # one group and no competitor: nothing to tell an alias from here; adopted, and
             # reported as resting on one place (the drift check and later epochs revisit it)
             best = hyps[0]
+        if best is None and final and p.align_tie == "consensus":
+            # competing hypotheses and none leads: the robust consensus of every edge aligns the
+            # robot and the team's GNC decides between the groups; the report says it was a tie
+            self._align_consensus(known)
+            self.alignment.update(reason="no frame hypothesis leads: consensus of every edge", margin=int(margin),
+                                  competitors=_competitors(hyps))
+            return
         if best is None or (not final and margin < p.align_early_margin):
             if final:
-                self._exclude("no frame hypothesis leads", hyps[0] if hyps else None, margin)
+                self._exclude("no frame hypothesis leads", hyps[0] if hyps else None, margin, hyps)
             return
         T = best.T
         self.poses = T @ self.poses
@@ -455,13 +466,16 @@ class PgoAgent:
             out["reason"] = reason
         return out
 
-    def _exclude(self, reason: str, h: FrameHypothesis | None, margin: int) -> None:
+    def _exclude(self, reason: str, h: FrameHypothesis | None, margin: int,
+                 hyps: list[FrameHypothesis] | None = None) -> None:
         """Stay out of the team frame this epoch: no alignment, inter-robot edges off."""
         if self.excluded:
             return
         self.excluded = True
         self.inter_weights[:] = 0.0
-        self.alignment = self._report("excluded", h, margin, 0, reason)
+        self.alignment = self._report("excluded", h, margin, len(hyps or []), reason)
+        # every competing hypothesis: distinct places, edges, peers, and where it moves the robot's origin
+        self.alignment["competitors"] = _competitors(hyps or [])
         log.warning("robot %d: kept out of the team frame (%s; best support %d places, margin %d)", self.robot,
                     reason, h.places if h is not None else 0, margin)
 
@@ -977,6 +991,11 @@ class PgoAgent:
                          active=np.zeros(0, dtype=np.int64))
         self.handle(cmd)
         return [cmd]
+
+
+def _competitors(hyps: list[FrameHypothesis]) -> list[list[object]]:
+    """JSON-ready summary of frame hypotheses: ``[places, edges, peers, translation]`` each."""
+    return [[h.places, h.size, list(h.peers), np.round(h.T[:3, 3], 2).tolist()] for h in hyps]
 
 
 def _near_identity(T: np.ndarray, max_trans: float = 1.0, max_rot: float = 0.2) -> bool:

@@ -52,7 +52,7 @@ from kimera_multi_py.errors import ConfigError
 from kimera_multi_py.eval.accuracy import ScanRecord, accuracy_results
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import map_quality, score_closures
-from kimera_multi_py.eval.team import scene_graph_results, team_results, trajectory_results
+from kimera_multi_py.eval.team import excluded_robots, scene_graph_results, team_results, trajectory_results
 from kimera_multi_py.geometry import transform_points
 from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.tum import write_tum
@@ -358,7 +358,8 @@ class SimRunner:
         truth = [np.array(tr.true) for tr in self.tracks]
         team_mode = bool(self.outcomes)
         est = [o.poses for o in self.outcomes] if team_mode else [np.array(tr.est) for tr in self.tracks]
-        robots, team, T_world_team = trajectory_results(truth, est, anchored=not team_mode)
+        robots, team, T_world_team = trajectory_results(truth, est, anchored=not team_mode,
+                                                        own_frame=excluded_robots(self.outcomes))
         extra: dict[str, object] = {"rays": self.rays, "rays_per_s": self.rays / wall_s if wall_s > 0 else 0.0}
         if team_mode:
             extra.update(team_results(self.sim.world, truth, self.outcomes, T_world_team,

@@ -13,7 +13,7 @@ from kimera_multi_py.consensus.map_fusion import octree_cells
 from kimera_multi_py.errors import DatasetError, MapError
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import map_quality
-from kimera_multi_py.eval.team import scene_graph_results, team_results, trajectory_results
+from kimera_multi_py.eval.team import excluded_robots, scene_graph_results, team_results, trajectory_results
 from kimera_multi_py.io.tum import write_tum
 from kimera_multi_py.mapping.octree_io import load_octree
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
@@ -78,7 +78,8 @@ def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str,
         if len(o.poses) != len(true):
             raise DatasetError(f"{run_dir / f'robot{o.robot}' / 'trajectory.tum'}: {len(o.poses)} keyframes, "
                                f"the scenario has {len(true)}")
-    robots, team, T = trajectory_results(truth, [o.poses for o in outcomes], anchored=False)
+    robots, team, T = trajectory_results(truth, [o.poses for o in outcomes], anchored=False,
+                                         own_frame=excluded_robots(outcomes))
     extra: dict[str, object] = dict(team_results(sim.world, truth, outcomes, T,
                                                  agent_params(cfg).team_object_sightings))
     extra["pgo_runs"] = max(o.pgo_epochs for o in outcomes)
