@@ -16,7 +16,7 @@ from kimera_multi_py.eval.metrics import ate_rmse
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.runner import agent_params, keyframe_input
 
-from ..sim.helpers import TINY
+from ..sim.helpers import SMALL, TINY
 
 
 def _run_free(sim, period=20.0):
@@ -39,13 +39,15 @@ def _run_free(sim, period=20.0):
 
 
 @pytest.fixture(scope="module")
-def tiny_free():
-    sim = Simulation(load_scenario(TINY), seed=0)
+def small_free():
+    # a non-aliased floor (sims/tiny.toml's twin rooms can leave a robot honestly out of the team frame)
+    sim = Simulation(load_scenario(SMALL), seed=0)
     return sim, _run_free(sim)
 
 
-def test_free_running_nodes_finish_together_and_optimise(tiny_free):
-    sim, nodes = tiny_free
+@pytest.mark.slow
+def test_free_running_nodes_finish_together_and_optimise(small_free):
+    sim, nodes = small_free
     assert all(n.complete and n.finished for n in nodes)
     # every node took part in the same epochs, the last one final, opened by the lowest id
     assert len({n.pgo.completed for n in nodes}) == 1 and nodes[0].pgo.completed >= 2
@@ -59,10 +61,11 @@ def test_free_running_nodes_finish_together_and_optimise(tiny_free):
         assert sum(n.errors.values()) == 0
 
 
-def test_free_running_estimates_are_in_one_frame(tiny_free):
+@pytest.mark.slow
+def test_free_running_estimates_are_in_one_frame(small_free):
     """Robots' final estimates, aligned to the world once for the whole team, are not worse than
     each robot's own dead reckoning anchored at its true start."""
-    sim, nodes = tiny_free
+    sim, nodes = small_free
     est = np.concatenate([np.array(n.agent.poses)[:, :3, 3] for n in nodes])
     true = np.concatenate([sim.plans[n.robot].poses[:, :3, 3] for n in nodes])
     team = ate_rmse(est, true)
