@@ -11,7 +11,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,6 +20,7 @@ import numpy as np
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.outputs import RobotOutcome
 from kimera_multi_py.eval.metrics import align_se3, occupancy_f1, semantic_miou
+from kimera_multi_py.eval.team import team_frame_estimates
 from kimera_multi_py.geometry import relative, so3_log, transform_points
 from kimera_multi_py.mapping.config import MappingConfig, get_octree
 
@@ -93,9 +94,11 @@ def _drift(truth: Sequence[np.ndarray], est: Sequence[np.ndarray]) -> float:
 
 def accuracy_results(world: Any, mapping: MappingConfig, truth: Sequence[np.ndarray],
                      scans: Sequence[Sequence[ScanRecord]], agents: Sequence[Agent],
-                     outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray) -> dict[str, Any]:
+                     outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray,
+                     own_frame: Collection[int] = ()) -> dict[str, Any]:
     """``team_map``, ``ate_rmse_m`` per estimate, ``drift``, ``closure_error``, ``scan_odometry``
-    and ``front_end_ms_per_keyframe`` (a machine timing) of a team run."""
+    and ``front_end_ms_per_keyframe`` (a machine timing) of a team run. Robots in ``own_frame``
+    (kept out of the team frame) are placed like dead reckoning (:func:`.team.team_frame_estimates`)."""
     grid = world.gt_voxel_grid(mapping.octree.resolution)
     centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
     dr = [np.array(a.dead_reckoning) for a in agents]
@@ -103,7 +106,8 @@ def accuracy_results(world: Any, mapping: MappingConfig, truth: Sequence[np.ndar
            for a in agents]
     dr_world, dr_ate = _world(truth, dr, anchored=True)
     reg_world, reg_ate = _world(truth, reg, anchored=True)
-    est_world, est_ate = _world(truth, [T_world_team @ o.poses for o in outcomes], anchored=False)
+    team = team_frame_estimates(truth, [o.poses for o in outcomes], own_frame)
+    est_world, est_ate = _world(truth, [T_world_team @ p for p in team], anchored=False)
     team_map: dict[str, Any] = dict(team_map_quality(mapping, scans, est_world, centers, gt))
     team_map["true_poses"] = team_map_quality(mapping, scans, list(truth), centers, gt)
     team_map["dead_reckoning"] = team_map_quality(mapping, scans, dr_world, centers, gt)

@@ -18,6 +18,14 @@ from kimera_multi_py.eval.results import RobotResult
 from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures, world_boxes
 
 
+def team_frame_estimates(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarray],
+                         own_frame: Collection[int] = ()) -> list[np.ndarray]:
+    """The estimates in the team frame (robot 0's); a robot in ``own_frame`` (kept out of the team
+    frame) is anchored like dead reckoning: its own frame placed at its true start."""
+    return [np.linalg.inv(truth[0][0]) @ truth[i][0] @ est if i in own_frame else est
+            for i, est in enumerate(estimates)]
+
+
 def trajectory_results(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarray], anchored: bool,
                        own_frame: Collection[int] = ()) -> tuple[list[RobotResult], dict[str, Any], np.ndarray]:
     """Per-robot and team ATE. ``anchored``: each estimate is in its own odometry frame and is
@@ -25,9 +33,9 @@ def trajectory_results(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarr
     except the robots in ``own_frame`` (kept out of the team frame), anchored like dead reckoning.
     Returns ``(robots, team, T_world_team)``."""
     robots, team_est, team_true = [], [], []
+    if not anchored:
+        estimates = team_frame_estimates(truth, estimates, own_frame)
     for i, (true, est) in enumerate(zip(truth, estimates, strict=True)):
-        if not anchored and i in own_frame:  # dead-reckoning anchor, expressed in robot 0's frame
-            est = np.linalg.inv(truth[0][0]) @ true[0] @ est
         if len(est) != len(true):
             raise ValueError(f"robot {i}: {len(est)} estimated poses for {len(true)} true keyframes")
         length = float(np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1).sum())

@@ -366,7 +366,7 @@ class SimRunner:
                                       self.params.team_object_sightings))
             extra["pgo_runs"] = self._epochs()
             extra.update(accuracy_results(self.sim.world, self.params.mapping, truth, [tr.scans for tr in self.tracks],
-                                          self.agents, self.outcomes, T_world_team))
+                                          self.agents, self.outcomes, T_world_team, excluded_robots(self.outcomes)))
             extra["transport"] = self.transport
             team_maps = None
             if self.map_report is not None:
