@@ -30,6 +30,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/octree_insert.py --json
 	$(BIN)/python benchmarks/comms.py --json
 	$(BIN)/python benchmarks/pgo.py --json
+	$(BIN)/python benchmarks/allocator.py --json
+	$(BIN)/python benchmarks/cli_sim.py --json
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

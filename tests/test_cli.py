@@ -1,7 +1,6 @@
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -21,11 +20,9 @@ def test_console_script_is_installed():
 
 
 def test_sim_runs_end_to_end_on_tiny_scenario(tmp_path):
-    t0 = time.perf_counter()
     out = tmp_path / "run"
     proc = cli("sim", "sims/tiny.toml", "--robots", 2, "--seed", 1, "--mode", "odometry", "--out", out, "--rerun")
     assert proc.returncode == 0, proc.stderr
-    assert time.perf_counter() - t0 < 30
     res = json.loads((out / "results.json").read_text())
     assert res["seed"] == 1 and res["scenario"] == "tiny" and len(res["robots"]) == 2
     assert np.isfinite(res["team"]["ate_rmse_m"]) and res["team"]["ate_rmse_m"] > 0

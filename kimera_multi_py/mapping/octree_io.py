@@ -88,10 +88,19 @@ def load_octree(path: str | Path) -> SemanticOctree:
     return octree_from_bytes(data, source=str(path))
 
 
-def _field(header: dict[str, Any], name: str, kind: type | tuple[type, ...]) -> Any:
+def _field(header: dict[str, Any], name: str, kind: type | tuple[type, ...], source: str) -> Any:
     if name not in header or not isinstance(header[name], kind) or isinstance(header[name], bool):
-        raise MapError(f"header field {name!r} missing or of the wrong type")
+        raise MapError(f"{source}: header field {name!r} missing or of the wrong type")
     return header[name]
+
+
+def _real(header: dict[str, Any], name: str, source: str) -> float:
+    """A numeric header field as a float (an integer too large for a float is refused, not raised)."""
+    value = _field(header, name, (int, float), source)
+    try:
+        return float(value)
+    except OverflowError:
+        raise MapError(f"{source}: header field {name!r} out of range") from None
 
 
 def octree_from_bytes(data: bytes, source: str = "<bytes>") -> SemanticOctree:
@@ -123,8 +132,8 @@ def octree_from_bytes(data: bytes, source: str = "<bytes>") -> SemanticOctree:
     if off + plen != len(data) - _U32.size:
         raise MapError(f"{source}: payload length mismatch")
     tree = _tree_from_header(header, source)
-    n = _field(header, "num_leaves", int)
-    if _field(header, "scale", int) != SCALE:
+    n = _field(header, "num_leaves", int, source)
+    if _field(header, "scale", int, source) != SCALE:
         raise MapError(f"{source}: unsupported fixed-point scale")
     k1 = tree.num_classes + 1
     expected = n * (8 + 1 + 2 * k1)
@@ -143,18 +152,18 @@ def octree_from_bytes(data: bytes, source: str = "<bytes>") -> SemanticOctree:
 
 
 def _tree_from_header(header: dict[str, Any], source: str) -> SemanticOctree:
-    model = _field(header, "model", dict)
+    model = _field(header, "model", dict, source)
     params: dict[str, float] = {}
     for name in ("hit", "miss", "psi", "label_accuracy", "h_min", "h_max", "prior"):
-        params[name] = float(_field(model, name, (int, float)))
-    dyn = _field(header, "dynamic_classes", list)
+        params[name] = _real(model, name, source)
+    dyn = _field(header, "dynamic_classes", list, source)
     if not all(isinstance(c, int) and not isinstance(c, bool) for c in dyn):
         raise MapError(f"{source}: bad dynamic_classes")
     top_k = header.get("top_k")
     if top_k is not None and (not isinstance(top_k, int) or isinstance(top_k, bool)):
         raise MapError(f"{source}: bad top_k")
-    resolution = float(_field(header, "resolution", (int, float)))
-    num_classes = _field(header, "num_classes", int)
+    resolution = _real(header, "resolution", source)
+    num_classes = _field(header, "num_classes", int, source)
     if not 1 <= num_classes <= 1024:
         raise MapError(f"{source}: bad num_classes {num_classes}")
     try:

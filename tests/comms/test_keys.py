@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import zenoh
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.errors import MessageError
@@ -49,7 +50,6 @@ def test_team_wildcards_do_not_match_presence_or_other_teams() -> None:
 
 
 def test_intersects_agrees_with_zenoh() -> None:
-    zenoh = pytest.importorskip("zenoh")
     rng = np.random.default_rng(0)
     chunks = ["a", "b", "c", "*", "**"]
     for _ in range(3000):

@@ -65,3 +65,22 @@ def test_pcm_min_size_refuses_a_lone_closure():
     assert pcm(Z, A, B, pa, pb).tolist() == [True]
     assert pcm(Z, A, B, pa, pb, min_size=2).tolist() == [False]
     assert pcm(np.zeros((0, 4, 4)), np.zeros((0, 4, 4)), np.zeros((0, 4, 4)), [], []).size == 0
+
+
+def test_an_alias_group_as_large_as_the_true_group_is_kept_apart_from_it():
+    """Twin rooms: the alias closures agree with each other as well as the true ones do, so PCM
+    alone cannot choose. It must never mix the two groups; with ``groups=2`` it keeps both, whole
+    and disjoint, for the back end's GNC to decide; random outliers join neither."""
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        Z, A, B, pa, pb, truth = scenario(rng, n_true=8, n_false=6, aliased=8)
+        alias = np.zeros(len(truth), dtype=bool)
+        alias[14:] = True
+        one = pcm(Z, A, B, pa, pb, NOISE)
+        assert not (one & ~truth & ~alias).any(), f"seed {seed}: accepted a random outlier"
+        assert one[truth].any() != one[alias].any(), f"seed {seed}: mixed the true and the alias group"
+        assert max(one[truth].mean(), one[alias].mean()) >= 0.875, f"seed {seed}: the chosen group is cut"
+        two = pcm(Z, A, B, pa, pb, NOISE, groups=2)
+        assert not (two & ~truth & ~alias).any(), f"seed {seed}: accepted a random outlier"
+        assert two[truth].mean() >= 0.875 and two[alias].mean() >= 0.875, f"seed {seed}: lost a group"
+        assert one[two].sum() == one.sum()  # the first group is the classic PCM answer

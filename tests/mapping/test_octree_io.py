@@ -143,6 +143,75 @@ def test_checksummed_but_inconsistent_files_raise_map_error(tree, blob):
         octree_from_bytes(b"{}" + blob[2:])
 
 
+JSON_VALUES = [None, True, -1, 0, 1, 3, 2**31, 10**400, -1e308, 0.05, 1e-300, float("nan"), float("inf"), "x",
+               [], [1, 2], [-1], [99], {}, {"hit": 1.0}]
+
+
+def _mutate_raw(raw: bytes, n: int, k1: int, rng: np.random.Generator) -> bytes:
+    """The decompressed payload with a few entries of one section changed (or cut / padded)."""
+    sections = {"codes": (0, 8 * n, "<i8"), "levels": (8 * n, 9 * n, "<i1"), "values": (9 * n, len(raw), "<i2")}
+    what = rng.choice([*sections, "bytes", "length"])
+    if what == "length":
+        cut = int(rng.integers(0, len(raw)))
+        return raw[:cut] if rng.random() < 0.5 else raw + rng.bytes(cut % 64 + 1)
+    if what == "bytes":
+        b = bytearray(raw)
+        for i in rng.integers(0, len(b), size=rng.integers(1, 6)):
+            b[i] ^= int(rng.integers(1, 256))
+        return bytes(b)
+    start, stop, dt = sections[what]
+    arr = np.frombuffer(raw[start:stop], dt).copy()
+    info = np.iinfo(arr.dtype)
+    idx = rng.integers(0, len(arr), size=rng.integers(1, 4))
+    arr[idx] = rng.choice([info.min, info.max, -1, 0, 1, 2, 8, int(rng.integers(info.min, info.max))], len(idx))
+    return raw[:start] + arr.astype(dt).tobytes() + raw[stop:]
+
+
+def _mutate_header(header: dict, rng: np.random.Generator) -> dict:
+    """The header with one field (or one model parameter) replaced by an arbitrary JSON value, or dropped."""
+    h = json.loads(json.dumps(header))
+    target = h["model"] if rng.random() < 0.3 else h
+    key = str(rng.choice(sorted(target)))
+    if rng.random() < 0.15:
+        del target[key]
+    else:
+        target[key] = JSON_VALUES[int(rng.integers(len(JSON_VALUES)))]
+    return h
+
+
+def test_fuzzed_contents_with_a_valid_checksum_raise_map_error_only():
+    """Mutations behind a recomputed CRC (and, for the payload, a recomputed zlib stream) reach the
+    header and structure checks: every file either raises MapError or loads a consistent octree."""
+    tree = SemanticOctree(0.1, K, dynamic_classes=[HUMAN], top_k=4, h_min=-4.0)
+    p, lab = room_scan(ORIGINS[0], 400, seed=0, noise=0.1)
+    tree.insert_scan(ORIGINS[0], p, lab)
+    header, raw = _parts(octree_to_bytes(tree))
+    n, k1 = tree.num_leaves, K + 1
+    rng = np.random.default_rng(0)
+    messages: set[str] = set()
+    loaded = 0
+    for trial in range(400):
+        h, r = header, raw
+        if trial % 3 != 1:
+            r = _mutate_raw(raw, n, k1, rng)
+        if trial % 3 != 0:
+            h = _mutate_header(header, rng)
+        try:
+            back = octree_from_bytes(_forge(h, r))
+        except MapError as exc:
+            messages.add(str(exc).split(": ", 1)[1].split(" (")[0])
+            continue
+        loaded += 1  # a mutation the format cannot tell from real data: the tree must be whole
+        again = octree_from_bytes(octree_to_bytes(back))
+        assert np.array_equal(again.codes, back.codes) and np.array_equal(again.values, back.values)
+        assert np.all(np.diff(back.codes) > 0) and back.values[:, 0].max(initial=0) == 0
+    # the structural checks themselves were reached, not just the CRC
+    for needle in ("unsorted or overlapping", "not aligned", "level out of range", "clamping range",
+                   "payload holds", "missing or of the wrong type", "bad parameters"):
+        assert any(needle in m for m in messages), (needle, sorted(messages))
+    assert loaded < 100, loaded
+
+
 def test_missing_file_raises_map_error(tmp_path):
     with pytest.raises(MapError):
         SemanticOctree.load(tmp_path / "nope.kmo")

