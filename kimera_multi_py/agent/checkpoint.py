@@ -47,6 +47,7 @@ import importlib
 import io
 import math
 import os
+import re
 import struct
 import threading
 import zlib
@@ -296,11 +297,12 @@ class _Decoder:
 
 
 def _dtype(s: Any, path: str) -> np.dtype[Any]:
-    if type(s) is not str:
+    # a plain array-protocol string only (numpy would parse anything else, e.g. "(2,)f8" or ",1")
+    if type(s) is not str or not re.fullmatch(r"[<>|=]?[a-zA-Z?]\d{0,2}", s):
         raise StateError(f"{path}: bad dtype {s!r}")
     try:
         dt = np.dtype(s)
-    except TypeError:
+    except (TypeError, ValueError, SyntaxError):
         raise StateError(f"{path}: unknown dtype {s!r}") from None
     if dt.kind not in _ARRAY_KINDS or dt.fields is not None or dt.subdtype is not None:
         raise StateError(f"{path}: dtype {s!r} is not allowed")

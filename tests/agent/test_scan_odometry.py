@@ -26,9 +26,22 @@ def _run(kfs, **params):
     return agent
 
 
-def test_registration_factors_join_the_odometry_as_trusted_edges(small_robot):
+def test_fused_steps_are_the_trusted_edges(small_robot):
+    """Default: one trusted factor per step, the registration-refined step (what the server gets)."""
     _, kfs = small_robot
     agent = _run(kfs)
+    i, j, Z, info, odo = agent.intra_edges()
+    n = agent.num_keyframes
+    assert np.array_equal(i[: n - 1], np.arange(n - 1)) and np.array_equal(j[: n - 1], np.arange(1, n))
+    assert np.all(odo[: n - 1]) and not np.any(odo[n - 1:])  # after the steps: closures only
+    assert np.allclose(Z[: n - 1], np.array(agent.steps[1:]))
+    assert not np.allclose(Z[: n - 1], np.array(agent.odometry[1:]))  # registration refined them
+    assert np.allclose(info[: n - 1], agent._info(agent.params.odom_sigmas))
+
+
+def test_registration_factors_join_the_odometry_as_trusted_edges(small_robot):
+    _, kfs = small_robot
+    agent = _run(kfs, registration_factor="separate")
     i, j, Z, info, odo = agent.intra_edges()
     n = agent.num_keyframes
     reg = np.arange(len(i)) >= n - 1
