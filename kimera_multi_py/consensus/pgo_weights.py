@@ -157,7 +157,7 @@ class RobustWeights:
     # ---------------------------------------------------------------- leader
     def _lead_weights(self, rnd: int, all_ready: bool) -> list[Message]:
         """Leader, robust mode: order a weight update once every robot is ready (or at the round
-        cap); after the GNC schedule the rechecks, then ``stop`` once every robot is ready."""
+        cap); after the GNC schedule, the rechecks likewise, then ``stop`` once every robot is ready."""
         p = self.params
         since = rnd - self.gnc_last_round
         if self.gnc.steps >= p.gnc_max_steps:
