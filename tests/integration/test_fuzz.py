@@ -1,0 +1,193 @@
+"""Strangers on the wire (issue 16): 10,000 fuzzed and mutated payloads into a live agent's topics,
+and a second team on the same network, over real Zenoh sessions on 127.0.0.1.
+
+The agent is a real :class:`AgentNode` (with keyframes of its own) on a ZenohBus, draining and
+ticking in the background while the payloads arrive. Every payload must end up counted exactly
+once: dropped by the bus with a reason, or accepted and then handled or refused by the node.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import random
+from collections.abc import AsyncIterator, Callable
+
+import msgpack
+import pytest
+import zenoh
+
+from kimera_multi_py.agent.agent import Agent
+from kimera_multi_py.agent.node import AgentNode
+from kimera_multi_py.comms import keys
+from kimera_multi_py.comms.codec import Codec
+from kimera_multi_py.comms.messages import AgentState, Message
+from kimera_multi_py.comms.samples import all_random_messages
+from kimera_multi_py.comms.zenoh_bus import ZenohBus
+from kimera_multi_py.sim import Simulation, load_scenario
+from kimera_multi_py.sim.runner import agent_params, keyframe_input
+
+from ..sim.helpers import TINY
+
+pytestmark = pytest.mark.integration
+TEAM = "t0"
+N_PAYLOADS = 10_000
+BLOCK = zenoh.CongestionControl.BLOCK
+
+
+def mutate(data: bytes, rng: random.Random, pool: list[bytes]) -> bytes:
+    """One mutation of a valid payload: flips, overwrites, cuts, growth, splices or garbage."""
+    b = bytearray(data)
+    kind = rng.randrange(8)
+    if kind == 0:  # flip a few bits
+        for _ in range(rng.randint(1, 4)):
+            i = rng.randrange(len(b))
+            b[i] ^= 1 << rng.randrange(8)
+    elif kind == 1:  # overwrite bytes with interesting values
+        for _ in range(rng.randint(1, 3)):
+            b[rng.randrange(len(b))] = rng.choice([0x00, 0xFF, 0x7F, 0x80, 0xC0, 0xC1, 0xD9, 0xDD, 0xDF, 0xCB])
+    elif kind == 2:  # truncate
+        b = b[: rng.randrange(len(b))]
+    elif kind == 3:  # append garbage
+        b += rng.randbytes(rng.randint(1, 64))
+    elif kind == 4:  # splice two payloads
+        other = rng.choice(pool)
+        b = b[: rng.randrange(len(b) + 1)] + other[rng.randrange(len(other) + 1):]
+    elif kind == 5:  # pure noise
+        b = bytearray(rng.randbytes(rng.randint(0, 256)))
+    elif kind == 6:  # a well-formed msgpack map that is not an envelope, or an envelope with a bad field
+        env = msgpack.unpackb(data, raw=False, strict_map_key=False) if data[:1] != b"\xdd" else {}
+        if isinstance(env, dict) and env:
+            field = rng.choice(sorted(env))
+            env[field] = rng.choice([None, -1, 2**63, "x" * 70, 1.5, float("nan"), [], {}])
+        b = bytearray(msgpack.packb(env, use_bin_type=True, default=str))
+    else:  # duplicate a random slice in place
+        i = rng.randrange(len(b))
+        j = min(len(b), i + rng.randint(1, 32))
+        b = b[:j] + b[i:j] + b[j:]
+    return bytes(b)
+
+
+def payloads(seed: int) -> list[tuple[str, bytes]]:
+    """(key, payload) pairs on robot 1's topics: mostly mutations of valid messages of every type,
+    some unmutated (random but valid) messages, some from the wrong sender for the key."""
+    rng = random.Random(seed)
+    codec = Codec(TEAM, 1)
+    valid = [(m.TOPIC, codec.encode(m)) for s in range(3) for m in all_random_messages(seed=s, robot=1)]
+    pool = [d for _, d in valid]
+    out = []
+    for i in range(N_PAYLOADS):
+        topic, data = valid[i % len(valid)]
+        key = keys.topic_key(TEAM, 1, topic)
+        roll = rng.random()
+        if roll < 0.05:
+            out.append((key, data))  # valid as it stands
+        elif roll < 0.08:
+            out.append((keys.topic_key(TEAM, 2, topic), data))  # robot 1's message on robot 2's key
+        else:
+            out.append((key, mutate(data, rng, pool)))
+    return out
+
+
+@contextlib.asynccontextmanager
+async def live_agent(port: int) -> AsyncIterator[tuple[AgentNode, Callable[[], BaseException | None]]]:
+    """Robot 0's node on a ZenohBus, with a few keyframes of its own, running in the background."""
+    cfg = load_scenario(TINY)
+    agent = Agent(0, None, agent_params(cfg))
+    bus = ZenohBus(TEAM, 0, listen=[f"tcp/127.0.0.1:{port}"], queue_size=4 * N_PAYLOADS)
+    node = AgentNode(agent, bus)
+    stop = asyncio.Event()
+
+    async def loop() -> None:
+        while not stop.is_set():
+            await node.drain()
+            await node.tick()
+            await asyncio.sleep(0.002)
+
+    async with bus:
+        await node.start()
+        for kf in itertools.islice(Simulation(cfg, 0).keyframes(0), 12):
+            await node.process_keyframe(keyframe_input(kf))
+        task = asyncio.create_task(loop())
+        try:
+            yield node, lambda: task.exception() if task.done() else None
+        finally:
+            stop.set()
+            await asyncio.wait_for(task, 10)
+            await node.close()
+
+
+def accepted(bus: ZenohBus) -> int:
+    return sum(c["messages"] for c in bus.counters.snapshot()["received"].values())
+
+
+async def test_ten_thousand_fuzzed_payloads_are_all_counted_and_the_agent_keeps_running(
+        port: int, route_ready, wait_until) -> None:
+    sent = payloads(seed=16)
+    async with live_agent(port) as (node, crashed):
+        async with ZenohBus(TEAM, 1, connect=[f"tcp/127.0.0.1:{port}"]) as fuzzer:
+            bus = node.bus
+            assert isinstance(bus, ZenohBus)
+            # the route carries one message before counting starts (see conftest._route_ready)
+            probe_sub = bus.subscribe(keys.topic_all(TEAM, keys.AGENT_STATE))
+            probe = Codec(TEAM, 1).encode(AgentState(robot=1))
+            await route_ready(lambda: fuzzer.session.put(keys.topic_key(TEAM, 1, keys.AGENT_STATE), probe,
+                                                         congestion_control=BLOCK), probe_sub, reset=(bus,))
+            probe_sub.close()
+            errors_before = sum(node.errors.values())
+            for i, (key, data) in enumerate(sent):
+                fuzzer.session.put(key, data, congestion_control=BLOCK)
+                if i % 200 == 0:
+                    await asyncio.sleep(0)  # let the agent's loop run alongside
+                    assert crashed() is None
+            await wait_until(lambda: accepted(bus) + sum(bus.counters.dropped.values()) >= N_PAYLOADS, 60)
+            await asyncio.sleep(0.5)  # anything more would be a payload counted twice
+            dropped = dict(bus.counters.dropped)
+            n_accepted = accepted(bus)
+            assert n_accepted + sum(dropped.values()) == N_PAYLOADS, (n_accepted, dropped)
+            assert "queue_full" not in dropped
+            # robot 1's messages on robot 2's keys are refused for the key's owner
+            wrong_owner = sum(1 for k, _ in sent if "/r2/" in k)
+            assert dropped.get("key", 0) + dropped.get("src", 0) >= wrong_owner
+            assert dropped.get("invalid", 0) > N_PAYLOADS // 2
+            # the node handled or refused (counted by message type) every accepted message
+            await wait_until(lambda: bus._subs and all(s.pending() == 0 for s in bus._subs), 30)
+            assert crashed() is None
+            refused = sum(node.errors.values()) - errors_before
+            assert 0 <= refused <= n_accepted
+            # and it still works: a valid state from robot 1 reaches it
+            before = node._peer_stamp
+            state = Codec(TEAM, 1).encode(AgentState(robot=1, stamp=before + 1000.0))
+            fuzzer.session.put(keys.topic_key(TEAM, 1, keys.AGENT_STATE), state, congestion_control=BLOCK)
+            await wait_until(lambda: node._peer_stamp == before + 1000.0, 10)
+            assert crashed() is None
+
+
+async def test_a_second_team_on_the_same_network_gets_nothing_into_team_0(port: int, wait_until) -> None:
+    """Team t1's robot 1 publishes valid messages of every type on its own keys: none reaches
+    team t0's agent. A t1 robot publishing onto t0's keys (a misconfigured robot) is dropped as
+    ``team`` and counted; every message it sent is accounted for."""
+    async with live_agent(port) as (node, crashed):
+        bus = node.bus
+        assert isinstance(bus, ZenohBus)
+        async with ZenohBus("t1", 1, connect=[f"tcp/127.0.0.1:{port}"]) as other:
+            # the other team's own subscriber shows its traffic really flows on the network
+            witness = other.subscribe(keys.team_all("t1"))
+            msgs = [m for s in range(5) for m in all_random_messages(seed=s, robot=1)]
+            await other.wait_for_subscribers(other.key(msgs[0].TOPIC), timeout=5)
+            for m in msgs:
+                await other.publish(other.key(m.TOPIC), m)
+                await asyncio.sleep(0)
+            await wait_until(lambda: witness.pending() >= len(msgs), 20)
+            # t1's envelopes put straight onto t0's keys
+            codec = Codec("t1", 1)
+            for m in msgs:
+                other.session.put(keys.topic_key(TEAM, 1, m.TOPIC), codec.encode(m), congestion_control=BLOCK)
+            await wait_until(lambda: bus.counters.dropped.get("team", 0) >= len(msgs), 20)
+            await asyncio.sleep(0.3)
+            assert other.counters.total("sent").messages == len(msgs)
+            assert bus.counters.dropped == {"team": len(msgs)}
+            assert accepted(bus) == 0
+            assert bus.peers() == frozenset()  # t1's presence is not t0's
+            assert crashed() is None
