@@ -7,8 +7,8 @@ certificates carry SAN ``localhost`` and ``127.0.0.1`` and both server and clien
 Zenoh process both listens and connects. With ``enable_mtls`` every link checks both ends, so a
 process without a certificate of this CA cannot join, even one that trusts the CA (DESIGN §7).
 
-:func:`tls_settings` gives the ``transport/link/tls`` block for one process, and
-:func:`write_zenoh_config` a ``--zenoh-config`` file holding it.
+:func:`write_zenoh_config` writes one process's ``--zenoh-config`` file (the
+``transport/link/tls`` block of :func:`kimera_multi_py.comms.zenoh_bus.tls_settings`).
 """
 
 from __future__ import annotations
@@ -120,23 +120,10 @@ def identity(folder: str | Path, name: str) -> Identity:
     return ident
 
 
-def tls_settings(ca: str | Path, cert: str | Path | None = None, key: str | Path | None = None,
-                 mtls: bool = True) -> dict[str, Any]:
-    """The ``transport/link/tls`` block: trust ``ca``; present ``cert``/``key`` when listening
-    and when connecting; with ``mtls`` require the other end's certificate too."""
-    tls: dict[str, Any] = {"root_ca_certificate": str(ca)}
-    if (cert is None) != (key is None):
-        raise ConfigError("tls", "give both a certificate and its key, or neither")
-    if cert is not None and key is not None:
-        tls.update({"listen_certificate": str(cert), "listen_private_key": str(key),
-                    "connect_certificate": str(cert), "connect_private_key": str(key)})
-    if mtls:
-        tls["enable_mtls"] = True
-    return tls
-
-
 def write_zenoh_config(path: str | Path, ident: Identity, mode: str | None = None, mtls: bool = True) -> Path:
     """A ``--zenoh-config`` JSON5 file for one process of the team (multicast scouting off)."""
+    from kimera_multi_py.comms.zenoh_bus import tls_settings
+
     conf: dict[str, Any] = {"scouting": {"multicast": {"enabled": False}},
                             "transport": {"link": {"tls": tls_settings(ident.ca, ident.cert, ident.key, mtls)}}}
     if mode is not None:
@@ -146,4 +133,4 @@ def write_zenoh_config(path: str | Path, ident: Identity, mode: str | None = Non
     return path
 
 
-__all__ = ["Identity", "identity", "make_certs", "team_names", "tls_settings", "write_zenoh_config"]
+__all__ = ["Identity", "identity", "make_certs", "team_names", "write_zenoh_config"]

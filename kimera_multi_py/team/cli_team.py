@@ -117,6 +117,8 @@ def register(app: typer.Typer) -> None:
         checkpoint_every: Annotated[float, typer.Option(help="Seconds between agent checkpoints.")] = 5.0,
         timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 1800.0,
         map_consensus: MapMode = "exact",
+        tls: Annotated[bool, typer.Option("--tls", help="Mutual TLS: a new team CA and certificates in "
+                                                        "OUT/certs; no process without one can join.")] = False,
         verbose: Verbose = False,
     ) -> None:
         """Start a router and N agent processes (and the server) on 127.0.0.1, then evaluate."""
@@ -127,7 +129,7 @@ def register(app: typer.Typer) -> None:
         try:
             job = LaunchJob(scenario, robots, seed, mode, out, _rate(rate), [parse_kill(k) for k in kill or []],
                             dict(_robot_at(j, "join") for j in join or []), checkpoint_every, timeout=timeout,
-                            verbose=verbose, map_consensus=map_consensus)
+                            verbose=verbose, map_consensus=map_consensus, tls=tls)
             with Live(_table({}), console=console, refresh_per_second=4, transient=False) as live:
                 results = launch(job, lambda views: live.update(_table(views)))
         except KimeraMultiError as exc:
@@ -136,6 +138,25 @@ def register(app: typer.Typer) -> None:
         console.print(_results_table(res))
         _summary(res)
         console.print(f"launch wall {res['wall_s']:.1f} s; wrote {out / 'results.json'}")
+
+    @app.command()
+    def certs(
+        folder: Annotated[Path, typer.Argument(help="Folder for ca.pem, ca.key and NAME.pem + NAME.key.")],
+        robots: Annotated[int, typer.Option("--robots", "-n", help="Certificates for robot0..robotN-1.")] = 3,
+        days: Annotated[int, typer.Option(help="Days the certificates are valid.")] = 365,
+    ) -> None:
+        """Make a team CA and a certificate per robot (plus server, router, observer) for mutual TLS."""
+        from kimera_multi_py.team.certs import make_certs, team_names, write_zenoh_config
+
+        try:
+            idents = make_certs(folder, team_names(robots), days)
+            for name, ident in idents.items():
+                write_zenoh_config(folder / f"{name}.json5", ident)
+        except KimeraMultiError as exc:
+            raise fail(exc) from None
+        console.print(f"wrote a team CA and {len(idents)} certificates to {folder} (ca.key signs new ones: keep "
+                      f"it off the robots); give each process --zenoh-config {folder}/NAME.json5 and "
+                      f"tls/HOST:PORT endpoints")
 
     @app.command()
     def record(

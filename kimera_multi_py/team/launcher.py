@@ -65,6 +65,7 @@ class LaunchJob:
     team: str = "t0"
     verbose: bool = False
     map_consensus: str = "exact"
+    tls: bool = False  # mutual TLS: certificates of a new team CA in OUT/certs, endpoints tls/localhost
 
 
 @dataclass
@@ -110,6 +111,14 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     return results
 
 
+def _tls_configs(job: LaunchJob, folder: Path) -> dict[str, Path]:
+    """A new team CA and certificates in ``folder``, and each process's ``--zenoh-config`` file."""
+    from kimera_multi_py.team.certs import make_certs, team_names, write_zenoh_config
+
+    idents = make_certs(folder, team_names(job.robots))
+    return {name: write_zenoh_config(folder / f"{name}.json5", ident) for name, ident in idents.items()}
+
+
 def _cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "kimera_multi_py.cli", *args]
 
@@ -120,8 +129,14 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     out = job.out_dir
     (out / "logs").mkdir(parents=True, exist_ok=True)
     port = free_ports(1)[0]
-    endpoint = f"tcp/127.0.0.1:{port}"
-    conn = ["--connect", endpoint, "--team", job.team] + (["-v"] if job.verbose else [])
+    endpoint = f"tls/localhost:{port}" if job.tls else f"tcp/127.0.0.1:{port}"
+    configs = _tls_configs(job, out / "certs") if job.tls else {}
+
+    def zconf(name: str) -> list[str]:
+        return ["--zenoh-config", str(configs[name])] if name in configs else []
+
+    def conn(name: str) -> list[str]:
+        return ["--connect", endpoint, "--team", job.team, *zconf(name)] + (["-v"] if job.verbose else [])
     procs: dict[str, subprocess.Popen[bytes]] = {}
     logs: list[Any] = []
 
@@ -133,7 +148,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     def agent_args(r: int, resume: bool) -> list[str]:
         args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}",
                 "--out", str(out), "--rate", str(job.rate), "--checkpoint-every", str(job.checkpoint_every),
-                "--pgo-period", str(job.pgo_period), "--map-consensus", job.map_consensus, *conn]
+                "--pgo-period", str(job.pgo_period), "--map-consensus", job.map_consensus, *conn(f"robot{r}")]
         if job.mode == "centralized":
             args.append("--centralized")
         return args + (["--resume"] if resume else [])
@@ -143,13 +158,14 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
         views["server"] = RobotView()
     observer: ZenohBus | None = None
     try:
-        procs["router"] = start("router", ["router", "--listen", endpoint])
+        procs["router"] = start("router", ["router", "--listen", endpoint, *zconf("router")])
         await asyncio.sleep(0.5)
-        observer = ZenohBus(job.team, OBSERVER_ID, connect=[endpoint])
+        observer = ZenohBus(job.team, OBSERVER_ID, connect=[endpoint],
+                            config_file=configs.get("observer"), mode="client" if job.tls else None)
         states = observer.subscribe(keys.topic_all(job.team, keys.AGENT_STATE))
         if job.mode == "centralized":
             procs["server"] = start("server", ["server", "--out", str(out), "--pgo-period", str(job.pgo_period),
-                                               *conn])
+                                               *conn("server")])
         for r in range(job.robots):
             if r not in job.joins:
                 procs[f"robot{r}"] = start(f"robot{r}", agent_args(r, False))
