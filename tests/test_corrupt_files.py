@@ -5,7 +5,6 @@ exit code 1, no traceback."""
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import pytest
@@ -51,23 +50,25 @@ def test_a_corrupt_g2o(tmp_path, content):
     one_line_error(["pgo", bad], "graph.g2o")
 
 
-def test_a_corrupt_dpgo_csv_folder(tmp_path):
+@pytest.mark.parametrize("cut", ["half", "field", "garbage"])
+def test_a_corrupt_dpgo_csv_folder(tmp_path, cut):
+    from kimera_multi_py.io.dpgo_csv import write_dpgo_csv
+    from kimera_multi_py.io.g2o import read_g2o
+
     folder = tmp_path / "csv"
-    folder.mkdir()
-    good = sorted((REPO.parent / "shared" / "datasets" / "pgo").rglob("*.csv"))
-    if good:  # a real folder with one file cut short
-        src = good[0].parent
-        for f in src.glob("*.csv"):
-            shutil.copy(f, folder / f.name)
-        first = sorted(folder.glob("*.csv"))[0]
-        first.write_bytes(first.read_bytes()[: len(first.read_bytes()) // 2] + b",x,\n")
-        one_line_error(["pgo", folder], first.name)
-    for f in folder.glob("*.csv"):
-        f.unlink()
-    (folder / "robot_0.csv").write_bytes(GARBAGE)
-    line = CliRunner().invoke(app, ["pgo", str(folder)])
-    assert line.exit_code == 1 and "Traceback" not in line.output + line.stderr
-    assert len([ln for ln in line.stderr.splitlines() if ln.strip()]) == 1
+    write_dpgo_csv(folder, read_g2o(REPO.parent / "shared" / "datasets" / "pgo" / "robot_a.g2o"))
+    victim = sorted(folder.glob("robot*/measurements.csv"))[-1]
+    data = victim.read_bytes()
+    if cut == "half":
+        data = data[: len(data) // 2]
+    elif cut == "field":
+        lines = data.splitlines()
+        lines[len(lines) // 2] = lines[len(lines) // 2].replace(b",", b",x", 1)
+        data = b"\n".join(lines) + b"\n"
+    else:
+        data = GARBAGE
+    victim.write_bytes(data)
+    one_line_error(["pgo", folder], str(victim.relative_to(folder)))
 
 
 def test_a_corrupt_recorded_source_and_checkpoint(tmp_path):
