@@ -23,12 +23,11 @@ from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec
-from kimera_multi_py.comms.messages import AgentState, Message
+from kimera_multi_py.comms.messages import AgentState
 from kimera_multi_py.comms.samples import all_random_messages
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.runner import agent_params, keyframe_input
-
 
 pytestmark = pytest.mark.integration
 TEAM = "t0"
