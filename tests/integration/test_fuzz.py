@@ -11,11 +11,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
-import random
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
-import msgpack
 import pytest
 import zenoh
 
@@ -23,6 +21,7 @@ from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec
+from kimera_multi_py.comms.fuzz import fuzz_payloads
 from kimera_multi_py.comms.messages import AgentState
 from kimera_multi_py.comms.samples import all_random_messages
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
@@ -34,60 +33,6 @@ TEAM = "t0"
 N_PAYLOADS = 10_000
 TINY = Path(__file__).resolve().parents[2] / "sims" / "tiny.toml"
 BLOCK = zenoh.CongestionControl.BLOCK
-
-
-def mutate(data: bytes, rng: random.Random, pool: list[bytes]) -> bytes:
-    """One mutation of a valid payload: flips, overwrites, cuts, growth, splices or garbage."""
-    b = bytearray(data)
-    kind = rng.randrange(8)
-    if kind == 0:  # flip a few bits
-        for _ in range(rng.randint(1, 4)):
-            i = rng.randrange(len(b))
-            b[i] ^= 1 << rng.randrange(8)
-    elif kind == 1:  # overwrite bytes with interesting values
-        for _ in range(rng.randint(1, 3)):
-            b[rng.randrange(len(b))] = rng.choice([0x00, 0xFF, 0x7F, 0x80, 0xC0, 0xC1, 0xD9, 0xDD, 0xDF, 0xCB])
-    elif kind == 2:  # truncate
-        b = b[: rng.randrange(len(b))]
-    elif kind == 3:  # append garbage
-        b += rng.randbytes(rng.randint(1, 64))
-    elif kind == 4:  # splice two payloads
-        other = rng.choice(pool)
-        b = b[: rng.randrange(len(b) + 1)] + other[rng.randrange(len(other) + 1):]
-    elif kind == 5:  # pure noise
-        b = bytearray(rng.randbytes(rng.randint(0, 256)))
-    elif kind == 6:  # a well-formed msgpack map that is not an envelope, or an envelope with a bad field
-        env = msgpack.unpackb(data, raw=False, strict_map_key=False) if data[:1] != b"\xdd" else {}
-        if isinstance(env, dict) and env:
-            field = rng.choice(sorted(env))
-            env[field] = rng.choice([None, -1, 2**63, "x" * 70, 1.5, float("nan"), [], {}])
-        b = bytearray(msgpack.packb(env, use_bin_type=True, default=str))
-    else:  # duplicate a random slice in place
-        i = rng.randrange(len(b))
-        j = min(len(b), i + rng.randint(1, 32))
-        b = b[:j] + b[i:j] + b[j:]
-    return bytes(b)
-
-
-def payloads(seed: int) -> list[tuple[str, bytes]]:
-    """(key, payload) pairs on robot 1's topics: mostly mutations of valid messages of every type,
-    some unmutated (random but valid) messages, some from the wrong sender for the key."""
-    rng = random.Random(seed)
-    codec = Codec(TEAM, 1)
-    valid = [(m.TOPIC, codec.encode(m)) for s in range(3) for m in all_random_messages(seed=s, robot=1)]
-    pool = [d for _, d in valid]
-    out = []
-    for i in range(N_PAYLOADS):
-        topic, data = valid[i % len(valid)]
-        key = keys.topic_key(TEAM, 1, topic)
-        roll = rng.random()
-        if roll < 0.05:
-            out.append((key, data))  # valid as it stands
-        elif roll < 0.08:
-            out.append((keys.topic_key(TEAM, 2, topic), data))  # robot 1's message on robot 2's key
-        else:
-            out.append((key, mutate(data, rng, pool)))
-    return out
 
 
 @contextlib.asynccontextmanager
@@ -130,7 +75,7 @@ def accepted(bus: ZenohBus) -> int:
 
 async def test_ten_thousand_fuzzed_payloads_are_all_counted_and_the_agent_keeps_running(
         port: int, route_ready, wait_until) -> None:
-    sent = payloads(seed=16)
+    sent = fuzz_payloads(TEAM, 1, N_PAYLOADS, seed=16)
     async with live_agent(port) as (node, crashed):
         async with ZenohBus(TEAM, 1, connect=[f"tcp/127.0.0.1:{port}"]) as fuzzer:
             bus = node.bus
