@@ -115,13 +115,13 @@ def sim(
         faults = sim_faults(drop, delay, jitter, partition or [])
         cfg = load_scenario(scenario, robots=robots)
         viz = make_viz(out / "recording.rrd" if rerun else None)
+        runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz, transport=transport,
+                           join=dict(_robot_at(j, "join") for j in join or []), map_consensus=map_consensus,
+                           comm_range=comm_range, faults=faults)
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                       TimeElapsedColumn(), console=err_console, transient=False) as progress:
             task = progress.add_task(f"{cfg.name} x{len(cfg.robots)}", total=None)
-            runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz, transport=transport,
-                               join=dict(_robot_at(j, "join") for j in join or []), map_consensus=map_consensus,
-                               comm_range=comm_range, faults=faults,
-                               on_progress=lambda done, total: progress.update(task, completed=done, total=total))
+            runner.on_progress = lambda done, total: progress.update(task, completed=done, total=total)
             results = runner.run()
     except KimeraMultiError as exc:
         raise fail(exc) from None

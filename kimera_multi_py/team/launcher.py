@@ -66,6 +66,7 @@ class LaunchJob:
     verbose: bool = False
     map_consensus: str = "exact"
     tls: bool = False  # mutual TLS: certificates of a new team CA in OUT/certs, endpoints tls/localhost
+    router_restarts: list[float] = field(default_factory=list)  # team stream times to SIGKILL + restart the router
 
 
 @dataclass
@@ -82,6 +83,17 @@ class RobotView:
     finished: bool = False
     restarts: int = 0
     exit_code: int | None = None
+
+
+def parse_restart(spec: str) -> float:
+    """``T``: SIGKILL the router when the team's stream reaches T seconds, and start it again."""
+    try:
+        at = float(spec)
+    except ValueError:
+        raise ConfigError("restart-router", f"expected seconds, got {spec!r}") from None
+    if not (math.isfinite(at) and at >= 0):
+        raise ConfigError("restart-router", f"expected seconds >= 0, got {spec!r}")
+    return at
 
 
 View = Callable[[dict[str, RobotView]], None]
@@ -157,6 +169,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     if job.mode == "centralized":
         views["server"] = RobotView()
     observer: ZenohBus | None = None
+    pending_restarts = sorted(job.router_restarts)
     try:
         procs["router"] = start("router", ["router", "--listen", endpoint, *zconf("router")])
         await asyncio.sleep(0.5)
@@ -177,6 +190,14 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
                     v.keyframes, v.stamp, v.epochs, v.finished = msg.keyframes, msg.stamp, msg.epoch, msg.finished
                     v.closures, v.rounds, v.bytes_sent = msg.closures, msg.rounds, msg.bytes_sent
             team_time = max((v.stamp for v in views.values()), default=0.0)
+            while pending_restarts and team_time >= pending_restarts[0]:
+                at = pending_restarts.pop(0)
+                router = procs["router"]
+                os.kill(router.pid, signal.SIGKILL)
+                router.wait()
+                log.warning("killed the router at team time %.1f s (restart at %.1f s); starting it again",
+                            team_time, at)
+                procs["router"] = start("router", ["router", "--listen", endpoint, *zconf("router")])
             for r, at in job.joins.items():
                 if f"robot{r}" not in procs and team_time >= at:
                     log.warning("robot %d joins at team time %.1f s", r, team_time)

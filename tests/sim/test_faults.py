@@ -61,3 +61,21 @@ def test_a_partition_that_heals_keeps_both_sides_optimising_and_ends_as_clean(cl
     assert res["team"]["ate_rmse_m"] <= 1.1 * clean["team"]["ate_rmse_m"]
     assert _agreement(res) == _agreement(clean) == [1.0] * 3
     assert res["loop_closures"]["false_accepted_inter"] == 0
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--partition", "0,1|2"], "partition"),
+    (["--partition", "0|5@1:2"], "[5]"),
+    (["--delay", "-3"], "delay"),
+    (["--drop", "2"], "drop"),
+])
+def test_bad_fault_flags_are_one_line_errors(tmp_path, args, needle):
+    from typer.testing import CliRunner
+
+    from kimera_multi_py.cli import app
+
+    res = CliRunner().invoke(app, ["sim", str(SMALL), "--mode", "distributed", "--no-rerun", "--out",
+                                   str(tmp_path), *args])
+    assert res.exit_code == 1, res.output
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and needle in lines[0], res.stderr
