@@ -9,9 +9,11 @@ announces itself, so it is not a team member) and scores the outputs afterwards.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -38,6 +40,15 @@ class Kill:
     robot: int
     at: float  # the robot's stream time (s)
     done: bool = False
+    killed_stream_s: float | None = None  # the robot's stream time when it was killed
+    checkpoint: str | None = None  # a copy of its last checkpoint at the kill (OUT/logs/robotI.killed.kmc)
+    killed_wall: float | None = None
+    absent_seen: bool = False
+    rejoin_s: float | None = None  # wall s from the kill until its restarted process was present again
+
+    def report(self) -> dict[str, Any]:
+        return {"robot": self.robot, "at": self.at, "killed_stream_s": self.killed_stream_s,
+                "checkpoint": self.checkpoint, "rejoin_s": self.rejoin_s}
 
 
 def parse_kill(spec: str) -> Kill:
@@ -170,6 +181,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
         views["server"] = RobotView()
     observer: ZenohBus | None = None
     pending_restarts = sorted(job.router_restarts)
+    restarted: list[dict[str, float]] = []
     try:
         procs["router"] = start("router", ["router", "--listen", endpoint, *zconf("router")])
         await asyncio.sleep(0.5)
@@ -198,6 +210,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
                 log.warning("killed the router at team time %.1f s (restart at %.1f s); starting it again",
                             team_time, at)
                 procs["router"] = start("router", ["router", "--listen", endpoint, *zconf("router")])
+                restarted.append({"at": at, "team_time_s": team_time})
             for r, at in job.joins.items():
                 if f"robot{r}" not in procs and team_time >= at:
                     log.warning("robot %d joins at team time %.1f s", r, team_time)
@@ -206,11 +219,20 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
             for r in range(job.robots):
                 views[f"robot{r}"].alive = r in peers
             for k in job.kills:
+                if k.killed_wall is not None and k.rejoin_s is None:
+                    k.absent_seen = k.absent_seen or k.robot not in peers
+                    if k.absent_seen and k.robot in peers:
+                        k.rejoin_s = round(time.monotonic() - k.killed_wall, 2)
+            for k in job.kills:
                 p = procs.get(f"robot{k.robot}")
                 if p is not None and not k.done and views[f"robot{k.robot}"].stamp >= k.at and p.poll() is None:
                     os.kill(p.pid, signal.SIGKILL)
                     p.wait()
-                    k.done = True
+                    k.done, k.killed_wall = True, time.monotonic()
+                    k.killed_stream_s = views[f"robot{k.robot}"].stamp
+                    ckpt = out / f"robot{k.robot}" / "checkpoint.kmc"
+                    if ckpt.exists():  # what the restart must not lose
+                        k.checkpoint = str(shutil.copy(ckpt, out / "logs" / f"robot{k.robot}.killed.kmc"))
                     log.warning("killed robot %d at stream time %.1f s; restarting with --resume", k.robot,
                                 views[f"robot{k.robot}"].stamp)
                     views[f"robot{k.robot}"].restarts += 1
@@ -232,6 +254,8 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
                 raise KimeraMultiError(f"the team did not finish within {job.timeout:.0f} s; logs in {out / 'logs'}")
             await asyncio.sleep(0.1)
     finally:
+        (out / "faults.json").write_text(json.dumps({"kills": [k.report() for k in job.kills],
+                                                     "router_restarts": restarted}, indent=2))
         if observer is not None:
             await observer.close()
         for p in procs.values():
