@@ -186,7 +186,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
         procs["router"] = start("router", ["router", "--listen", endpoint, *zconf("router")])
         await asyncio.sleep(0.5)
         observer = ZenohBus(job.team, OBSERVER_ID, connect=[endpoint],
-                            config_file=configs.get("observer"), mode="client" if job.tls else None)
+                            config_file=configs.get("observer"))
         states = observer.subscribe(keys.topic_all(job.team, keys.AGENT_STATE))
         if job.mode == "centralized":
             procs["server"] = start("server", ["server", "--out", str(out), "--pgo-period", str(job.pgo_period),
