@@ -20,7 +20,10 @@ Real Zenoh sessions on 127.0.0.1:
 * ``mtls`` -- who can join a mutual-TLS team: a member, a stranger with no certificate, one with
   a certificate of another CA (both trust the team CA).
 
-    python benchmarks/faults.py --json [--fuzz 10000] [--skip-sim]
+Processes (``--processes``; ``sims/tiny.toml``, 2 robots at 4x real time): a clean launch,
+``--kill 1@40`` (the rejoin time), ``--restart-router 25`` and ``--tls``.
+
+    python benchmarks/faults.py --json [--fuzz 10000] [--skip-sim] [--processes]
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import argparse
 import asyncio
 import itertools
 import json
+import subprocess
 import sys
 import tempfile
 import time
@@ -222,11 +226,41 @@ async def mtls_case() -> dict[str, Any]:
             "must": "member joins; no_certificate and other_ca_certificate do not"}
 
 
+# ---------------------------------------------------------------------------- processes
+def _launch(out: Path, *extra: str) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli", "launch", str(TINY), "--robots", "2",
+                           "--out", str(out), "--rate", "4", "--checkpoint-every", "2", *extra],
+                          capture_output=True, text=True, timeout=900, cwd=ROOT)
+    fig: dict[str, Any] = {"exit_code": proc.returncode, "wall_s": round(time.perf_counter() - t0, 1)}
+    if proc.returncode == 0:
+        res = json.loads((out / "results.json").read_text())
+        fig.update(keyframes=[r["keyframes"] for r in res["robots"]], pgo_epochs=res["pgo_runs"],
+                   team_ate_m=res["team"]["ate_rmse_m"])
+        faults = json.loads((out / "faults.json").read_text())
+        fig.update({k: v for k, v in faults.items() if v})
+    return fig
+
+
+def process_cases() -> dict[str, Any]:
+    """``sims/tiny.toml`` (2 robots, aliased: its ATE is not the point) as processes at 4x real time."""
+    with tempfile.TemporaryDirectory() as tmp:
+        clean = _launch(Path(tmp) / "clean")
+        return {"clean": clean,
+                "kill_resume": {**_launch(Path(tmp) / "kill", "--kill", "1@40"),
+                                "must": "exit 0, every keyframe, rejoin_s <= 10"},
+                "router_restart": {**_launch(Path(tmp) / "router", "--restart-router", "25"),
+                                   "must": "exit 0, every keyframe"},
+                "tls": {**_launch(Path(tmp) / "tls", "--tls"), "must": "exit 0, every keyframe"}}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", action="store_true", help="print JSON (the only output format)")
     ap.add_argument("--fuzz", type=int, default=10_000, help="fuzzed payloads")
     ap.add_argument("--skip-sim", action="store_true", help="only the Zenoh cases (seconds, not minutes)")
+    ap.add_argument("--processes", action="store_true", help="also launch the team as processes: kill + "
+                                                             "resume, router restart, mutual TLS")
     args = ap.parse_args()
     out: dict[str, Any] = {"scenario": "sims/small.toml", "seed": 0}
     if not args.skip_sim:
@@ -234,6 +268,8 @@ def main() -> None:
     out["fuzz"] = asyncio.run(fuzz_case(args.fuzz))
     out["second_team"] = asyncio.run(second_team_case())
     out["mtls"] = asyncio.run(mtls_case())
+    if args.processes:
+        out["processes"] = process_cases()
     json.dump(out, sys.stdout, indent=2, default=str)
     print()
 
