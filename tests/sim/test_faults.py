@@ -79,3 +79,31 @@ def test_bad_fault_flags_are_one_line_errors(tmp_path, args, needle):
     assert res.exit_code == 1, res.output
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and needle in lines[0], res.stderr
+
+
+def test_a_partition_shows_as_presence_leaving_and_coming_back():
+    """Inside the window each side sees the other leave; at the heal it appears again (so nodes
+    re-send what the other missed, as on a Zenoh liveliness change)."""
+    import asyncio
+
+    from .helpers import TINY
+
+    runner = SimRunner(load_scenario(TINY), seed=0, mode="distributed", faults=sim_faults(partitions=["0|1@10:20"]))
+
+    async def run() -> list[tuple[float, list[tuple[int, bool]], frozenset[int]]]:
+        seen = []
+        async with runner._buses([0, 1]) as buses:
+            for b in buses:
+                await b.announce()
+            events = buses[0].presence()
+            for t in (5.0, 10.0, 15.0, 20.0):
+                runner.clock.t = t
+                runner._show_partitions(buses)
+                got = []
+                while (e := events.try_recv()) is not None:
+                    got.append((e.robot, e.alive))
+                seen.append((t, got, buses[0].peers()))
+        return seen
+
+    assert asyncio.run(run()) == [(5.0, [(1, True)], frozenset({1})), (10.0, [(1, False)], frozenset()),
+                                  (15.0, [], frozenset()), (20.0, [(1, True)], frozenset({1}))]
