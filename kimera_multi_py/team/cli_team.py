@@ -120,12 +120,17 @@ def register(app: typer.Typer) -> None:
         restart_router: Annotated[list[str] | None, typer.Option("--restart-router", help="T: SIGKILL the router "
                                                                   "at team stream time T and start it again "
                                                                   "(repeatable).")] = None,
+        partition: Annotated[list[str] | None, typer.Option("--partition", help="'A,B|C@T0:T1': cut the router "
+                                                             "links of the robots outside robot 0's group "
+                                                             "from team stream time T0 to T1 (repeatable).")]
+        = None,
         tls: Annotated[bool, typer.Option("--tls", help="Mutual TLS: a new team CA and certificates in "
                                                         "OUT/certs; no process without one can join.")] = False,
         verbose: Verbose = False,
     ) -> None:
         """Start a router and N agent processes (and the server) on 127.0.0.1, then evaluate."""
         from kimera_multi_py.cli import _results_table, _robot_at, _summary
+        from kimera_multi_py.comms.faults import parse_partition
         from kimera_multi_py.team.launcher import LaunchJob, launch, parse_kill, parse_restart
 
         _setup_logging(verbose)
@@ -133,7 +138,8 @@ def register(app: typer.Typer) -> None:
             job = LaunchJob(scenario, robots, seed, mode, out, _rate(rate), [parse_kill(k) for k in kill or []],
                             dict(_robot_at(j, "join") for j in join or []), checkpoint_every, timeout=timeout,
                             verbose=verbose, map_consensus=map_consensus, tls=tls,
-                            router_restarts=[parse_restart(t) for t in restart_router or []])
+                            router_restarts=[parse_restart(t) for t in restart_router or []],
+                            partitions=[parse_partition(p) for p in partition or []])
             with Live(_table({}), console=console, refresh_per_second=4, transient=False) as live:
                 results = launch(job, lambda views: live.update(_table(views)))
         except KimeraMultiError as exc:

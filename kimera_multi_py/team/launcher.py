@@ -24,10 +24,12 @@ from pathlib import Path
 from typing import Any
 
 from kimera_multi_py.comms import keys, runtime
+from kimera_multi_py.comms.loopback import Partition
 from kimera_multi_py.comms.messages import AgentState
 from kimera_multi_py.consensus.zenoh_team import free_ports
 from kimera_multi_py.errors import ConfigError, KimeraMultiError
 from kimera_multi_py.eval.results import Results
+from kimera_multi_py.team.link_proxy import LinkProxy
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +80,7 @@ class LaunchJob:
     map_consensus: str = "exact"
     tls: bool = False  # mutual TLS: certificates of a new team CA in OUT/certs, endpoints tls/localhost
     router_restarts: list[float] = field(default_factory=list)  # team stream times to SIGKILL + restart the router
+    partitions: list[Partition] = field(default_factory=list)  # windows in team stream time (see cut_off)
 
 
 @dataclass
@@ -119,6 +122,10 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     for k in job.kills:
         if not 0 <= k.robot < job.robots:
             raise ConfigError("kill", f"robot {k.robot} is not in the team of {job.robots}")
+    for p in job.partitions:
+        bad = sorted(r for g in p.groups for r in g if not 0 <= r < job.robots)
+        if bad:
+            raise ConfigError("partition", f"robot(s) {bad} are not in the team of {job.robots}")
     for r in job.joins:
         if not 0 <= r < job.robots or len(job.joins) >= job.robots:
             raise ConfigError("join", f"robot {r}: needs a robot of the team, and someone to join")
@@ -132,6 +139,13 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     results = evaluate_run(job.out_dir, cfg, job.seed, job.mode, time.monotonic() - t0)
     results.write_json(job.out_dir / "results.json")
     return results
+
+
+def cut_off(p: Partition) -> frozenset[int]:
+    """The robots whose router link a partition cuts: all but the group holding robot 0 (else the
+    largest group). With one router, robots cut off together cannot reach each other either."""
+    home = next((g for g in p.groups if 0 in g), max(p.groups, key=len))
+    return frozenset().union(*(g for g in p.groups if g is not home))
 
 
 def _tls_configs(job: LaunchJob, folder: Path) -> dict[str, Path]:
@@ -158,8 +172,16 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     def zconf(name: str) -> list[str]:
         return ["--zenoh-config", str(configs[name])] if name in configs else []
 
-    def conn(name: str) -> list[str]:
-        return ["--connect", endpoint, "--team", job.team, *zconf(name)] + (["-v"] if job.verbose else [])
+    # robots a partition cuts off reach the router through a proxy whose link the launcher cuts
+    proxies: dict[int, LinkProxy] = {}
+    for r in sorted(frozenset().union(*(cut_off(p) for p in job.partitions))):
+        proxies[r] = LinkProxy("127.0.0.1", port)
+        await proxies[r].start()
+    link_events: list[dict[str, Any]] = []
+
+    def conn(name: str, robot: int | None = None) -> list[str]:
+        ep = endpoint if robot not in proxies else endpoint.rsplit(":", 1)[0] + f":{proxies[robot].port}"
+        return ["--connect", ep, "--team", job.team, *zconf(name)] + (["-v"] if job.verbose else [])
     procs: dict[str, subprocess.Popen[bytes]] = {}
     logs: list[Any] = []
 
@@ -171,7 +193,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     def agent_args(r: int, resume: bool) -> list[str]:
         args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}",
                 "--out", str(out), "--rate", str(job.rate), "--checkpoint-every", str(job.checkpoint_every),
-                "--pgo-period", str(job.pgo_period), "--map-consensus", job.map_consensus, *conn(f"robot{r}")]
+                "--pgo-period", str(job.pgo_period), "--map-consensus", job.map_consensus, *conn(f"robot{r}", r)]
         if job.mode == "centralized":
             args.append("--centralized")
         return args + (["--resume"] if resume else [])
@@ -211,6 +233,18 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
                             team_time, at)
                 procs["router"] = start("router", ["router", "--listen", endpoint, *zconf("router")])
                 restarted.append({"at": at, "team_time_s": team_time})
+            for r, proxy in proxies.items():
+                cut = any(p.start <= team_time < p.end and r in cut_off(p) for p in job.partitions)
+                if cut != proxy.is_cut:
+                    if cut:
+                        proxy.cut()
+                    else:
+                        proxy.restore()
+                    log.warning("robot %d's link %s at team time %.1f s", r, "cut" if cut else "restored", team_time)
+                    link_events.append({"robot": r, "cut": cut, "team_time_s": team_time, "absent_seen": False})
+                elif cut and r not in observer.peers():
+                    last = next(e for e in reversed(link_events) if e["robot"] == r)
+                    last["absent_seen"] = True  # the team really lost it
             for r, at in job.joins.items():
                 if f"robot{r}" not in procs and team_time >= at:
                     log.warning("robot %d joins at team time %.1f s", r, team_time)
@@ -255,7 +289,9 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
             await asyncio.sleep(0.1)
     finally:
         (out / "faults.json").write_text(json.dumps({"kills": [k.report() for k in job.kills],
-                                                     "router_restarts": restarted}, indent=2))
+                                                     "router_restarts": restarted, "links": link_events}, indent=2))
+        for proxy in proxies.values():
+            await proxy.close()
         if observer is not None:
             await observer.close()
         for p in procs.values():

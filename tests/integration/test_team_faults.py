@@ -55,3 +55,21 @@ def test_a_killed_agent_keeps_everything_of_its_last_checkpoint_and_rejoins_with
     assert kept <= final
     sim = Simulation(load_scenario(TINY, robots=2), seed=0)
     assert len(stamps) == len(sim.plans[1].stamps)
+
+
+@pytest.mark.slow
+def test_a_partition_cuts_a_robots_link_for_the_window_and_the_team_completes(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    res = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli", "launch", str(TINY), "--robots", "2",
+                          "--out", str(out), "--rate", "4", "--partition", "0|1@20:45"],
+                         capture_output=True, text=True, timeout=400, cwd=REPO)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    links = json.loads((out / "faults.json").read_text())["links"]
+    assert [(e["robot"], e["cut"]) for e in links] == [(1, True), (1, False)]
+    assert 20 <= links[0]["team_time_s"] < 45 <= links[1]["team_time_s"]
+    assert links[0]["absent_seen"]  # the observer (on the router) lost robot 1 during the cut
+    results = json.loads((out / "results.json").read_text())
+    sim = Simulation(load_scenario(TINY, robots=2), seed=0)
+    assert [r["keyframes"] for r in results["robots"]] == [len(p.stamps) for p in sim.plans]
+    for r in range(2):
+        assert json.loads((out / f"robot{r}" / "closures.json").read_text())["pgo_epochs"] >= 1
