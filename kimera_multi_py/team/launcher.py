@@ -1,5 +1,6 @@
 """``kimera-multi launch``: a router, N agent processes (plus the server) on 127.0.0.1, a live
-table, optional kills with ``--resume`` restarts, and the evaluation of what they wrote.
+table, optional faults (kills with ``--resume`` restarts, router restarts, link partitions through
+a :class:`LinkProxy`), optional mutual TLS, and the evaluation of what they wrote.
 
 The launcher is not part of the system: it only starts OS processes that find each other
 through the router, watches their :class:`AgentState` messages (as a silent observer that never
