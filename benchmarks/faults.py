@@ -21,7 +21,7 @@ Real Zenoh sessions on 127.0.0.1:
   a certificate of another CA (both trust the team CA).
 
 Processes (``--processes``; ``sims/tiny.toml``, 2 robots at 4x real time): a clean launch,
-``--kill 1@40`` (the rejoin time), ``--restart-router 25`` and ``--tls``.
+``--kill 1@40`` (the rejoin time), ``--restart-router 25``, ``--partition 0|1@20:45`` and ``--tls``.
 
     python benchmarks/faults.py --json [--fuzz 10000] [--skip-sim] [--processes]
 """
@@ -251,6 +251,8 @@ def process_cases() -> dict[str, Any]:
                                 "must": "exit 0, every keyframe, rejoin_s <= 10"},
                 "router_restart": {**_launch(Path(tmp) / "router", "--restart-router", "25"),
                                    "must": "exit 0, every keyframe"},
+                "partition": {**_launch(Path(tmp) / "partition", "--partition", "0|1@20:45"),
+                              "must": "exit 0, every keyframe, robot 1 absent during the cut"},
                 "tls": {**_launch(Path(tmp) / "tls", "--tls"), "must": "exit 0, every keyframe"}}
 
 
