@@ -142,3 +142,27 @@ async def test_a_second_team_on_the_same_network_gets_nothing_into_team_0(port: 
             await wait_until(lambda: accepted(bus) == 0, 5)  # its own publications may be on their way
             assert bus.peers() == frozenset()  # t1's presence is not t0's
             assert crashed() is None
+
+
+async def test_an_epoch_at_the_wires_limit_does_not_stop_the_node() -> None:
+    """A peer's state claims the largest epoch a message may carry: the leader cannot open the
+    next one (it would not fit a round tag), and the node counts that instead of crashing."""
+    from kimera_multi_py.comms.loopback import LoopbackNetwork
+    from kimera_multi_py.comms.messages import MAX_EPOCH
+
+    net = LoopbackNetwork(team=TEAM)
+    mine, peer = net.bus(0), net.bus(1)
+    node = AgentNode(Agent(0, None, agent_params(load_scenario(TINY))), mine)
+    await node.start()
+    await peer.announce()
+    huge = AgentState(robot=1, keyframes=1, stamp=1000.0, finished=True, epoch=MAX_EPOCH, complete=False,
+                      closures=0, rounds=0, bytes_sent=0)
+    await peer.publish(peer.key(huge.TOPIC), huge)
+    await net.settle()
+    await node.drain()
+    await node.tick(wall=1000.0)
+    await node.tick(wall=2000.0, force=True)
+    assert node.errors["pgo_tick"] >= 1
+    await node.close()
+    await mine.close()
+    await peer.close()
