@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
+
 from kimera_multi_py.team.link_proxy import LinkProxy
+
+pytestmark = pytest.mark.integration
 
 
 async def test_the_proxy_relays_cuts_and_restores() -> None:

@@ -1,4 +1,5 @@
-"""Faults on the team as OS processes (issue 16): the router restarts mid-run."""
+"""Faults on the team as OS processes (issue 16): kill + resume; mutual TLS, a router restart and a
+link partition in one launch."""
 
 from __future__ import annotations
 
@@ -14,21 +15,6 @@ from kimera_multi_py.sim import Simulation, load_scenario
 REPO = Path(__file__).resolve().parents[2]
 TINY = REPO / "sims" / "tiny.toml"
 pytestmark = pytest.mark.integration
-
-
-@pytest.mark.slow
-def test_the_router_restarts_mid_run_and_the_team_completes(tmp_path: Path) -> None:
-    out = tmp_path / "run"
-    res = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli", "launch", str(TINY), "--robots", "2",
-                          "--out", str(out), "--rate", "4", "--restart-router", "25"],
-                         capture_output=True, text=True, timeout=400, cwd=REPO)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    assert "killed the router" in res.stderr  # the restart really happened, mid-run
-    results = json.loads((out / "results.json").read_text())
-    sim = Simulation(load_scenario(TINY, robots=2), seed=0)
-    assert [r["keyframes"] for r in results["robots"]] == [len(p.stamps) for p in sim.plans]
-    assert results["pgo_runs"] >= 1
-    assert (out / "logs" / "router.log").exists()
 
 
 @pytest.mark.slow
@@ -58,18 +44,29 @@ def test_a_killed_agent_keeps_everything_of_its_last_checkpoint_and_rejoins_with
 
 
 @pytest.mark.slow
-def test_a_partition_cuts_a_robots_link_for_the_window_and_the_team_completes(tmp_path: Path) -> None:
+def test_over_mutual_tls_a_router_restart_and_a_partition_the_team_completes(tmp_path: Path) -> None:
+    """One launch for three cases (CI time): ``--tls``, ``--restart-router 25`` and a partition
+    that cuts robot 1's link from 20 s to 45 s of team stream time (TLS passes through the relay)."""
     out = tmp_path / "run"
     res = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli", "launch", str(TINY), "--robots", "2",
-                          "--out", str(out), "--rate", "4", "--partition", "0|1@20:45"],
+                          "--out", str(out), "--rate", "4", "--tls", "--restart-router", "25",
+                          "--partition", "0|1@20:45"],
                          capture_output=True, text=True, timeout=400, cwd=REPO)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    links = json.loads((out / "faults.json").read_text())["links"]
-    assert [(e["robot"], e["cut"]) for e in links] == [(1, True), (1, False)]
-    assert 20 <= links[0]["team_time_s"] < 45 <= links[1]["team_time_s"]
-    assert links[0]["absent_seen"]  # the observer (on the router) lost robot 1 during the cut
     results = json.loads((out / "results.json").read_text())
     sim = Simulation(load_scenario(TINY, robots=2), seed=0)
     assert [r["keyframes"] for r in results["robots"]] == [len(p.stamps) for p in sim.plans]
     for r in range(2):
         assert json.loads((out / f"robot{r}" / "closures.json").read_text())["pgo_epochs"] >= 1
+    faults = json.loads((out / "faults.json").read_text())
+    # the router was killed and restarted mid-run
+    assert len(faults["router_restarts"]) == 1 and faults["router_restarts"][0]["team_time_s"] >= 25
+    # robot 1's link was cut for the window (the observer on the router lost it) and restored
+    links = faults["links"]
+    assert [(e["robot"], e["cut"]) for e in links] == [(1, True), (1, False)]
+    assert 20 <= links[0]["team_time_s"] < 45 <= links[1]["team_time_s"]
+    assert links[0]["absent_seen"]
+    # every process presented its own certificate of the new team CA and required the other end's
+    for name in ("robot0", "robot1", "router", "observer"):
+        tls = json.loads((out / "certs" / f"{name}.json5").read_text())["transport"]["link"]["tls"]
+        assert tls["enable_mtls"] is True and tls["connect_certificate"].endswith(f"{name}.pem")
