@@ -96,24 +96,32 @@ def sim(
     comm_range: Annotated[float | None, typer.Option("--comm-range", help="Radio range (m) for map "
                                                                           "traffic; default unlimited.")] = None,
     drop: Annotated[float, typer.Option("--drop", help="Loopback: drop this fraction of messages.")] = 0.0,
+    delay: Annotated[float, typer.Option("--delay", help="Loopback: delay every message by MS milliseconds "
+                                                         "(wall time; the simulated clock waits).")] = 0.0,
+    jitter: Annotated[float, typer.Option("--jitter", help="Loopback: add uniform +-MS ms to each delay.")] = 0.0,
+    partition: Annotated[list[str] | None, typer.Option("--partition", help="Loopback: 'A,B|C@T0:T1' cuts robots "
+                                                                             "A,B off from C from T0 to T1 s "
+                                                                             "(repeatable).")] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Run the multi-robot simulation and evaluate it against ground truth."""
+    from kimera_multi_py.comms.faults import sim_faults
     from kimera_multi_py.sim.runner import SimRunner
     from kimera_multi_py.sim.scenario import load_scenario
     from kimera_multi_py.viz.rerun_viz import make_viz
 
     _setup_logging(verbose)
     try:
+        faults = sim_faults(drop, delay, jitter, partition or [])
         cfg = load_scenario(scenario, robots=robots)
         viz = make_viz(out / "recording.rrd" if rerun else None)
+        runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz, transport=transport,
+                           join=dict(_robot_at(j, "join") for j in join or []), map_consensus=map_consensus,
+                           comm_range=comm_range, faults=faults)
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                       TimeElapsedColumn(), console=err_console, transient=False) as progress:
             task = progress.add_task(f"{cfg.name} x{len(cfg.robots)}", total=None)
-            runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz, transport=transport,
-                               join=dict(_robot_at(j, "join") for j in join or []), map_consensus=map_consensus,
-                               comm_range=comm_range, drop=drop,
-                               on_progress=lambda done, total: progress.update(task, completed=done, total=total))
+            runner.on_progress = lambda done, total: progress.update(task, completed=done, total=total)
             results = runner.run()
     except KimeraMultiError as exc:
         raise fail(exc) from None

@@ -41,6 +41,8 @@ def load_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(str(path), "file not found") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(str(path), f"invalid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:  # tomllib decodes UTF-8 itself
+        raise ConfigError(str(path), f"invalid TOML: not UTF-8 text (byte {exc.start})") from None
     except OSError as exc:
         raise ConfigError(str(path), f"cannot read: {exc}") from None
 

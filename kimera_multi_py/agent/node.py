@@ -268,7 +268,10 @@ class AgentNode:
                 out.append(msg)
         if self.pgo is not None:
             before = self.pgo.completed
-            out.extend(self.pgo.tick(now, wall, self.alive(), self.finished, force))
+            try:
+                out.extend(self.pgo.tick(now, wall, self.alive(), self.finished, force))
+            except KimeraMultiError as exc:  # e.g. an epoch a peer pushed to the wire's limit
+                self._refuse("pgo_tick", exc)
             if self.pgo.completed != before:
                 self.epochs_seen += 1
                 last = self.pgo.last_pgo

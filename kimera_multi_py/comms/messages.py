@@ -36,6 +36,9 @@ MAX_ROBOT_ID = 4095
 MAX_STR_LEN = 256
 INT64_MIN = -(2**63)
 INT64_MAX = 2**63 - 1
+# PGO epochs tag rounds as epoch * 1e6 + round (team_pgo.EPOCH_ROUNDS), and a leader opens the
+# newest epoch it heard of + 1: epochs on the wire stay below what keeps that tag an int64
+MAX_EPOCH = INT64_MAX // 1_000_000 - 2
 
 
 # ---------------------------------------------------------------------------- field specs
@@ -768,7 +771,7 @@ class PgoEpoch(Message):
     """
 
     robot: int = robot_id()
-    epoch: int = count()
+    epoch: int = _f(Int(0, MAX_EPOCH))  # epoch * EPOCH_ROUNDS + round must fit a round (int64)
     members: np.ndarray = arr("int64", "m", lo=0, hi=MAX_ROBOT_ID)
     pairs: np.ndarray = arr("int64", "p", 2, lo=0, hi=MAX_ROBOT_ID)
     final: bool = _f(Bool())
@@ -783,7 +786,7 @@ class AgentState(Message):
     keyframes: int = count()
     stamp: float = _f(Float())
     finished: bool = _f(Bool())
-    epoch: int = count()
+    epoch: int = _f(Int(0, MAX_EPOCH))
     complete: bool = _f(Bool())
     closures: int = count()  # inter-robot closures this robot holds
     rounds: int = count()  # PGO rounds it ran

@@ -61,6 +61,40 @@ SOLO_BYTES = 16 * 1024  # messages this big are put on their own: coalescing wou
 INDIRECT_CALLBACKS = True  # run data callbacks on zenoh-python's callback thread
 
 
+def tls_settings(ca: str | Path, cert: str | Path | None = None, key: str | Path | None = None,
+                 mtls: bool = True) -> dict[str, Any]:
+    """Zenoh's ``transport/link/tls`` block: trust ``ca``; present ``cert`` + ``key`` both when
+    listening and when connecting; with ``mtls`` (zenoh's ``enable_mtls``) require the other
+    end's certificate, signed by ``ca``, on every link, so a process without one cannot join."""
+    if (cert is None) != (key is None):
+        raise ConfigError("tls", "give both a certificate and its key, or neither")
+    tls: dict[str, Any] = {"root_ca_certificate": str(ca)}
+    if cert is not None and key is not None:
+        tls.update({"listen_certificate": str(cert), "listen_private_key": str(key),
+                    "connect_certificate": str(cert), "connect_private_key": str(key)})
+    if mtls:
+        if cert is None:
+            raise ConfigError("tls", "mutual TLS needs this process's certificate and key")
+        tls["enable_mtls"] = True
+    return tls
+
+
+@dataclass(frozen=True)
+class Tls:
+    """The TLS files of one process (PEM): the team CA, and its own certificate and key."""
+
+    ca: str | Path
+    cert: str | Path | None = None
+    key: str | Path | None = None
+    mtls: bool = True
+
+    def settings(self) -> dict[str, Any]:
+        for p in (self.ca, self.cert, self.key):
+            if p is not None and not Path(p).is_file():
+                raise ConfigError("tls", f"{p} is not a file")
+        return tls_settings(self.ca, self.cert, self.key, self.mtls)
+
+
 def zenoh_config(
     mode: str | None = None,
     listen: Iterable[str] = (),
@@ -68,11 +102,13 @@ def zenoh_config(
     config_file: str | Path | None = None,
     multicast_scouting: bool | None = None,
     extra: Mapping[str, Any] | None = None,
+    tls: Tls | None = None,
 ) -> zenoh.Config:
     """Build a Zenoh config: the file (if any), then our defaults, then explicit arguments.
 
     Without a file the defaults are peer mode and multicast scouting off. ``extra`` maps config
-    paths to JSON values, e.g. ``{"transport/link/tls": {"root_ca_certificate": "ca.pem"}}``.
+    paths to JSON values, e.g. ``{"transport/link/tls": {"root_ca_certificate": "ca.pem"}}``;
+    ``tls`` sets that block from a process's files (mutual TLS by default, see :class:`Tls`).
     """
     try:
         conf = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
@@ -92,6 +128,8 @@ def zenoh_config(
         entries["listen/endpoints"] = listen
     if connect := list(connect):
         entries["connect/endpoints"] = connect
+    if tls is not None:
+        entries["transport/link/tls"] = tls.settings()
     entries.update(extra or {})
     for path, value in entries.items():
         try:
@@ -142,6 +180,7 @@ class ZenohBus(BusBase):
         config_file: str | Path | None = None,
         multicast_scouting: bool | None = None,
         extra_config: Mapping[str, Any] | None = None,
+        tls: Tls | None = None,
         block_on_congestion: bool = False,
         queue_size: int = DEFAULT_QUEUE_SIZE,
         batch_bytes: int = DEFAULT_BATCH_BYTES,
@@ -152,7 +191,7 @@ class ZenohBus(BusBase):
         except RuntimeError as exc:
             raise ConfigError("loop", "ZenohBus must be created inside a running event loop") \
                 from exc
-        conf = zenoh_config(mode, listen, connect, config_file, multicast_scouting, extra_config)
+        conf = zenoh_config(mode, listen, connect, config_file, multicast_scouting, extra_config, tls)
         try:
             self.session = zenoh.open(conf)
         except zenoh.ZError as exc:

@@ -28,7 +28,8 @@ import heapq
 import json
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import asynccontextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -41,6 +42,8 @@ from kimera_multi_py.agent.outputs import RobotOutcome, outcome_of, own_graph, w
 from kimera_multi_py.agent.team_graph import joint_graph
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.comm_range import neighbours_within
+from kimera_multi_py.comms.faults import check_robots, cut_links
+from kimera_multi_py.comms.loopback import Faults, LoopbackBus, LoopbackNetwork
 from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES
 from kimera_multi_py.consensus.map_fusion import centralised_team_map, octree_cells
 from kimera_multi_py.consensus.map_metrics import TeamMapReport, phi, team_map_report
@@ -112,7 +115,7 @@ class SimRunner:
                  pgo_period: float = 60.0, params: AgentParams | None = None,
                  pgo_params: PgoParams | None = None, join: dict[int, float] | None = None,
                  leave: dict[int, float] | None = None, map_consensus: str = "exact",
-                 comm_range: float | None = None, drop: float = 0.0) -> None:
+                 comm_range: float | None = None, drop: float = 0.0, faults: Faults | None = None) -> None:
         if mode not in MODES:
             raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
         if transport not in TRANSPORTS:
@@ -130,7 +133,13 @@ class SimRunner:
         self.schedule = ScheduleParams(period=pgo_period, round_timeout=0.5 if transport == "zenoh" else None)
         self.clock = _SimClock()
         self.map_mode = map_consensus
-        self.drop = drop
+        # loopback link faults (``faults`` wins over ``drop``); partitions run on the simulated clock
+        self.faults = faults if faults is not None else Faults(drop=drop)
+        check_robots(self.faults.partitions, range(self.sim.num_robots))
+        if transport != "loopback" and self.faults != Faults(drop=self.faults.drop):
+            raise ConfigError("transport", "delay, jitter, duplicates and partitions need the loopback transport")
+        self.drop = self.faults.drop
+        self._cut: frozenset[tuple[int, int]] = frozenset()
         self.comm_range = comm_range
         self.map_report: TeamMapReport | None = None
         self._next_phi = 0.0
@@ -188,7 +197,7 @@ class SimRunner:
         central = self.mode == "centralized"
         ids = robots + ([SERVER_ID] if central else [])
         params = replace(self.params, server=SERVER_ID) if central else self.params
-        async with open_buses(ids, self.transport, drop=self.drop, team="sim", seed=self.sim.seed) as buses:
+        async with self._buses(ids) as buses:
             self.nodes = [AgentNode(Agent(r, None, params), buses[r], self.pgo_params, self.schedule,
                                     NodeParams(server=params.server, map_consensus=self.map_mode),
                                     clock=self.clock.now) for r in robots]
@@ -209,6 +218,7 @@ class SimRunner:
             epochs = 0
             for done, kf in enumerate(self._stream(), 1):
                 self.clock.t = kf.stamp
+                self._show_partitions(buses)
                 for r, t in self.leave.items():
                     if kf.stamp >= t and self.nodes[r] in nodes:
                         nodes.remove(self.nodes[r])
@@ -237,8 +247,10 @@ class SimRunner:
                     if self.clock.t - end > 10 * self.schedule.absent_timeout:
                         raise RuntimeError("the team stopped before its final optimisation")  # a bug
                     self.clock.t += 1.0
+                    self._show_partitions(buses)
             for _ in range(int(MAP_SETTLE_S)):  # map consensus relays what is still missing
                 self.clock.t += 1.0
+                self._show_partitions(buses)
                 await self._settle(nodes, buses)
             self._record_phi(force=True)
             self._log_team()
@@ -247,6 +259,41 @@ class SimRunner:
             for node in nodes:
                 await node.close()
         self.viz.close()
+
+    @asynccontextmanager
+    async def _buses(self, ids: list[int]) -> AsyncIterator[list[Bus]]:
+        """One bus per robot (and server): over loopback with this run's link faults, whose
+        partitions follow the simulated clock."""
+        if self.transport != "loopback":
+            async with open_buses(ids, self.transport, drop=self.drop, team="sim", seed=self.sim.seed) as zbuses:
+                yield zbuses
+            return
+        self._cut = frozenset()
+        net = LoopbackNetwork(team="sim", seed=self.sim.seed, faults=self.faults, robots=ids, clock=self.clock.now)
+        buses: list[Bus] = [net.bus(r) for r in ids]
+        try:
+            yield buses
+        finally:
+            for b in buses:
+                await b.close()
+
+    def _show_partitions(self, buses: list[Bus]) -> None:
+        """Show partition changes as presence changes, as Zenoh would: a robot cut off from this
+        one leaves, and appears again when the link heals (so catch-up traffic follows)."""
+        if not self.faults.partitions:
+            return
+        net = getattr(buses[0], "network", None)
+        if not isinstance(net, LoopbackNetwork):
+            return
+        by_robot = {b.robot: b for b in buses}
+        cut = cut_links(self.faults.partitions, sorted(by_robot), self.clock.t)
+        for a, b in sorted(cut ^ self._cut):
+            alive = (a, b) not in cut
+            for me, other in ((a, b), (b, a)):
+                bus = by_robot[me]
+                if isinstance(bus, LoopbackBus) and not bus.closed and (not alive or (net.team, other) in net._alive):
+                    bus._set_alive(other, alive)
+        self._cut = cut
 
     def _stream(self) -> Iterator[Keyframe]:
         """Every robot's keyframes in time order, a late joiner's shifted by its delay."""

@@ -117,17 +117,29 @@ def register(app: typer.Typer) -> None:
         checkpoint_every: Annotated[float, typer.Option(help="Seconds between agent checkpoints.")] = 5.0,
         timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 1800.0,
         map_consensus: MapMode = "exact",
+        restart_router: Annotated[list[str] | None, typer.Option("--restart-router", help="T: SIGKILL the router "
+                                                                  "at team stream time T and start it again "
+                                                                  "(repeatable).")] = None,
+        partition: Annotated[list[str] | None, typer.Option("--partition", help="'A,B|C@T0:T1': cut the router "
+                                                             "links of the robots outside robot 0's group "
+                                                             "from team stream time T0 to T1 (repeatable).")]
+        = None,
+        tls: Annotated[bool, typer.Option("--tls", help="Mutual TLS: a new team CA and certificates in "
+                                                        "OUT/certs; no process without one can join.")] = False,
         verbose: Verbose = False,
     ) -> None:
         """Start a router and N agent processes (and the server) on 127.0.0.1, then evaluate."""
         from kimera_multi_py.cli import _results_table, _robot_at, _summary
-        from kimera_multi_py.team.launcher import LaunchJob, launch, parse_kill
+        from kimera_multi_py.comms.faults import parse_partition
+        from kimera_multi_py.team.launcher import LaunchJob, launch, parse_kill, parse_restart
 
         _setup_logging(verbose)
         try:
             job = LaunchJob(scenario, robots, seed, mode, out, _rate(rate), [parse_kill(k) for k in kill or []],
                             dict(_robot_at(j, "join") for j in join or []), checkpoint_every, timeout=timeout,
-                            verbose=verbose, map_consensus=map_consensus)
+                            verbose=verbose, map_consensus=map_consensus, tls=tls,
+                            router_restarts=[parse_restart(t) for t in restart_router or []],
+                            partitions=[parse_partition(p) for p in partition or []])
             with Live(_table({}), console=console, refresh_per_second=4, transient=False) as live:
                 results = launch(job, lambda views: live.update(_table(views)))
         except KimeraMultiError as exc:
@@ -136,6 +148,25 @@ def register(app: typer.Typer) -> None:
         console.print(_results_table(res))
         _summary(res)
         console.print(f"launch wall {res['wall_s']:.1f} s; wrote {out / 'results.json'}")
+
+    @app.command()
+    def certs(
+        folder: Annotated[Path, typer.Argument(help="Folder for ca.pem, ca.key and NAME.pem + NAME.key.")],
+        robots: Annotated[int, typer.Option("--robots", "-n", help="Certificates for robot0..robotN-1.")] = 3,
+        days: Annotated[int, typer.Option(help="Days the certificates are valid.")] = 365,
+    ) -> None:
+        """Make a team CA and a certificate per robot (plus server, router, observer) for mutual TLS."""
+        from kimera_multi_py.team.certs import make_certs, team_names, write_zenoh_config
+
+        try:
+            idents = make_certs(folder, team_names(robots), days)
+            for name, ident in idents.items():
+                write_zenoh_config(folder / f"{name}.json5", ident)
+        except KimeraMultiError as exc:
+            raise fail(exc) from None
+        console.print(f"wrote a team CA and {len(idents)} certificates to {folder} (ca.key signs new ones: keep "
+                      f"it off the robots); give each process --zenoh-config {folder}/NAME.json5 and "
+                      f"tls/HOST:PORT endpoints")
 
     @app.command()
     def record(

@@ -1,5 +1,6 @@
 """``kimera-multi launch``: a router, N agent processes (plus the server) on 127.0.0.1, a live
-table, optional kills with ``--resume`` restarts, and the evaluation of what they wrote.
+table, optional faults (kills with ``--resume`` restarts, router restarts, link partitions through
+a :class:`LinkProxy`), optional mutual TLS, and the evaluation of what they wrote.
 
 The launcher is not part of the system: it only starts OS processes that find each other
 through the router, watches their :class:`AgentState` messages (as a silent observer that never
@@ -9,9 +10,11 @@ announces itself, so it is not a team member) and scores the outputs afterwards.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -22,10 +25,12 @@ from pathlib import Path
 from typing import Any
 
 from kimera_multi_py.comms import keys, runtime
+from kimera_multi_py.comms.loopback import Partition
 from kimera_multi_py.comms.messages import AgentState
 from kimera_multi_py.consensus.zenoh_team import free_ports
 from kimera_multi_py.errors import ConfigError, KimeraMultiError
 from kimera_multi_py.eval.results import Results
+from kimera_multi_py.team.link_proxy import LinkProxy
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +43,15 @@ class Kill:
     robot: int
     at: float  # the robot's stream time (s)
     done: bool = False
+    killed_stream_s: float | None = None  # the robot's stream time when it was killed
+    checkpoint: str | None = None  # a copy of its last checkpoint at the kill (OUT/logs/robotI.killed.kmc)
+    killed_wall: float | None = None
+    absent_seen: bool = False
+    rejoin_s: float | None = None  # wall s from the kill until its restarted process was present again
+
+    def report(self) -> dict[str, Any]:
+        return {"robot": self.robot, "at": self.at, "killed_stream_s": self.killed_stream_s,
+                "checkpoint": self.checkpoint, "rejoin_s": self.rejoin_s}
 
 
 def parse_kill(spec: str) -> Kill:
@@ -65,6 +79,9 @@ class LaunchJob:
     team: str = "t0"
     verbose: bool = False
     map_consensus: str = "exact"
+    tls: bool = False  # mutual TLS: certificates of a new team CA in OUT/certs, endpoints tls/localhost
+    router_restarts: list[float] = field(default_factory=list)  # team stream times to SIGKILL + restart the router
+    partitions: list[Partition] = field(default_factory=list)  # windows in team stream time (see cut_off)
 
 
 @dataclass
@@ -83,6 +100,17 @@ class RobotView:
     exit_code: int | None = None
 
 
+def parse_restart(spec: str) -> float:
+    """``T``: SIGKILL the router when the team's stream reaches T seconds, and start it again."""
+    try:
+        at = float(spec)
+    except ValueError:
+        raise ConfigError("restart-router", f"expected seconds, got {spec!r}") from None
+    if not (math.isfinite(at) and at >= 0):
+        raise ConfigError("restart-router", f"expected seconds >= 0, got {spec!r}")
+    return at
+
+
 View = Callable[[dict[str, RobotView]], None]
 
 
@@ -95,6 +123,10 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     for k in job.kills:
         if not 0 <= k.robot < job.robots:
             raise ConfigError("kill", f"robot {k.robot} is not in the team of {job.robots}")
+    for p in job.partitions:
+        bad = sorted(r for g in p.groups for r in g if not 0 <= r < job.robots)
+        if bad:
+            raise ConfigError("partition", f"robot(s) {bad} are not in the team of {job.robots}")
     for r in job.joins:
         if not 0 <= r < job.robots or len(job.joins) >= job.robots:
             raise ConfigError("join", f"robot {r}: needs a robot of the team, and someone to join")
@@ -110,6 +142,21 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     return results
 
 
+def cut_off(p: Partition) -> frozenset[int]:
+    """The robots whose router link a partition cuts: all but the group holding robot 0 (else the
+    largest group). With one router, robots cut off together cannot reach each other either."""
+    home = next((g for g in p.groups if 0 in g), max(p.groups, key=len))
+    return frozenset().union(*(g for g in p.groups if g is not home))
+
+
+def _tls_configs(job: LaunchJob, folder: Path) -> dict[str, Path]:
+    """A new team CA and certificates in ``folder``, and each process's ``--zenoh-config`` file."""
+    from kimera_multi_py.team.certs import make_certs, team_names, write_zenoh_config
+
+    idents = make_certs(folder, team_names(job.robots))
+    return {name: write_zenoh_config(folder / f"{name}.json5", ident) for name, ident in idents.items()}
+
+
 def _cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "kimera_multi_py.cli", *args]
 
@@ -120,8 +167,22 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     out = job.out_dir
     (out / "logs").mkdir(parents=True, exist_ok=True)
     port = free_ports(1)[0]
-    endpoint = f"tcp/127.0.0.1:{port}"
-    conn = ["--connect", endpoint, "--team", job.team] + (["-v"] if job.verbose else [])
+    endpoint = f"tls/localhost:{port}" if job.tls else f"tcp/127.0.0.1:{port}"
+    configs = _tls_configs(job, out / "certs") if job.tls else {}
+
+    def zconf(name: str) -> list[str]:
+        return ["--zenoh-config", str(configs[name])] if name in configs else []
+
+    # robots a partition cuts off reach the router through a proxy whose link the launcher cuts
+    proxies: dict[int, LinkProxy] = {}
+    for r in sorted(frozenset().union(*(cut_off(p) for p in job.partitions))):
+        proxies[r] = LinkProxy("127.0.0.1", port)
+        await proxies[r].start()
+    link_events: list[dict[str, Any]] = []
+
+    def conn(name: str, robot: int | None = None) -> list[str]:
+        ep = endpoint if robot not in proxies else endpoint.rsplit(":", 1)[0] + f":{proxies[robot].port}"
+        return ["--connect", ep, "--team", job.team, *zconf(name)] + (["-v"] if job.verbose else [])
     procs: dict[str, subprocess.Popen[bytes]] = {}
     logs: list[Any] = []
 
@@ -133,7 +194,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     def agent_args(r: int, resume: bool) -> list[str]:
         args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}",
                 "--out", str(out), "--rate", str(job.rate), "--checkpoint-every", str(job.checkpoint_every),
-                "--pgo-period", str(job.pgo_period), "--map-consensus", job.map_consensus, *conn]
+                "--pgo-period", str(job.pgo_period), "--map-consensus", job.map_consensus, *conn(f"robot{r}", r)]
         if job.mode == "centralized":
             args.append("--centralized")
         return args + (["--resume"] if resume else [])
@@ -142,14 +203,17 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     if job.mode == "centralized":
         views["server"] = RobotView()
     observer: ZenohBus | None = None
+    pending_restarts = sorted(job.router_restarts)
+    restarted: list[dict[str, float]] = []
     try:
-        procs["router"] = start("router", ["router", "--listen", endpoint])
+        procs["router"] = start("router", ["router", "--listen", endpoint, *zconf("router")])
         await asyncio.sleep(0.5)
-        observer = ZenohBus(job.team, OBSERVER_ID, connect=[endpoint])
+        observer = ZenohBus(job.team, OBSERVER_ID, connect=[endpoint],
+                            config_file=configs.get("observer"))
         states = observer.subscribe(keys.topic_all(job.team, keys.AGENT_STATE))
         if job.mode == "centralized":
             procs["server"] = start("server", ["server", "--out", str(out), "--pgo-period", str(job.pgo_period),
-                                               *conn])
+                                               *conn("server")])
         for r in range(job.robots):
             if r not in job.joins:
                 procs[f"robot{r}"] = start(f"robot{r}", agent_args(r, False))
@@ -161,6 +225,27 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
                     v.keyframes, v.stamp, v.epochs, v.finished = msg.keyframes, msg.stamp, msg.epoch, msg.finished
                     v.closures, v.rounds, v.bytes_sent = msg.closures, msg.rounds, msg.bytes_sent
             team_time = max((v.stamp for v in views.values()), default=0.0)
+            while pending_restarts and team_time >= pending_restarts[0]:
+                at = pending_restarts.pop(0)
+                router = procs["router"]
+                os.kill(router.pid, signal.SIGKILL)
+                router.wait()
+                log.warning("killed the router at team time %.1f s (restart at %.1f s); starting it again",
+                            team_time, at)
+                procs["router"] = start("router", ["router", "--listen", endpoint, *zconf("router")])
+                restarted.append({"at": at, "team_time_s": team_time})
+            for r, proxy in proxies.items():
+                cut = any(p.start <= team_time < p.end and r in cut_off(p) for p in job.partitions)
+                if cut != proxy.is_cut:
+                    if cut:
+                        proxy.cut()
+                    else:
+                        proxy.restore()
+                    log.warning("robot %d's link %s at team time %.1f s", r, "cut" if cut else "restored", team_time)
+                    link_events.append({"robot": r, "cut": cut, "team_time_s": team_time, "absent_seen": False})
+                elif cut and r not in observer.peers():
+                    last = next(e for e in reversed(link_events) if e["robot"] == r)
+                    last["absent_seen"] = True  # the team really lost it
             for r, at in job.joins.items():
                 if f"robot{r}" not in procs and team_time >= at:
                     log.warning("robot %d joins at team time %.1f s", r, team_time)
@@ -169,11 +254,20 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
             for r in range(job.robots):
                 views[f"robot{r}"].alive = r in peers
             for k in job.kills:
+                if k.killed_wall is not None and k.rejoin_s is None:
+                    k.absent_seen = k.absent_seen or k.robot not in peers
+                    if k.absent_seen and k.robot in peers:
+                        k.rejoin_s = round(time.monotonic() - k.killed_wall, 2)
+            for k in job.kills:
                 p = procs.get(f"robot{k.robot}")
                 if p is not None and not k.done and views[f"robot{k.robot}"].stamp >= k.at and p.poll() is None:
                     os.kill(p.pid, signal.SIGKILL)
                     p.wait()
-                    k.done = True
+                    k.done, k.killed_wall = True, time.monotonic()
+                    k.killed_stream_s = views[f"robot{k.robot}"].stamp
+                    ckpt = out / f"robot{k.robot}" / "checkpoint.kmc"
+                    if ckpt.exists():  # what the restart must not lose
+                        k.checkpoint = str(shutil.copy(ckpt, out / "logs" / f"robot{k.robot}.killed.kmc"))
                     log.warning("killed robot %d at stream time %.1f s; restarting with --resume", k.robot,
                                 views[f"robot{k.robot}"].stamp)
                     views[f"robot{k.robot}"].restarts += 1
@@ -195,6 +289,10 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
                 raise KimeraMultiError(f"the team did not finish within {job.timeout:.0f} s; logs in {out / 'logs'}")
             await asyncio.sleep(0.1)
     finally:
+        (out / "faults.json").write_text(json.dumps({"kills": [k.report() for k in job.kills],
+                                                     "router_restarts": restarted, "links": link_events}, indent=2))
+        for proxy in proxies.values():
+            await proxy.close()
         if observer is not None:
             await observer.close()
         for p in procs.values():

@@ -1,0 +1,94 @@
+"""Fault schedules for the loopback network, as users write them on the command line.
+
+The loopback network (:mod:`kimera_multi_py.comms.loopback`) already drops, delays, duplicates
+and partitions messages per link. This module turns the CLI's fault flags into its
+:class:`Faults`, and tracks which links a partition schedule cuts at a given time, so that a
+runtime can show the cut to the robots the way a Zenoh session would (the peer's presence
+token vanishes when the link goes, and comes back when it heals).
+
+Partition spec: ``GROUP|GROUP[|...]@START:END`` with comma-separated robot ids per group and
+times in seconds of network (simulated) time; ``END`` may be empty (never heals)::
+
+    parse_partition("0,1|2@60:120")   # robots 0,1 cut from 2 between t = 60 s and t = 120 s
+    sim_faults(drop=0.2, delay_ms=20, partitions=["0,1|2@60:120"])
+
+Pure functions and values; nothing here touches the network or a clock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection, Iterable, Sequence
+from itertools import combinations
+
+from kimera_multi_py.comms.loopback import Faults, Partition
+from kimera_multi_py.errors import ConfigError
+
+
+def parse_partition(spec: str) -> Partition:
+    """``"0,1|2@60:120"`` as a :class:`Partition` (groups {0,1} and {2}, from 60 s to 120 s)."""
+    where = "partition"
+    groups_txt, at, window = spec.strip().partition("@")
+    if not at:
+        raise ConfigError(where, f"expected GROUP|GROUP@START:END (e.g. 0,1|2@60:120), got {spec!r}")
+    start_txt, colon, end_txt = window.partition(":")
+    if not colon:
+        raise ConfigError(where, f"window must be START:END (END may be empty), got {window!r} in {spec!r}")
+    try:
+        start = float(start_txt)
+        end = float(end_txt) if end_txt.strip() else math.inf
+    except ValueError:
+        raise ConfigError(where, f"window times must be numbers, got {window!r} in {spec!r}") from None
+    if not (math.isfinite(start) and start >= 0 and end > start):
+        raise ConfigError(where, f"window needs 0 <= START < END, got {window!r} in {spec!r}")
+    groups: list[frozenset[int]] = []
+    for part in groups_txt.split("|"):
+        try:
+            ids = frozenset(int(x) for x in part.split(",") if x.strip())
+        except ValueError:
+            raise ConfigError(where, f"robot ids must be integers, got {part!r} in {spec!r}") from None
+        if not ids or any(i < 0 for i in ids):
+            raise ConfigError(where, f"every group needs robot ids >= 0, got {part!r} in {spec!r}")
+        groups.append(ids)
+    if len(groups) < 2:
+        raise ConfigError(where, f"a partition needs at least two groups separated by '|', got {spec!r}")
+    seen: set[int] = set()
+    for g in groups:
+        if seen & g:
+            raise ConfigError(where, f"robot(s) {sorted(seen & g)} in more than one group in {spec!r}")
+        seen |= g
+    return Partition(tuple(groups), start, end)
+
+
+def sim_faults(drop: float = 0.0, delay_ms: float = 0.0, jitter_ms: float = 0.0,
+               partitions: Iterable[str | Partition] = ()) -> Faults:
+    """The loopback :class:`Faults` for the sim's ``--drop``, ``--delay``, ``--jitter`` and
+    ``--partition`` flags (delays in milliseconds; bad values raise :class:`ConfigError`)."""
+    for name, ms in (("delay", delay_ms), ("jitter", jitter_ms)):
+        if not (math.isfinite(ms) and ms >= 0):
+            raise ConfigError(name, f"must be a finite number of milliseconds >= 0, got {ms}")
+    parts = tuple(p if isinstance(p, Partition) else parse_partition(p) for p in partitions)
+    return Faults(drop=drop, delay=delay_ms / 1000.0, jitter=jitter_ms / 1000.0, partitions=parts)
+
+
+def check_robots(partitions: Sequence[Partition], robots: Collection[int]) -> None:
+    """Every robot a partition names must be on the team."""
+    known = set(robots)
+    for p in partitions:
+        unknown = sorted(set().union(*p.groups) - known)
+        if unknown:
+            raise ConfigError("partition", f"robot(s) {unknown} are not on the team (robots {sorted(known)})")
+
+
+def cut_links(partitions: Iterable[Partition], robots: Collection[int], now: float) -> frozenset[tuple[int, int]]:
+    """The robot pairs ``(a, b)``, ``a < b``, that some partition separates at time ``now``."""
+    parts = list(partitions)
+    return frozenset((a, b) for a, b in combinations(sorted(robots), 2) if any(p.cuts(a, b, now) for p in parts))
+
+
+def boundaries(partitions: Iterable[Partition]) -> list[float]:
+    """The finite times at which a partition starts or ends, sorted (where cut links change)."""
+    return sorted({t for p in partitions for t in (p.start, p.end) if math.isfinite(t)})
+
+
+__all__ = ["boundaries", "check_robots", "cut_links", "parse_partition", "sim_faults"]

@@ -1,0 +1,136 @@
+"""A team's certificates for Zenoh over mutual TLS: one CA, one certificate per process.
+
+``kimera-multi certs DIR`` writes ``DIR/ca.pem`` (the team CA, which every process trusts),
+``DIR/ca.key`` (keep it off the robots) and, per name, ``NAME.pem`` + ``NAME.key`` signed by the
+CA: ``robot0`` .. ``robotN-1``, ``server``, ``router`` and ``observer``. Keys are EC P-256, the
+certificates carry SAN ``localhost`` and ``127.0.0.1`` and both server and client use, since a
+Zenoh process both listens and connects. With ``enable_mtls`` every link checks both ends, so a
+process without a certificate of this CA cannot join, even one that trusts the CA (DESIGN §7).
+
+:func:`write_zenoh_config` writes one process's ``--zenoh-config`` file (the
+``transport/link/tls`` block of :func:`kimera_multi_py.comms.zenoh_bus.tls_settings`).
+"""
+
+from __future__ import annotations
+
+import datetime
+import ipaddress
+import json
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from kimera_multi_py.errors import ConfigError
+
+CA_CERT, CA_KEY = "ca.pem", "ca.key"
+DEFAULT_DAYS = 365
+
+
+@dataclass(frozen=True)
+class Identity:
+    """One process's PEM files: the CA it trusts and its own certificate and key."""
+
+    ca: Path
+    cert: Path
+    key: Path
+
+
+def team_names(robots: int) -> list[str]:
+    """The processes of a team of ``robots``: each robot, the server, the router, the observer."""
+    if not 1 <= robots <= 26:
+        raise ConfigError("robots", f"must be in 1..26, got {robots}")
+    return [f"robot{r}" for r in range(robots)] + ["server", "router", "observer"]
+
+
+def make_certs(folder: str | Path, names: Iterable[str], days: int = DEFAULT_DAYS,
+               hosts: Iterable[str] = ("localhost", "127.0.0.1")) -> dict[str, Identity]:
+    """Write a new CA and one certificate per name into ``folder``; return each name's files."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+    names = list(names)
+    for n in names:
+        if not n or not n.replace("_", "").replace("-", "").isalnum() or n == "ca":
+            raise ConfigError("certs", f"bad certificate name {n!r} (letters, digits, - and _; not 'ca')")
+    if days < 1:
+        raise ConfigError("days", f"certificates must be valid for at least a day, got {days}")
+    sans: list[x509.GeneralName] = []
+    for h in hosts:
+        try:
+            sans.append(x509.IPAddress(ipaddress.ip_address(h)))
+        except ValueError:
+            sans.append(x509.DNSName(h))
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError("certs", f"cannot create {folder}: {exc.strerror}") from None
+    now = datetime.datetime.now(datetime.UTC)
+    start, end = now - datetime.timedelta(minutes=5), now + datetime.timedelta(days=days)
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"kimera-multi team CA {folder.name}")])
+    ca = (x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name).public_key(ca_key.public_key())
+          .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end)
+          .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+          .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True,
+                                       content_commitment=False, key_encipherment=False, data_encipherment=False,
+                                       key_agreement=False, encipher_only=False, decipher_only=False), critical=True)
+          .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), critical=False)
+          .sign(ca_key, hashes.SHA256()))
+
+    def write_key(path: Path, key: ec.EllipticCurvePrivateKey) -> None:
+        path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                           serialization.NoEncryption()))
+        path.chmod(0o600)
+
+    ca_path = folder / CA_CERT
+    ca_path.write_bytes(ca.public_bytes(serialization.Encoding.PEM))
+    write_key(folder / CA_KEY, ca_key)
+    out: dict[str, Identity] = {}
+    for n in names:
+        key = ec.generate_private_key(ec.SECP256R1())
+        cert = (x509.CertificateBuilder()
+                .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, n)]))
+                .issuer_name(ca_name).public_key(key.public_key()).serial_number(x509.random_serial_number())
+                .not_valid_before(start).not_valid_after(end)
+                .add_extension(x509.SubjectAlternativeName(sans), critical=False)
+                .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+                .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH,
+                                                      ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+                .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()),
+                               critical=False)
+                .sign(ca_key, hashes.SHA256()))
+        ident = Identity(ca_path, folder / f"{n}.pem", folder / f"{n}.key")
+        ident.cert.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+        write_key(ident.key, key)
+        out[n] = ident
+    return out
+
+
+def identity(folder: str | Path, name: str) -> Identity:
+    """The files of ``name`` in a certificate folder; :class:`ConfigError` if any is missing."""
+    folder = Path(folder)
+    ident = Identity(folder / CA_CERT, folder / f"{name}.pem", folder / f"{name}.key")
+    for p in (ident.ca, ident.cert, ident.key):
+        if not p.is_file():
+            raise ConfigError("certs", f"{p} is missing (make the team's certificates with `kimera-multi certs`)")
+    return ident
+
+
+def write_zenoh_config(path: str | Path, ident: Identity, mode: str | None = None, mtls: bool = True) -> Path:
+    """A ``--zenoh-config`` JSON5 file for one process of the team (multicast scouting off)."""
+    from kimera_multi_py.comms.zenoh_bus import tls_settings
+
+    conf: dict[str, Any] = {"scouting": {"multicast": {"enabled": False}},
+                            "transport": {"link": {"tls": tls_settings(ident.ca, ident.cert, ident.key, mtls)}}}
+    if mode is not None:
+        conf["mode"] = mode
+    path = Path(path)
+    path.write_text(json.dumps(conf, indent=2))
+    return path
+
+
+__all__ = ["Identity", "identity", "make_certs", "team_names", "write_zenoh_config"]

@@ -1,0 +1,72 @@
+"""Faults on the team as OS processes (issue 16): kill + resume; mutual TLS, a router restart and a
+link partition in one launch."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from kimera_multi_py.sim import Simulation, load_scenario
+
+REPO = Path(__file__).resolve().parents[2]
+TINY = REPO / "sims" / "tiny.toml"
+pytestmark = pytest.mark.integration
+
+
+@pytest.mark.slow
+def test_a_killed_agent_keeps_everything_of_its_last_checkpoint_and_rejoins_within_10_s(tmp_path: Path) -> None:
+    from kimera_multi_py.agent.checkpoint import load_checkpoint
+    from kimera_multi_py.io.tum import read_tum
+
+    out = tmp_path / "run"
+    res = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli", "launch", str(TINY), "--robots", "2",
+                          "--out", str(out), "--rate", "4", "--checkpoint-every", "2", "--kill", "1@40"],
+                         capture_output=True, text=True, timeout=400, cwd=REPO)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    kill = json.loads((out / "faults.json").read_text())["kills"][0]
+    assert kill["killed_stream_s"] >= 40 and kill["checkpoint"] is not None
+    assert kill["rejoin_s"] is not None and kill["rejoin_s"] <= 10.0
+    before, _ = load_checkpoint(kill["checkpoint"])
+    assert before.num_keyframes > 0
+    # every keyframe and every closure of the last checkpoint is in the final outputs
+    stamps, _ = read_tum(out / "robot1" / "trajectory.tum")
+    assert stamps[: before.num_keyframes] == pytest.approx(before.stamps, abs=1e-6)
+    final = {(c["own_kf"], c["peer"], c["peer_kf"])
+             for c in json.loads((out / "robot1" / "closures.json").read_text())["closures"]}
+    kept = {(c.own_kf, peer, c.peer_kf) for peer, group in before.closures.items() for c in group}
+    assert kept <= final
+    sim = Simulation(load_scenario(TINY, robots=2), seed=0)
+    assert len(stamps) == len(sim.plans[1].stamps)
+
+
+@pytest.mark.slow
+def test_over_mutual_tls_a_router_restart_and_a_partition_the_team_completes(tmp_path: Path) -> None:
+    """One launch for three cases (CI time): ``--tls``, ``--restart-router 25`` and a partition
+    that cuts robot 1's link from 20 s to 45 s of team stream time (TLS passes through the relay)."""
+    out = tmp_path / "run"
+    res = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli", "launch", str(TINY), "--robots", "2",
+                          "--out", str(out), "--rate", "4", "--tls", "--restart-router", "25",
+                          "--partition", "0|1@20:45"],
+                         capture_output=True, text=True, timeout=400, cwd=REPO)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())
+    sim = Simulation(load_scenario(TINY, robots=2), seed=0)
+    assert [r["keyframes"] for r in results["robots"]] == [len(p.stamps) for p in sim.plans]
+    for r in range(2):
+        assert json.loads((out / f"robot{r}" / "closures.json").read_text())["pgo_epochs"] >= 1
+    faults = json.loads((out / "faults.json").read_text())
+    # the router was killed and restarted mid-run
+    assert len(faults["router_restarts"]) == 1 and faults["router_restarts"][0]["team_time_s"] >= 25
+    # robot 1's link was cut for the window (the observer on the router lost it) and restored
+    links = faults["links"]
+    assert [(e["robot"], e["cut"]) for e in links] == [(1, True), (1, False)]
+    assert 20 <= links[0]["team_time_s"] < 45 <= links[1]["team_time_s"]
+    assert links[0]["absent_seen"]
+    # every process presented its own certificate of the new team CA and required the other end's
+    for name in ("robot0", "robot1", "router", "observer"):
+        tls = json.loads((out / "certs" / f"{name}.json5").read_text())["transport"]["link"]["tls"]
+        assert tls["enable_mtls"] is True and tls["connect_certificate"].endswith(f"{name}.pem")

@@ -1,0 +1,76 @@
+"""Mutual TLS between ZenohBus sessions (issue 17): both ends present a certificate of the team CA.
+
+A process that trusts the team CA but presents no certificate, or one signed by another CA,
+cannot join: it sees no peer, receives nothing, and the team does not see it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from kimera_multi_py.comms import keys
+from kimera_multi_py.comms.codec import Codec
+from kimera_multi_py.comms.messages import Heartbeat
+from kimera_multi_py.comms.zenoh_bus import Tls, ZenohBus, tls_settings
+from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.team.certs import make_certs
+
+pytestmark = pytest.mark.integration
+TEAM = "t0"
+
+
+def test_tls_settings_name_zenohs_keys_and_refuse_half_identities(tmp_path: Path) -> None:
+    s = tls_settings("ca.pem", "me.pem", "me.key")
+    assert s == {"root_ca_certificate": "ca.pem", "listen_certificate": "me.pem", "listen_private_key": "me.key",
+                 "connect_certificate": "me.pem", "connect_private_key": "me.key", "enable_mtls": True}
+    assert tls_settings("ca.pem", mtls=False) == {"root_ca_certificate": "ca.pem"}
+    with pytest.raises(ConfigError, match="both"):
+        tls_settings("ca.pem", "me.pem")
+    with pytest.raises(ConfigError, match="mutual TLS needs"):
+        tls_settings("ca.pem")
+    with pytest.raises(ConfigError, match="not a file"):
+        Tls(tmp_path / "nope.pem", tmp_path / "a.pem", tmp_path / "a.key").settings()
+
+
+async def test_mutual_tls_admits_team_certificates_only(tmp_path: Path, port: int, wait_until,
+                                                        route_ready) -> None:
+    team = make_certs(tmp_path / "team", ["robot0", "robot1"])
+    rogue = make_certs(tmp_path / "rogue", ["robot2"])
+    endpoint = f"tls/localhost:{port}"
+
+    def tls(ident, **kw) -> Tls:
+        return Tls(ident.ca, ident.cert, ident.key, **kw)
+
+    a = ZenohBus(TEAM, 0, listen=[endpoint], tls=tls(team["robot0"]))
+    b = ZenohBus(TEAM, 1, connect=[endpoint], tls=tls(team["robot1"]))
+    async with a, b:
+        await a.announce()
+        await b.announce()
+        await b.wait_for_peers({0}, timeout=10)
+        sub = b.subscribe(keys.topic_all(TEAM, keys.HEARTBEAT))
+        await a.wait_for_subscribers(a.key(keys.HEARTBEAT), timeout=5)
+        probe = Codec(TEAM, 0).encode(Heartbeat(robot=0, keyframes=0, status="probe"))
+        await route_ready(lambda: a.session.put(a.key(keys.HEARTBEAT), probe), sub)
+        # strangers that trust the team CA: one presents no certificate, one a rogue CA's
+        no_cert = Tls(team["robot0"].ca, mtls=False)
+        rogue_cert = Tls(team["robot0"].ca, rogue["robot2"].cert, rogue["robot2"].key)
+        for robot, stranger_tls in ((2, no_cert), (3, rogue_cert)):
+            c = ZenohBus(TEAM, robot, connect=[endpoint], tls=stranger_tls)
+            async with c:
+                await c.announce()
+                sub_c = c.subscribe(keys.topic_all(TEAM, keys.HEARTBEAT))
+                with pytest.raises(TimeoutError):
+                    await a.wait_for_peers({robot}, timeout=2)
+                await a.publish(a.key(keys.HEARTBEAT), Heartbeat(robot=0, keyframes=robot))
+                assert (await sub.recv(timeout=5)).keyframes == robot  # the team still talks
+                assert sub_c.pending() == 0
+                assert c.peers() == frozenset()
+                assert list(c.session.info.peers_zid()) == []
+                assert list(c.session.info.routers_zid()) == []
+        # a member of the team joins over the same endpoint
+        d = ZenohBus(TEAM, 4, connect=[endpoint], tls=tls(team["robot1"]))
+        async with d:
+            await d.announce()
+            await a.wait_for_peers({4}, timeout=10)
