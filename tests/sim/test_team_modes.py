@@ -116,8 +116,6 @@ def test_small_distributed_is_as_accurate_as_centralised(small):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="measured on main: 0.219 distributed, 0.226 centralised, 0.423 odometry "
-                   "(ratio 0.52); the lead re-checks after merging scan registration and robustness work")
 def test_small_team_halves_the_odometry_error(small):
     ate = {mode: small[mode][0]["team"]["ate_rmse_m"] for mode in small}
     assert ate["distributed"] <= 0.5 * ate["odometry"] and ate["centralized"] <= 0.5 * ate["odometry"], ate
