@@ -273,6 +273,9 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
         self.alignment_inliers: np.ndarray | None = None
         self.screened = False  # robust mode: inter-robot edges checked for consistency
         self.excluded = False  # kept out of the team frame this epoch (see :attr:`alignment`)
+        # the poses are already in the team frame (an earlier epoch aligned this robot); set by
+        # the epoch runner (TeamPgo); a tie between frame hypotheses then keeps the frame
+        self.in_team_frame = False
         # what the frame rests on (JSON-ready): status, hypothesis, support, margin, reason
         self.alignment: dict[str, object] = {"status": "root" if self.root else "unaligned"}
         self._no_peer_rounds = 0

@@ -161,6 +161,8 @@ class TeamPgo:
         local, seeded = self._restrict(local, members, pairs)
         pgo = PgoAgent(local, self.params)
         pgo.neighbour_poses.update(seeded)
+        last = self.last_pgo
+        pgo.in_team_frame = last is not None and (last.root or (last.aligned and not last.excluded))
         leader = min(members)
         # the epoch's leader waits for everyone; the others for their neighbours and the leader
         # (which paces a robot without neighbours yet, instead of it racing to the round cap)
