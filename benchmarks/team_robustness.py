@@ -19,8 +19,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -175,11 +177,14 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="2 seeds x 3 robots on office (for the test)")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per run")
     ap.add_argument("--json", action="store_true", help="print the JSON only")
+    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="runs at once (default: one per core)")
     args = ap.parse_args()
     if args.quick:
         args.scenarios, args.seeds, args.robots = SCENARIOS[:1], [0, 1], [3]
-    runs = [run_one(s, n, seed, m, args.timeout) for s in args.scenarios for n in args.robots
-            for seed in args.seeds for m in args.modes]
+    jobs = [(s, n, seed, m) for s in args.scenarios for n in args.robots for seed in args.seeds for m in args.modes]
+    # each run is its own process: run as many at once as there are cores (--jobs)
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        runs = list(pool.map(lambda j: run_one(*j, args.timeout), jobs))
     out = {"runs": runs, "summary": summary(runs)}
     if args.json:
         print(json.dumps(out, indent=1))
