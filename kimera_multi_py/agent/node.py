@@ -46,6 +46,7 @@ from kimera_multi_py.comms.messages import (
     PublicPoses,
 )
 from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
+from kimera_multi_py.consensus.object_exchange import OBJECT_MESSAGES, ObjectExchange
 from kimera_multi_py.consensus.pgo import PgoParams
 from kimera_multi_py.consensus.team_pgo import ScheduleParams, TeamPgo
 from kimera_multi_py.errors import KimeraMultiError
@@ -94,6 +95,13 @@ class AgentNode:
         self.maps: MapConsensus | None = None
         if self.params.map_consensus != "off":
             self.maps = get_map_consensus(agent.robot, agent.map, self.params.map_consensus)
+        # the team's objects ride on the exact consensus's submap pose tables
+        self.objects: ObjectExchange | None = None
+        if self.maps is not None and self.maps.mode == "exact":
+            maps = self.maps
+            self.objects = ObjectExchange(agent.robot, agent.objects.confirmed,
+                                          lambda src: maps.poses[src][0] if src in maps.poses else None,
+                                          agent.objects.num_classes + 1)
         # one-hop map neighbours (None: whoever is alive; the simulation can apply a radio range)
         self.map_neighbours: Callable[[], Iterable[int]] | None = None
         self.frame = agent.robot  # root robot of the frame our poses are in
@@ -199,10 +207,11 @@ class AgentNode:
             pending = self._unacked.get(msg.robot)
             if pending is not None and msg.batch >= pending.batch:
                 del self._unacked[msg.robot]
-        if isinstance(msg, MAP_MESSAGES):
-            if self.maps is not None:
+        if isinstance(msg, MAP_MESSAGES + OBJECT_MESSAGES):
+            sink = self.maps if isinstance(msg, MAP_MESSAGES) else self.objects
+            if sink is not None:
                 try:
-                    self.maps.handle(msg)
+                    sink.handle(msg)
                 except (KimeraMultiError, ValueError, KeyError, IndexError) as exc:
                     self._refuse(type(msg).__name__, exc)
             return
@@ -297,7 +306,12 @@ class AgentNode:
         self.maps.set_neighbours(neighbours)
         self.maps.set_frame(self.frame)
         self.maps.set_team_size(len(self.alive()) + 1)
-        return self.maps.step(now)
+        out = self.maps.step(now)
+        if self.objects is not None:
+            self.objects.set_neighbours(neighbours)
+            self.objects.set_frame(self.frame)
+            out += self.objects.step(now)
+        return out
 
     def _component_root(self, pairs: Iterable[tuple[int, int]]) -> int:
         """The lowest robot id connected to this one through ``pairs``."""

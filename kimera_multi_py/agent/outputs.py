@@ -8,6 +8,8 @@ simulation and N agent processes from the same data. Files (DESIGN §4.7):
 * ``map.bt`` (OctoMap, maximum-likelihood occupancy), ``map.ply`` (occupied leaves coloured by
   class) and ``map.kmo`` (our lossless semantic octree, :mod:`kimera_multi_py.mapping.octree_io`);
 * ``objects.json``: confirmed object landmarks (class, centroid, axis-aligned box, sightings);
+* ``team_objects.json`` (with object sharing): the robot's team object map, every robot's objects
+  fused, with team ids (``source << 24 | landmark id``) and the ``members`` fused into each;
 * ``graph.g2o``: the robot's own pose graph (odometry and intra-robot closures);
 * ``closures.json``: every closure it verified (inter- and intra-robot) with its PCM decision and
   its back-end weight, and the front end's counters;
@@ -58,6 +60,9 @@ class RobotOutcome:
     # the frame decision of the last PGO epoch (consensus.pgo.PgoAgent.alignment): status
     # (root / aligned / excluded / unaligned), hypothesis, support (places), margin, reason
     alignment: dict[str, Any] = field(default_factory=dict)
+    # the robot's team object map (object sharing, exact map consensus): fused objects with team
+    # ids (source << 24 | landmark id) and ``members``; None without object sharing
+    team_objects: list[dict[str, Any]] | None = None
 
 
 def _weights(node: Any) -> dict[tuple[int, int, int], float]:
@@ -100,10 +105,12 @@ def outcome_of(node: Any, server_weights: dict[tuple[int, int, int, int], float]
     epochs = node.pgo.stats.epochs if getattr(node, "pgo", None) is not None else 0
     last = getattr(getattr(node, "pgo", None), "last_pgo", None)
     alignment = dict(getattr(last, "alignment", {}) or {})
+    sharing = getattr(node, "objects", None)
     return RobotOutcome(agent.robot, np.array(agent.stamps), np.array(agent.poses).reshape(-1, 4, 4),
                         agent.map.octree, objects, rows,
                         {"candidates": s.candidates, "verified": s.verified,
-                         "rejected_verification": s.rejected_verification}, traffic, epochs, alignment)
+                         "rejected_verification": s.rejected_verification}, traffic, epochs, alignment,
+                        None if sharing is None else sharing.team_objects())
 
 
 def own_graph(agent: Agent) -> PoseGraph:
@@ -125,6 +132,9 @@ def write_outcome(out_dir: str | Path, outcome: RobotOutcome, graph: PoseGraph |
     export_ply(outcome.octree, d / "map.ply")
     _write_json(d / "objects.json", {"version": OUTCOME_VERSION, "robot": outcome.robot, "frame": "estimate",
                                      "objects": outcome.objects})
+    if outcome.team_objects is not None:
+        _write_json(d / "team_objects.json", {"version": OUTCOME_VERSION, "robot": outcome.robot,
+                                              "frame": "estimate", "objects": outcome.team_objects})
     _write_json(d / "closures.json", {
         "version": OUTCOME_VERSION, "robot": outcome.robot, "front_end": outcome.front_end,
         "pgo_epochs": outcome.pgo_epochs, "alignment": outcome.alignment,
@@ -165,12 +175,14 @@ def read_outcome(run_dir: str | Path, robot: int) -> RobotOutcome:
     objs = _read_json(d / "objects.json")
     cl = _read_json(d / "closures.json")
     traffic = _read_json(d / "traffic.json") if (d / "traffic.json").exists() else {}
+    team_objs = _read_json(d / "team_objects.json") if (d / "team_objects.json").exists() else None
     try:
         rows = [ClosureRow(int(c["own_kf"]), int(c["peer"]), int(c["peer_kf"]), np.array(c["Z"], dtype=float),
                            bool(c["accepted"]), None if c["weight"] is None else float(c["weight"]))
                 for c in cl["closures"]]
         return RobotOutcome(robot, stamps, poses, octree, list(objs["objects"]), rows,
                             {k: int(v) for k, v in cl["front_end"].items()}, traffic, int(cl.get("pgo_epochs", 0)),
-                            dict(cl.get("alignment") or {}))
+                            dict(cl.get("alignment") or {}),
+                            None if team_objs is None else list(team_objs["objects"]))
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{d}: malformed outputs ({exc!r})") from None

@@ -714,15 +714,22 @@ class RoamMap(Message):
 
 @message("ObjectUpdate", keys.OBJECTS)
 class ObjectUpdate(Message):
-    """Object landmarks of ``robot`` (in the world frame of robot ``frame``).
+    """Object sharing: version ``version`` of ``source``'s table of confirmed object landmarks.
 
-    Per object: id, MAP class, class posterior ``probs`` (n, C), centroid, axis-aligned half
-    extents, and the number of sightings.
+    Each object is anchored in one of the source's submaps (``submaps``) and its geometry is in
+    that submap's reference frame (``T_ref`` of the source's :class:`SubmapPoses`), so a PGO
+    correction moves it with the submap and the table itself need not travel again. Per object:
+    id (the source's landmark id), MAP class, class posterior ``probs`` (n, C), box centre
+    ``centroids`` and axis-aligned half extents ``extents`` (reference frame), and sightings.
+    ``frame`` is the sender's frame when sent. Relayed unchanged except for ``robot``.
     """
 
     robot: int = robot_id()
+    source: int = robot_id()
+    version: int = count()
     frame: int = robot_id()
-    ids: np.ndarray = arr("int64", "n")
+    ids: np.ndarray = arr("int64", "n", lo=0)
+    submaps: np.ndarray = arr("int64", "n", lo=0)
     classes: np.ndarray = arr("int32", "n", lo=0)
     probs: np.ndarray = arr("float32", "n", "c", lo=0.0, hi=1.0)
     centroids: np.ndarray = arr("float64", "n", 3)

@@ -6,7 +6,7 @@ import numpy as np
 
 from kimera_multi_py.eval.metrics import object_precision_recall, occupancy_f1, semantic_miou
 from kimera_multi_py.geometry import inverse, relative, so3_log, transform_points
-from kimera_multi_py.mapping.objects import _max_extent
+from kimera_multi_py.mapping.object_fusion import object_groups
 
 
 def map_quality(octree: object, T_world_map: np.ndarray, centers: np.ndarray,
@@ -23,34 +23,17 @@ def map_quality(octree: object, T_world_map: np.ndarray, centers: np.ndarray,
 
 def merge_objects(classes: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: float = -0.2,
                   min_iou: float = 0.2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Fuse the team's object boxes into one object map.
-
-    Two same-class axis-aligned boxes are one object when they overlap by more than
-    ``-margin`` along every axis and their union stays within the class's plausible size
-    (:data:`~kimera_multi_py.semantics.MAX_OBJECT_EXTENT`: fragments of a long table seen from
-    either end merge, two cabinets side by side do not), or when their IoU is at least
-    ``min_iou`` (two robots' views of one object). The fused box is the union.
+    """Fuse the team's object boxes into one object map: one per
+    :func:`~kimera_multi_py.mapping.object_fusion.object_groups` group, the box their union.
 
     Returns ``(classes, lo, hi)`` of the fused objects.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     classes = np.asarray(classes).reshape(-1)
     lo = np.asarray(lo, dtype=float).reshape(-1, 3)
     hi = np.asarray(hi, dtype=float).reshape(-1, 3)
-    n = len(classes)
-    if n == 0:
+    if len(classes) == 0:
         return classes, lo, hi
-    overlap = np.all((lo[:, None] - margin <= hi[None]) & (hi[:, None] + margin >= lo[None]), axis=2)
-    union = np.maximum(hi[:, None], hi[None]) - np.minimum(lo[:, None], lo[None])
-    inter = np.clip(np.minimum(hi[:, None], hi[None]) - np.maximum(lo[:, None], lo[None]), 0, None).prod(axis=2)
-    vol = (hi - lo).prod(axis=1)
-    iou = inter / np.maximum(vol[:, None] + vol[None] - inter, 1e-12)
-    fits = union[..., :2].max(axis=2) <= _max_extent(classes)[:, None]
-    same = (classes[:, None] == classes[None, :]) & ((overlap & fits) | (iou >= min_iou))
-    i, j = np.nonzero(same)
-    _, comp = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)
+    comp = object_groups(classes, lo, hi, margin, min_iou)
     m = comp.max() + 1
     out_lo = np.full((m, 3), np.inf)
     out_hi = np.full((m, 3), -np.inf)

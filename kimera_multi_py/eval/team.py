@@ -63,9 +63,21 @@ def team_results(world: Any, truth: Sequence[np.ndarray], outcomes: Sequence[Rob
     lo, hi = world_boxes(T_world_team, np.array([ob["lo"] for ob in objs]).reshape(-1, 3),
                          np.array([ob["hi"] for ob in objs]).reshape(-1, 3))
     cls, lo, hi = merge_objects(np.array([ob["class"] for ob in objs], dtype=int), lo, hi)
-    objects = object_quality(cls, (lo + hi) / 2, np.array([o.label for o in world.objects]),
-                             np.array([o.centroid for o in world.objects]))
+    objects: dict[str, Any] = object_quality(cls, (lo + hi) / 2, np.array([o.label for o in world.objects]),
+                                             np.array([o.centroid for o in world.objects]))
     objects["landmarks"] = len(objs)
+    shared = {o.robot: o.team_objects for o in outcomes if o.team_objects is not None}
+    if shared:  # each robot's team object map (object sharing)
+        per_robot: dict[str, Any] = {}
+        for r, tob in sorted(shared.items()):
+            kept = [ob for ob in tob if ob["sightings"] >= min_sightings]
+            lo, hi = world_boxes(T_world_team, np.array([ob["lo"] for ob in kept]).reshape(-1, 3),
+                                 np.array([ob["hi"] for ob in kept]).reshape(-1, 3))
+            q = object_quality(np.array([ob["class"] for ob in kept], dtype=int), (lo + hi) / 2,
+                               np.array([o.label for o in world.objects]),
+                               np.array([o.centroid for o in world.objects]))
+            per_robot[str(r)] = {**q, "objects": len(tob)}
+        objects["team_per_robot"] = per_robot
     return {"map": maps, "objects": objects, "loop_closures": closure_stats(truth, outcomes),
             "alignment": alignment_report(outcomes),
             "bytes_sent": traffic_totals(outcomes),
@@ -137,13 +149,15 @@ def traffic_totals(outcomes: Sequence[RobotOutcome]) -> dict[str, Any]:
 def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray,
                         out_dir: Path | None, robot_maps: dict[int, Any] | None = None,
                         team_map: Any = None) -> dict[str, Any]:
-    """Every robot's scene graph (from its team map when there is one, else its own map), and the
-    team's (from the fused team map, with every robot's objects and trajectory), scored against
+    """Every robot's scene graph (from its team map and team objects when it has them, else its own
+    map and objects), and the team's (from the fused team map, with every robot's objects fused
+    and every trajectory), scored against
     the simulator's rooms; writes ``robotI/dsg.json`` and ``dsg.json``.
 
     The top-level figures are the team graph's (or robot 0's without a team map); ``robots`` holds
     each robot's and ``agree`` whether the robots' graphs match."""
-    from kimera_multi_py.scene_graph import graphs_agree, scene_graph_and_outputs, team_objects
+    from kimera_multi_py.mapping.object_fusion import fuse_team
+    from kimera_multi_py.scene_graph import graphs_agree, scene_graph_and_outputs
 
     graphs, per_robot = [], {}
     for o in outcomes:
@@ -151,12 +165,13 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
         path = out_dir / f"robot{o.robot}" / "dsg.json" if out_dir is not None else None
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
-        g, fig = scene_graph_and_outputs(octree, T_world_team, o.objects, {o.robot: (o.stamps, o.poses)}, world, path)
+        objects = o.team_objects if o.team_objects is not None else o.objects
+        g, fig = scene_graph_and_outputs(octree, T_world_team, objects, {o.robot: (o.stamps, o.poses)}, world, path)
         graphs.append(g)
         per_robot[str(o.robot)] = fig
     out: dict[str, Any] = dict(per_robot[str(outcomes[0].robot)])
     if team_map is not None:
-        objects = team_objects({o.robot: o.objects for o in outcomes})
+        objects = fuse_team({o.robot: o.objects for o in outcomes})
         trajectories = {o.robot: (o.stamps, o.poses) for o in outcomes}
         _, out = scene_graph_and_outputs(team_map, T_world_team, objects, trajectories, world,
                                          out_dir / "dsg.json" if out_dir is not None else None)

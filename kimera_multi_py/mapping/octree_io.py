@@ -282,10 +282,12 @@ def export_bt(tree: SemanticOctree, path: str | Path) -> int:
 
 # ---- a robot's team map ------------------------------------------------------------------------
 def export_team_map(tree: SemanticOctree, folder: str | Path, name: str = "team_map") -> dict[str, int]:
-    """Write ``{name}.bt`` (OctoMap) and ``{name}.ply`` (occupied leaves) into ``folder``.
+    """Write ``{name}.kmo`` (lossless), ``{name}.bt`` (OctoMap) and ``{name}.ply`` (occupied leaves)
+    into ``folder``.
 
     Returns the node count of the ``.bt`` and the point count of the ``.ply``.
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    save_octree(tree, folder / f"{name}.kmo")
     return {"bt_nodes": export_bt(tree, folder / f"{name}.bt"), "ply_points": export_ply(tree, folder / f"{name}.ply")}

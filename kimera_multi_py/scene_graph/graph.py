@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from kimera_multi_py.errors import KimeraMultiError
+from kimera_multi_py.mapping.object_fusion import team_id
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.scene_graph.grid import DistanceField, distance_field, occupancy_grid
 from kimera_multi_py.scene_graph.params import SceneGraphParams
@@ -144,18 +145,17 @@ def as_objects(objects: Iterable[Any]) -> _Objects:
     return _Objects(ids, np.array([r[1] for r in rows], dtype=np.int64), *arr)
 
 
-TEAM_ID_SHIFT = 24  # object ids of a team graph: robot << 24 | landmark id
-
-
 def team_objects(landmarks_by_robot: Mapping[int, Iterable[Any]]) -> list[tuple[int, int, Any, Any, Any]]:
-    """Object tuples for a graph over several robots' landmarks, with ids made unique and
-    deterministic as ``robot << 24 | landmark id`` (each robot numbers its landmarks from 0)."""
+    """Object tuples for a graph over several robots' landmarks, unfused, with ids made unique and
+    deterministic as team ids (:func:`~kimera_multi_py.mapping.object_fusion.team_id`: each robot
+    numbers its landmarks from 0). :func:`~kimera_multi_py.mapping.object_fusion.fuse_team` fuses."""
     out = []
     for robot in sorted(landmarks_by_robot):
         for ob in as_objects(landmarks_by_robot[robot]).rows():
-            if not 0 <= ob[0] < 1 << TEAM_ID_SHIFT:
-                raise SceneGraphError(f"landmark id {ob[0]} of robot {robot} does not fit in {TEAM_ID_SHIFT} bits")
-            out.append(((int(robot) << TEAM_ID_SHIFT) | ob[0], *ob[1:]))
+            try:
+                out.append((team_id(robot, ob[0]), *ob[1:]))
+            except ValueError as exc:
+                raise SceneGraphError(str(exc)) from None
     return out
 
 

@@ -35,7 +35,7 @@ from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.errors import ConfigError
 from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.mapping.config import MappingConfig, get_submap_map
-from kimera_multi_py.mapping.octree_io import export_team_map, save_octree
+from kimera_multi_py.mapping.octree_io import export_team_map
 from kimera_multi_py.sim.runner import agent_params
 
 log = logging.getLogger(__name__)
@@ -124,7 +124,6 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
         d = write_outcome(job.out_dir, outcome_of(node), own_graph(agent))
         if node.maps is not None:
             export_team_map(node.maps.team_map, d)
-            save_octree(node.maps.team_map, d / "team_map.kmo")
     finally:
         await node.close()
         await bus.close()

@@ -1,0 +1,151 @@
+"""Object sharing: tables flood the team, follow PGO through the pose tables, and fuse the same everywhere."""
+
+import numpy as np
+import pytest
+
+from kimera_multi_py.comms.messages import ObjectUpdate, SubmapPoses
+from kimera_multi_py.consensus.object_exchange import ObjectExchange
+from kimera_multi_py.errors import MessageError
+from kimera_multi_py.geometry import make_pose
+from kimera_multi_py.mapping import ObjectMap
+from kimera_multi_py.mapping.object_fusion import fuse_objects, object_groups, team_id
+
+from ..mapping.helpers import CHAIR, TABLE, K
+from ..mapping.test_objects import OBJECT_CLASSES, box_points
+
+NC = K + 1  # class posterior length (free + K classes)
+
+
+class Robot:
+    """A robot's object map in one submap (id 0, created at ``T_ref``) and its pose table."""
+
+    def __init__(self, robot: int, objects: list[tuple[tuple[float, float], int]], T_ref: np.ndarray,
+                 seed: int) -> None:
+        rng = np.random.default_rng(seed)
+        self.robot = robot
+        self.om = ObjectMap(K, OBJECT_CLASSES, resolution=0.1, confirm_after=2)
+        self.om.set_submap_pose(0, T_ref)
+        self.T_ref, self.T = T_ref.copy(), T_ref.copy()
+        self.version = 1
+        for _ in range(3):
+            pts, lab = [], []
+            for (x, y), cls in objects:
+                p = box_points([x, y, 0.45], [0.5, 0.5, 0.9], 40, rng)
+                pts.append(p)
+                lab.append(np.full(len(p), cls))
+            self.om.update(np.concatenate(pts), np.concatenate(lab), 0)
+        self.held: dict[int, SubmapPoses] = {robot: self.table()}
+        self.ex = ObjectExchange(robot, self.om.confirmed, self.held.get, NC, period=1.0, refresh_every=3)
+
+    def table(self) -> SubmapPoses:
+        return SubmapPoses(robot=self.robot, source=self.robot, version=self.version, frame=0,
+                           submaps=np.array([0]), T_ref=self.T_ref[None], T=self.T[None])
+
+    def move(self, T: np.ndarray) -> None:
+        """PGO moved the submap: the object map re-anchors, a new pose table is made."""
+        self.T = T.copy()
+        self.version += 1
+        self.om.set_submap_pose(0, T)
+        self.held[self.robot] = self.table()
+
+
+def run(robots: list[Robot], links: set[tuple[int, int]], periods: int, t0: float = 0.0,
+        drop: float = 0.0, seed: int = 0) -> float:
+    """Step every robot each period; deliver what it publishes to its linked neighbours (the pose
+    tables too, as the map consensus would)."""
+    rng = np.random.default_rng(seed)
+    nbrs = {r.robot: {b for a, b in links if a == r.robot} | {a for a, b in links if b == r.robot} for r in robots}
+    t = t0
+    for _ in range(periods):
+        for r in robots:
+            r.ex.set_neighbours(nbrs[r.robot])
+            r.ex.set_frame(0)
+        out = [(r.robot, m) for r in robots for m in r.ex.step(t)]
+        for src, m in out:
+            for r in robots:
+                if r.robot in nbrs[src] and rng.random() >= drop:
+                    r.ex.handle(m)
+        # pose tables reach everyone (the map consensus's job, tested elsewhere)
+        for r in robots:
+            for q in robots:
+                r.held[q.robot] = q.held[q.robot]
+        t += 1.0
+    return t
+
+
+def test_every_robot_ends_with_the_same_team_objects_over_a_chain() -> None:
+    # 0 - 1 - 2: robot 2 hears robot 0 only through robot 1's relay
+    a = Robot(0, [((1.0, 1.0), CHAIR), ((3.0, 1.0), TABLE)], np.eye(4), 0)
+    b = Robot(1, [((1.02, 1.0), CHAIR)], np.eye(4), 1)  # the same chair, seen by robot 1
+    c = Robot(2, [((6.0, 2.0), CHAIR)], np.eye(4), 2)
+    robots = [a, b, c]
+    run(robots, {(0, 1), (1, 2)}, 4)
+    team = [r.ex.team_objects() for r in robots]
+    assert team[0] == team[1] == team[2]
+    ids = sorted(o["id"] for o in team[0])
+    # one fused chair from robots 0 and 1, robot 0's table, robot 2's chair
+    assert len(ids) == 3
+    fused = [o for o in team[0] if len(o["members"]) == 2]
+    assert len(fused) == 1 and fused[0]["class"] == CHAIR
+    assert {m >> 24 for m in fused[0]["members"]} == {0, 1}
+    assert fused[0]["id"] == min(fused[0]["members"])
+    assert np.allclose(fused[0]["centroid"][:2], [1.01, 1.0], atol=0.1)
+    assert any(o["class"] == CHAIR and np.allclose(o["centroid"][:2], [6.0, 2.0], atol=0.1) for o in team[0])
+
+
+def test_a_pgo_correction_moves_everyones_copy_without_a_new_table() -> None:
+    a = Robot(0, [((1.0, 1.0), CHAIR)], np.eye(4), 0)
+    b = Robot(1, [((4.0, 1.0), TABLE)], np.eye(4), 1)
+    t = run([a, b], {(0, 1)}, 2)
+    sent = a.ex._published[0]
+    a.move(make_pose(np.eye(3), [0.5, -0.25, 0.0]))
+    run([a, b], {(0, 1)}, 2, t0=t)
+    chair = [o for o in b.ex.team_objects() if o["class"] == CHAIR]
+    assert len(chair) == 1 and np.allclose(chair[0]["centroid"][:2], [1.5, 0.75], atol=0.1)
+    assert b.ex.team_objects() == a.ex.team_objects()
+    assert a.ex._published[0] == sent  # the objects did not change, only the pose table
+
+
+def test_lost_tables_are_recovered_by_the_refresh() -> None:
+    robots = [Robot(i, [((1.0 + 3 * i, 1.0), CHAIR)], np.eye(4), i) for i in range(3)]
+    run(robots, {(0, 1), (1, 2), (0, 2)}, 12, drop=0.5, seed=3)
+    team = [r.ex.team_objects() for r in robots]
+    assert team[0] == team[1] == team[2] and len(team[0]) == 3
+
+
+def test_a_table_from_another_frame_waits() -> None:
+    a = Robot(0, [((1.0, 1.0), CHAIR)], np.eye(4), 0)
+    b = Robot(1, [((4.0, 1.0), TABLE)], np.eye(4), 1)
+    run([a, b], {(0, 1)}, 2)
+    other = b.held[1]
+    a.held[1] = SubmapPoses(robot=1, source=1, version=other.version + 1, frame=1, submaps=other.submaps,
+                            T_ref=other.T_ref, T=other.T)
+    assert [o["class"] for o in a.ex.team_objects()] == [CHAIR]  # robot 1 is not in frame 0 yet
+
+
+def test_inconsistent_tables_are_refused() -> None:
+    a = Robot(0, [((1.0, 1.0), CHAIR)], np.eye(4), 0)
+    a.ex.set_neighbours({1})
+    bad = ObjectUpdate(robot=1, source=1, version=1, frame=0, ids=np.array([3, 3]), submaps=np.zeros(2, np.int64),
+                       classes=np.full(2, CHAIR, np.int32), probs=np.full((2, NC), 1.0 / NC, np.float32),
+                       centroids=np.zeros((2, 3)), extents=np.ones((2, 3)), sightings=np.ones(2, np.int32))
+    with pytest.raises(MessageError, match="duplicate"):
+        a.ex.handle(bad)
+    with pytest.raises(MessageError, match="classes"):
+        a.ex.handle(ObjectUpdate(robot=1, source=1, version=1, frame=0, ids=np.array([3]), submaps=np.zeros(1, np.int64),
+                                 classes=np.full(1, CHAIR, np.int32), probs=np.full((1, 3), 0.3, np.float32),
+                                 centroids=np.zeros((1, 3)), extents=np.ones((1, 3)), sightings=np.ones(1, np.int32)))
+    assert 1 not in a.ex.tables
+
+
+def test_fusion_is_independent_of_row_order() -> None:
+    rng = np.random.default_rng(5)
+    lo = rng.uniform(0, 5, (12, 3))
+    hi = lo + rng.uniform(0.3, 0.8, (12, 3))
+    cls = rng.choice([CHAIR, TABLE], 12)
+    ids = np.array([team_id(i % 3, i) for i in range(12)])
+    perm = rng.permutation(12)
+    assert fuse_objects(ids, cls, lo, hi, np.ones(12)) == fuse_objects(ids[perm], cls[perm], lo[perm], hi[perm],
+                                                                          np.ones(12))
+    comp = object_groups(cls, lo, hi)
+    assert comp[0] == 0 and set(comp.tolist()) == set(range(comp.max() + 1))
