@@ -44,10 +44,9 @@ from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.faults import sim_faults
-from kimera_multi_py.comms.fuzz import fuzz_payloads
+from kimera_multi_py.comms.fuzz import fuzz_payloads, stranger_traffic
 from kimera_multi_py.comms.loopback import Faults
 from kimera_multi_py.comms.messages import AgentState
-from kimera_multi_py.comms.samples import all_random_messages
 from kimera_multi_py.comms.zenoh_bus import Tls, ZenohBus
 from kimera_multi_py.consensus.zenoh_team import free_ports
 from kimera_multi_py.sim import Simulation, load_scenario
@@ -183,16 +182,7 @@ async def second_team_case() -> dict[str, Any]:
     port = free_ports(1)[0]
     node, bus, task, stop = await _live_agent(port)
     async with ZenohBus("t1", 1, connect=[f"tcp/127.0.0.1:{port}"]) as other:
-        witness = other.subscribe(keys.team_all("t1"))
-        msgs = [m for s in range(5) for m in all_random_messages(seed=s, robot=1)]
-        await other.wait_for_subscribers(other.key(msgs[0].TOPIC), timeout=5)
-        for m in msgs:
-            await other.publish(other.key(m.TOPIC), m)
-            await asyncio.sleep(0)
-        await _wait(lambda: witness.pending() >= len(msgs), 20)
-        codec = Codec("t1", 1)
-        for m in msgs:
-            other.session.put(keys.topic_key(TEAM, 1, m.TOPIC), codec.encode(m), congestion_control=_BLOCK())
+        msgs, witness = await stranger_traffic(other, TEAM, _wait)
         await _wait(lambda: bus.counters.dropped.get("team", 0) >= len(msgs), 20)
         await asyncio.sleep(0.3)
         heard_by_t1 = witness.pending()

@@ -3,17 +3,22 @@
 Pure and seeded: :func:`fuzz_payloads` returns ``(key, bytes)`` pairs on one robot's topics,
 mostly mutations of valid envelopes of every message type (bit flips, overwrites, cuts,
 growth, splices, noise, envelopes with one bad field), some valid messages as they stand, and
-some valid messages on another robot's keys. Used by the fuzz test and ``benchmarks/faults.py``.
+some valid messages on another robot's keys; :func:`stranger_traffic` is a second team's robot
+publishing valid messages. Used by the fuzz test and ``benchmarks/faults.py``.
 """
 
 from __future__ import annotations
 
+import asyncio
 import random
+from collections.abc import Awaitable, Callable
+from typing import Any
 
 import msgpack
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec
+from kimera_multi_py.comms.messages import Message
 from kimera_multi_py.comms.samples import all_random_messages
 
 _BAD_VALUES: tuple[object, ...] = (None, -1, 2**63, "x" * 70, 1.5, float("nan"), [], {})
@@ -74,3 +79,26 @@ def fuzz_payloads(team: str, robot: int, n: int, seed: int = 0, valid: float = 0
 
 
 __all__ = ["fuzz_payloads", "mutate"]
+
+
+async def stranger_traffic(other: Any, target_team: str, wait: Callable[[Callable[[], bool], float], Awaitable[Any]],
+                           seeds: int = 5) -> tuple[list[Message], Any]:
+    """A robot of another team (``other``, a ZenohBus) publishes valid messages of every type on its
+    own team's keys, and waits until its own subscriber (the witness, returned) has them all, which
+    shows the traffic really flows; then it puts the same envelopes straight onto ``target_team``'s
+    keys, as a misconfigured robot would. ``wait(predicate, timeout)`` waits for a condition.
+    Returns the messages (sent twice each) and the witness subscription."""
+    import zenoh
+
+    witness = other.subscribe(keys.team_all(other.team))
+    msgs = [m for s in range(seeds) for m in all_random_messages(seed=s, robot=other.robot)]
+    await other.wait_for_subscribers(other.key(msgs[0].TOPIC), timeout=5)
+    for m in msgs:
+        await other.publish(other.key(m.TOPIC), m)
+        await asyncio.sleep(0)
+    await wait(lambda: witness.pending() >= len(msgs), 20)
+    codec = Codec(other.team, other.robot)
+    for m in msgs:
+        other.session.put(keys.topic_key(target_team, other.robot, m.TOPIC), codec.encode(m),
+                          congestion_control=zenoh.CongestionControl.BLOCK)
+    return msgs, witness

@@ -35,6 +35,10 @@ class SceneGraphParams:
     room_min_places: int = 10
     room_plateau_ratio: float = 0.5
     """Plateaus of fewer than this fraction of the largest component count are not candidates."""
+    door_max_clearance: float = 0.6
+    """Half the widest opening that still separates two rooms (a 1.2 m door). Rooms joined by a
+    place edge of more clearance are one space that the sweep split (an open-plan area whose
+    halves a row of desks or an unobserved patch narrows), and are merged; <= 0 never merges."""
     room_method: str = "dilation"
     """``dilation`` (Hydra's sweep) or ``ceiling`` (the DSG paper's cut below the ceiling)."""
     ceiling_offset: float = 0.3

@@ -131,10 +131,11 @@ def test_inconsistent_tables_are_refused() -> None:
                        centroids=np.zeros((2, 3)), extents=np.ones((2, 3)), sightings=np.ones(2, np.int32))
     with pytest.raises(MessageError, match="duplicate"):
         a.ex.handle(bad)
+    narrow = ObjectUpdate(robot=1, source=1, version=1, frame=0, ids=np.array([3]), submaps=np.zeros(1, np.int64),
+                          classes=np.full(1, CHAIR, np.int32), probs=np.full((1, 3), 0.3, np.float32),
+                          centroids=np.zeros((1, 3)), extents=np.ones((1, 3)), sightings=np.ones(1, np.int32))
     with pytest.raises(MessageError, match="classes"):
-        a.ex.handle(ObjectUpdate(robot=1, source=1, version=1, frame=0, ids=np.array([3]), submaps=np.zeros(1, np.int64),
-                                 classes=np.full(1, CHAIR, np.int32), probs=np.full((1, 3), 0.3, np.float32),
-                                 centroids=np.zeros((1, 3)), extents=np.ones((1, 3)), sightings=np.ones(1, np.int32)))
+        a.ex.handle(narrow)
     assert 1 not in a.ex.tables
 
 

@@ -21,9 +21,8 @@ from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec
-from kimera_multi_py.comms.fuzz import fuzz_payloads
+from kimera_multi_py.comms.fuzz import fuzz_payloads, stranger_traffic
 from kimera_multi_py.comms.messages import AgentState
-from kimera_multi_py.comms.samples import all_random_messages
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.runner import agent_params, keyframe_input
@@ -123,18 +122,9 @@ async def test_a_second_team_on_the_same_network_gets_nothing_into_team_0(port: 
         bus = node.bus
         assert isinstance(bus, ZenohBus)
         async with ZenohBus("t1", 1, connect=[f"tcp/127.0.0.1:{port}"]) as other:
-            # the other team's own subscriber shows its traffic really flows on the network
-            witness = other.subscribe(keys.team_all("t1"))
-            msgs = [m for s in range(5) for m in all_random_messages(seed=s, robot=1)]
-            await other.wait_for_subscribers(other.key(msgs[0].TOPIC), timeout=5)
-            for m in msgs:
-                await other.publish(other.key(m.TOPIC), m)
-                await asyncio.sleep(0)
-            await wait_until(lambda: witness.pending() >= len(msgs), 20)
-            # t1's envelopes put straight onto t0's keys
-            codec = Codec("t1", 1)
-            for m in msgs:
-                other.session.put(keys.topic_key(TEAM, 1, m.TOPIC), codec.encode(m), congestion_control=BLOCK)
+            # the other team's own subscriber shows its traffic really flows; then t1's envelopes
+            # are put straight onto t0's keys
+            msgs, witness = await stranger_traffic(other, TEAM, wait_until)
             await wait_until(lambda: bus.counters.dropped.get("team", 0) >= len(msgs), 20)
             await asyncio.sleep(0.3)
             assert other.counters.total("sent").messages == len(msgs)
