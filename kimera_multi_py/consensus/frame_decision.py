@@ -112,16 +112,9 @@ class FrameDecision:
         if not res.ok:
             log.warning("robot %d: aligning with only %d consistent inter-robot edges",
                         self.robot, int(res.inliers.sum()))
-        T = res.T
-        self.poses = T @ self.poses
-        self.prev_poses = self.poses.copy()
-        self.published = self.poses.copy()
-        self._values = to_values(lg.keys, self.poses)
         inliers = np.zeros(len(lg.inter_edge), dtype=bool)
         inliers[np.flatnonzero(known)[res.inliers]] = True
-        self.alignment_inliers = inliers
-        self.aligned = True
-        self.excluded = False
+        self._move_into(res.T, inliers)
         if self.params.robust and self.params.screen != "none":
             # edges the screen rejects start as outliers; GNC revisits them
             keep = inliers if self.params.screen == "alignment" else self._supported(known)
@@ -129,6 +122,17 @@ class FrameDecision:
         self.screened = bool(known.all())
         log.info("robot %d aligned with %d/%d inter-robot edges", self.robot,
                  int(inliers.sum()), int(known.sum()))
+
+    def _move_into(self, T: np.ndarray, inliers: np.ndarray) -> None:
+        """Adopt frame ``T`` (own -> team): move the estimate and restart from it; ``inliers`` (an
+        array the caller may still extend) are the inter-robot edges the frame rests on."""
+        self.poses = T @ self.poses
+        self.prev_poses = self.poses.copy()
+        self.published = self.poses.copy()
+        self._values = to_values(self.local.keys, self.poses)
+        self.alignment_inliers = inliers
+        self.aligned = True
+        self.excluded = False
 
     def _hypotheses(self, known: np.ndarray) -> list[FrameHypothesis]:
         """Frame hypotheses of the known inter-robot edges (edge indices into the local graph)."""
@@ -181,21 +185,14 @@ class FrameDecision:
             if final:
                 self._exclude("no frame hypothesis leads", hyps[0] if hyps else None, margin, hyps)
             return
-        T = best.T
-        self.poses = T @ self.poses
-        self.prev_poses = self.poses.copy()
-        self.published = self.poses.copy()
-        self._values = to_values(lg.keys, self.poses)
         inliers = np.zeros(len(lg.inter_edge), dtype=bool)
         inliers[best.edges] = True
+        self._move_into(best.T, inliers)
         # in the new frame, every group at the identity agrees with the chosen hypothesis
         # (a true group split by drift over long lever arms is re-joined)
         for h in self._hypotheses(known):
             if _near_identity(h.T):
                 inliers[h.edges] = True
-        self.alignment_inliers = inliers
-        self.aligned = True
-        self.excluded = False
         # edges outside the hypothesis start as outliers; GNC and its rechecks revisit them
         self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
         self.screened = bool(known.all())
