@@ -80,6 +80,29 @@ def route_ready() -> Callable[..., Awaitable[None]]:
     return _route_ready
 
 
+async def _heartbeat_link(a: Any, b: Any, timeout: float = 10.0) -> Any:
+    """Announce buses ``a`` and ``b`` (already open), wait until ``b`` sees robot ``a`` and a
+    heartbeat route from ``a`` to ``b`` carries messages; return ``b``'s heartbeat subscription."""
+    from kimera_multi_py.comms import keys
+    from kimera_multi_py.comms.codec import Codec
+    from kimera_multi_py.comms.messages import Heartbeat
+
+    await a.announce()
+    await b.announce()
+    await b.wait_for_peers({a.robot}, timeout=timeout)
+    sub = b.subscribe(keys.topic_all(a.team, keys.HEARTBEAT))
+    await a.wait_for_subscribers(a.key(keys.HEARTBEAT), timeout=5)
+    probe = Codec(a.team, a.robot).encode(Heartbeat(robot=a.robot, keyframes=0, status="probe"))
+    await _route_ready(lambda: a.session.put(a.key(keys.HEARTBEAT), probe), sub)
+    return sub
+
+
+@pytest.fixture
+def heartbeat_link() -> Callable[..., Awaitable[Any]]:
+    """``sub = await heartbeat_link(a, b, timeout)``: see :func:`_heartbeat_link`."""
+    return _heartbeat_link
+
+
 @dataclass(frozen=True)
 class Pki:
     """PEM files of one certificate authority and a leaf for localhost / 127.0.0.1."""

@@ -11,7 +11,6 @@ from pathlib import Path
 import pytest
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.messages import Heartbeat
 from kimera_multi_py.comms.zenoh_bus import Tls, ZenohBus, tls_settings
 from kimera_multi_py.errors import ConfigError
@@ -35,7 +34,7 @@ def test_tls_settings_name_zenohs_keys_and_refuse_half_identities(tmp_path: Path
 
 
 async def test_mutual_tls_admits_team_certificates_only(tmp_path: Path, port: int, wait_until,
-                                                        route_ready) -> None:
+                                                        heartbeat_link) -> None:
     team = make_certs(tmp_path / "team", ["robot0", "robot1"])
     rogue = make_certs(tmp_path / "rogue", ["robot2"])
     endpoint = f"tls/localhost:{port}"
@@ -46,13 +45,7 @@ async def test_mutual_tls_admits_team_certificates_only(tmp_path: Path, port: in
     a = ZenohBus(TEAM, 0, listen=[endpoint], tls=tls(team["robot0"]))
     b = ZenohBus(TEAM, 1, connect=[endpoint], tls=tls(team["robot1"]))
     async with a, b:
-        await a.announce()
-        await b.announce()
-        await b.wait_for_peers({0}, timeout=10)
-        sub = b.subscribe(keys.topic_all(TEAM, keys.HEARTBEAT))
-        await a.wait_for_subscribers(a.key(keys.HEARTBEAT), timeout=5)
-        probe = Codec(TEAM, 0).encode(Heartbeat(robot=0, keyframes=0, status="probe"))
-        await route_ready(lambda: a.session.put(a.key(keys.HEARTBEAT), probe), sub)
+        sub = await heartbeat_link(a, b, timeout=10)
         # strangers that trust the team CA: one presents no certificate, one a rogue CA's
         no_cert = Tls(team["robot0"].ca, mtls=False)
         rogue_cert = Tls(team["robot0"].ca, rogue["robot2"].cert, rogue["robot2"].key)

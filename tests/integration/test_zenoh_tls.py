@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.messages import Heartbeat
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.errors import ConfigError
@@ -33,7 +32,7 @@ def write_config(
 
 
 async def test_tls_sessions_talk_and_a_stranger_cannot_join(
-    tmp_path: Path, port: int, pki, rogue_pki, wait_until, route_ready
+    tmp_path: Path, port: int, pki, rogue_pki, wait_until, heartbeat_link
 ) -> None:
     endpoint = f"tls/localhost:{port}"
     listener = write_config(tmp_path / "listener.json5", "peer", {"listen": [endpoint]}, {
@@ -52,13 +51,7 @@ async def test_tls_sessions_talk_and_a_stranger_cannot_join(
     a = ZenohBus(TEAM, 0, config_file=listener)
     b = ZenohBus(TEAM, 1, config_file=member)
     async with a, b:
-        await a.announce()
-        await b.announce()
-        await b.wait_for_peers({0}, timeout=5)
-        sub = b.subscribe(keys.topic_all(TEAM, keys.HEARTBEAT))
-        await a.wait_for_subscribers(a.key(keys.HEARTBEAT), timeout=5)
-        probe = Codec(TEAM, 0).encode(Heartbeat(robot=0, keyframes=0, status="probe"))
-        await route_ready(lambda: a.session.put(a.key(keys.HEARTBEAT), probe), sub)
+        sub = await heartbeat_link(a, b, timeout=5)
         await a.publish(a.key(keys.HEARTBEAT), Heartbeat(robot=0, keyframes=5, status="tls"))
         got = await sub.recv(timeout=5)
         assert (got.robot, got.keyframes, got.status) == (0, 5, "tls")
