@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from kimera_multi_py.errors import KimeraMultiError
 from kimera_multi_py.mapping.object_fusion import team_id
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
-from kimera_multi_py.scene_graph.grid import DistanceField, distance_field, occupancy_grid
+from kimera_multi_py.scene_graph.grid import DistanceField, distance_field, fill_holes, occupancy_grid
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 from kimera_multi_py.scene_graph.places import Places, extract_places
 from kimera_multi_py.scene_graph.rooms import find_rooms, find_rooms_ceiling, room_edges
@@ -209,7 +209,7 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
         grid = occupancy_grid(octree, p.esdf_resolution)
     except ValueError as exc:
         raise SceneGraphError(f"scene_graph.esdf_resolution: {exc}") from None
-    field = distance_field(grid)
+    field = distance_field(fill_holes(grid, p.hole_min_free))
     places = extract_places(field, p)
     rooms = find_rooms(places, p) if p.room_method == "dilation" else find_rooms_ceiling(places, field, p)
     # rooms: mean of their places; building: mean of the rooms

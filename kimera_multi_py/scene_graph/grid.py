@@ -5,7 +5,8 @@ TSDF to 0.2 m for the GVD). A leaf of the octree is *occupied* when its occupanc
 exceeds 0.5 (:func:`~kimera_multi_py.mapping.semantic_octree.occupied_mask`) and *free* when it
 is observed and the free class dominates it (occupancy below 0.5). A coarse cell is occupied
 when any octree voxel in it is occupied, free when it holds free voxels and no occupied one,
-and unknown otherwise. Unknown space counts as an obstacle for the distance field.
+and unknown otherwise. Unknown space counts as an obstacle for the distance field, except small
+holes in free space (:func:`fill_holes`).
 
 Grid cell ``(i, j, k)`` spans ``origin + resolution * [i, i+1) x ...``; origins are multiples
 of the resolution, so two identical maps give identical grids.
@@ -127,6 +128,31 @@ def occupancy_grid(octree: SemanticOctree, resolution: float | None = None) -> O
     origin = (lo + np.array([s.start for s in sl])).astype(np.float64) * res
     return OccupancyGrid(origin, res, np.ascontiguousarray(free_all[sl]), np.ascontiguousarray(occupied[sl]),
                          np.ascontiguousarray(labels[sl]))
+
+
+def fill_holes(grid: OccupancyGrid, min_free: int = 4, iterations: int = 2) -> OccupancyGrid:
+    """The grid with small unknown holes in free space counted as free: an unknown cell with at
+    least ``min_free`` of its 6 face neighbours free becomes free, ``iterations`` times. A ray-cast
+    map leaves such holes between rays far from the sensor; as obstacles they would collapse the
+    clearance of an open room (a hole every few voxels leaves no place). ``min_free`` <= 0: none."""
+    if min_free <= 0 or iterations <= 0:
+        return grid
+    free = grid.free.copy()
+    unknown = ~(grid.free | grid.occupied)
+    for _ in range(iterations):
+        n = np.zeros(free.shape, dtype=np.int8)
+        for ax in range(3):
+            lo = [slice(None)] * 3
+            hi = [slice(None)] * 3
+            lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+            n[tuple(lo)] += free[tuple(hi)]
+            n[tuple(hi)] += free[tuple(lo)]
+        new = unknown & (n >= min_free)
+        if not new.any():
+            break
+        free |= new
+        unknown &= ~new
+    return OccupancyGrid(grid.origin, grid.resolution, free, grid.occupied, grid.labels)
 
 
 def distance_field(grid: OccupancyGrid) -> DistanceField:

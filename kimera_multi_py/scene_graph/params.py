@@ -22,12 +22,18 @@ class SceneGraphParams:
     """Parents more than this many voxels apart are distinct."""
     gvd_parent_cos: float = 0.2
     """... or parents seen at an angle whose cosine is below this."""
+    hole_min_free: int = 4
+    """An unknown cell with this many of its 6 face neighbours free is free (holes between rays;
+    twice); 0: unknown is always an obstacle."""
     place_min_clearance: float = 0.4
     place_cell: float = 0.5
     """Edge of the cells GVD voxels are compressed in (one place per connected cluster)."""
     place_merge_distance: float = 0.25
     edge_min_clearance: float = 0.25
     """Place edges whose straight segment has less clearance are dropped."""
+    freespace_edge_max_length: float = 2.0
+    """Longest straight free-space edge joining two components of the places graph (Hydra's
+    freespace edges; one per pair of components, the one of most clearance); <= 0: none."""
     # rooms (Hydra's room_finder)
     room_delta_max: float = 1.2
     room_delta_min: float = 0.5
@@ -35,10 +41,6 @@ class SceneGraphParams:
     room_min_places: int = 10
     room_plateau_ratio: float = 0.5
     """Plateaus of fewer than this fraction of the largest component count are not candidates."""
-    door_max_clearance: float = 0.6
-    """Half the widest opening that still separates two rooms (a 1.2 m door). Rooms joined by a
-    place edge of more clearance are one space that the sweep split (an open-plan area whose
-    halves a row of desks or an unobserved patch narrows), and are merged; <= 0 never merges."""
     room_method: str = "dilation"
     """``dilation`` (Hydra's sweep) or ``ceiling`` (the DSG paper's cut below the ceiling)."""
     ceiling_offset: float = 0.3

@@ -94,6 +94,35 @@ def _segment_clearance(field: DistanceField, a: np.ndarray, b: np.ndarray) -> np
     return field.clearance_at(pts).min(axis=1)
 
 
+def _freespace_edges(field: DistanceField, pos: np.ndarray, e: np.ndarray, w: np.ndarray,
+                     params: SceneGraphParams) -> tuple[np.ndarray, np.ndarray]:
+    """Join the components of the places graph through free space (Hydra's freespace edges): the
+    GVD breaks where clutter or an unobserved patch leaves no voxel of enough clearance, though the
+    space is one. Candidates are place pairs of different components at most
+    ``freespace_edge_max_length`` apart whose straight segment keeps ``edge_min_clearance``; per pair
+    of components the candidate of largest clearance is added (ties: the shorter, then by index)."""
+    m = len(pos)
+    if params.freespace_edge_max_length <= 0 or m < 2:
+        return e, w
+    _, comp = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(m, m)), directed=False)
+    if comp.max() == 0:
+        return e, w
+    pairs = cKDTree(pos).query_pairs(params.freespace_edge_max_length, output_type="ndarray")
+    pairs = pairs[comp[pairs[:, 0]] != comp[pairs[:, 1]]]
+    if len(pairs) == 0:
+        return e, w
+    pairs = np.sort(pairs, axis=1)
+    pw = _segment_clearance(field, pos[pairs[:, 0]], pos[pairs[:, 1]])
+    ok = pw >= params.edge_min_clearance
+    pairs, pw = pairs[ok], pw[ok]
+    length = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
+    ca, cb = np.sort(comp[pairs], axis=1).T
+    order = np.lexsort((pairs[:, 1], pairs[:, 0], length, -pw, cb, ca))
+    first = order[np.r_[True, (ca[order][1:] != ca[order][:-1]) | (cb[order][1:] != cb[order][:-1])]] \
+        if len(order) else order
+    return np.concatenate([e, pairs[first]]), np.concatenate([w, pw[first]])
+
+
 def place_ids(positions: np.ndarray, cell: float) -> np.ndarray:
     """Geometry-derived ids: the place's cell and its rank among the cell's places (by position)."""
     c = _cells(positions, cell)
@@ -165,7 +194,7 @@ def extract_places(field: DistanceField, params: SceneGraphParams) -> Places:
     e = np.stack([key // m, key % m], 1)
     w = _segment_clearance(field, pos[e[:, 0]], pos[e[:, 1]])
     strong = w >= params.edge_min_clearance
-    e, w = e[strong], w[strong]
+    e, w = _freespace_edges(field, pos, e[strong], w[strong], params)
     # sort places by id and renumber the edges
     ids = place_ids(pos, params.place_cell)
     order = np.argsort(ids)

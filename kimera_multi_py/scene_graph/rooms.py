@@ -12,9 +12,7 @@ components seed the rooms; every remaining place joins the room of its nearest s
 the graph (Euclidean edge lengths). Hydra grows along the highest-clearance edge first instead;
 with 0.5 m place cells the low-clearance places along walls are joined by edges weaker than a
 door's, so that flood leaks through doors into the next room's edges (see the two-room test).
-Rooms joined by an opening wider than a door (a place edge of clearance above
-``door_max_clearance``) are then merged: the sweep cuts open-plan spaces that furniture or an
-unobserved patch narrows. Rooms that end with fewer than ``room_min_places`` places are dropped.
+Rooms that end with fewer than ``room_min_places`` places are dropped.
 """
 
 from __future__ import annotations
@@ -105,24 +103,7 @@ def find_rooms(places: Places, params: SceneGraphParams) -> Rooms:
     start, end = _plateau(counts, params.room_plateau_ratio)
     pick = (start + end) // 2
     label = _grow(places, comps[pick]) if counts[pick] > 0 else np.full(n, -1, dtype=np.int64)
-    label = merge_open_rooms(places, label, params.door_max_clearance)
     return Rooms(_finish(label, params.room_min_places), float(deltas[pick]), deltas, counts)
-
-
-def merge_open_rooms(places: Places, label: np.ndarray, door_clearance: float) -> np.ndarray:
-    """Merge rooms joined by a place edge whose clearance exceeds ``door_clearance``: the opening
-    between them is wider than any door, so they are one space the sweep cut in two."""
-    if door_clearance <= 0 or len(places.edges) == 0 or label.max(initial=-1) < 1:
-        return label
-    e = places.edges
-    ra, rb = label[e[:, 0]], label[e[:, 1]]
-    wide = (ra >= 0) & (rb >= 0) & (ra != rb) & (places.edge_clearance > door_clearance)
-    if not wide.any():
-        return label
-    m = int(label.max()) + 1
-    g = coo_matrix((np.ones(int(wide.sum())), (ra[wide], rb[wide])), shape=(m, m))
-    _, comp = connected_components(g, directed=False)
-    return np.where(label >= 0, comp[np.maximum(label, 0)], -1).astype(np.int64)
 
 
 def _finish(label: np.ndarray, min_places: int) -> np.ndarray:

@@ -107,3 +107,51 @@ def test_ceiling_cut_needs_clearance_above_the_doors_half_width() -> None:
     assert two.num_rooms == 2
     with pytest.raises(Exception, match="room_method"):
         SceneGraphParams(room_method="magic")
+
+
+def _holed(c: np.ndarray, free: np.ndarray, fraction: float, seed: int) -> "object":
+    """The map with a random ``fraction`` of its free cells never observed (holes between rays)."""
+    from kimera_multi_py.mapping import morton
+    from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
+
+    from tests.scene_graph.helpers import K, RES, WALL
+
+    rng = np.random.default_rng(seed)
+    seen = ~free | (rng.random(len(free)) >= fraction)
+    tree = SemanticOctree(RES, K)
+    codes = morton.points_to_codes(c[seen], RES)
+    order = np.argsort(codes)
+    rows = np.zeros((len(codes), K + 1), dtype=np.int16)
+    rows[:, 1:] = -3 * SCALE
+    rows[~free[seen], WALL] = 6 * SCALE
+    tree.add(codes[order], rows[order])
+    return tree
+
+
+def test_holes_between_rays_do_not_break_rooms() -> None:
+    """3 % of the free cells unobserved, scattered: filled, the two rooms keep their places and
+    stay two; counted as obstacles, the clearance collapses and the rooms are lost."""
+    c, free = box_world(*TWO_ROOMS)
+    tree = _holed(c, free, 0.03, 4)
+    clean = build_scene_graph(octree_of(c, free))
+    g = build_scene_graph(tree)
+    assert g.num_rooms == 2
+    assert len(g.place_ids) > 0.8 * len(clean.place_ids)
+    bare = build_scene_graph(tree, params=SceneGraphParams(hole_min_free=0))
+    assert bare.num_rooms < 2 or len(bare.place_ids) < 0.5 * len(clean.place_ids)
+
+
+def test_freespace_edges_join_components_through_free_space_only() -> None:
+    from kimera_multi_py.scene_graph.places import _freespace_edges
+
+    c, free = box_world(*TWO_ROOMS)
+    field = distance_field(occupancy_grid(octree_of(c, free)))
+    # components {0, 1} and {2} in the west room 1.2 m apart; {3} in the east room behind the wall
+    pos = np.array([[1.0, 2.0, 1.2], [1.5, 2.0, 1.2], [2.7, 2.0, 1.2], [4.6, 3.5, 1.2]])
+    e, w = np.array([[0, 1]]), np.array([0.9])
+    ne, nw = _freespace_edges(field, pos, e, w, SceneGraphParams())
+    assert ne.tolist() == [[0, 1], [1, 2]]  # the shorter of the two clear candidates to {2}
+    assert nw[1] == pytest.approx(field.clearance_at(np.linspace(pos[1], pos[2], 30)).min(), abs=1e-6)
+    # nothing through the wall at x = 4 (the door is at y in [1.5, 2.5]), none when disabled
+    off = _freespace_edges(field, pos, e, w, SceneGraphParams(freespace_edge_max_length=0.0))
+    assert off[0].tolist() == [[0, 1]]
