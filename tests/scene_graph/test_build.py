@@ -109,12 +109,11 @@ def test_ceiling_cut_needs_clearance_above_the_doors_half_width() -> None:
         SceneGraphParams(room_method="magic")
 
 
-def _holed(c: np.ndarray, free: np.ndarray, fraction: float, seed: int) -> "object":
+def _holed(c: np.ndarray, free: np.ndarray, fraction: float, seed: int) -> object:
     """The map with a random ``fraction`` of its free cells never observed (holes between rays)."""
     from kimera_multi_py.mapping import morton
     from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
-
-    from tests.scene_graph.helpers import K, RES, WALL
+    from tests.scene_graph.helpers import RES, WALL, K
 
     rng = np.random.default_rng(seed)
     seen = ~free | (rng.random(len(free)) >= fraction)
