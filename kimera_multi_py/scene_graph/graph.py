@@ -29,6 +29,7 @@ from kimera_multi_py.errors import KimeraMultiError
 from kimera_multi_py.mapping.object_fusion import team_id
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.scene_graph.grid import DistanceField, distance_field, fill_holes, occupancy_grid
+from kimera_multi_py.scene_graph.level import level_frame, levelled_grid
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 from kimera_multi_py.scene_graph.places import Places, extract_places
 from kimera_multi_py.scene_graph.rooms import find_rooms, find_rooms_ceiling, room_edges
@@ -199,14 +200,22 @@ def _in_sight(field: DistanceField, points: np.ndarray, target: np.ndarray, lo: 
     return ~np.any(occ & ~own, axis=2)
 
 
+def _level_boxes(R: np.ndarray, c: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Centres and the axis-aligned bounds of boxes (map frame) in the level frame."""
+    centre, half = (lo + hi) / 2 @ R.T, np.abs(R) @ ((hi - lo) / 2).T
+    return c @ R.T, centre - half.T, centre + half.T
+
+
 def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
                       trajectories: Mapping[int, tuple[np.ndarray, np.ndarray]] | None = None,
                       params: SceneGraphParams | None = None) -> SceneGraph:
     """Places, rooms and building from the octree; objects and agents attached (see module docs)."""
     p = params or SceneGraphParams()
     t0 = time.perf_counter()
+    # a tilted map is built in its level frame (p_level = R p_map) and the results turned back
+    R = level_frame(octree) if p.level else None
     try:
-        grid = occupancy_grid(octree, p.esdf_resolution)
+        grid = occupancy_grid(octree, p.esdf_resolution) if R is None else levelled_grid(octree, R, p.esdf_resolution)
     except ValueError as exc:
         raise SceneGraphError(f"scene_graph.esdf_resolution: {exc}") from None
     field = distance_field(fill_holes(grid, p.hole_min_free))
@@ -221,7 +230,8 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
     building = room_pos.mean(0) if nr else (places.positions.mean(0) if len(places) else np.zeros(3))
     obs = as_objects(objects)
     usable = m if m.any() else np.ones(len(places), dtype=np.bool_)  # attach to places that have a room
-    object_place = _attach(field, places, usable, obs.centroids, obs.lo, obs.hi, obs.labels, p.attach_candidates)
+    c, lo, hi = (obs.centroids, obs.lo, obs.hi) if R is None else _level_boxes(R, obs.centroids, obs.lo, obs.hi)
+    object_place = _attach(field, places, usable, c, lo, hi, obs.labels, p.attach_candidates)
     robots, index, stamps, poses = [], [], [], []
     for r in sorted(trajectories or {}):
         robot_letter(int(r))
@@ -238,13 +248,17 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
         stamps.append(st)
         poses.append(P)
     agent_pose = np.concatenate(poses) if poses else np.zeros((0, 4, 4))
-    xyz = agent_pose[:, :3, 3]
+    xyz = agent_pose[:, :3, 3] if R is None else agent_pose[:, :3, 3] @ R.T
     agent_place = _attach(field, places, usable, xyz, xyz, xyz, np.zeros(len(xyz), np.int64), p.attach_candidates)
+    place_pos = places.positions if R is None else places.positions @ R
+    if R is not None:
+        room_pos, building = room_pos @ R, building @ R
     build_s = time.perf_counter() - t0
     meta = {"delta": rooms.delta, "sweep": {"deltas": rooms.deltas.tolist(), "counts": rooms.counts.tolist()},
-            "params": p.to_dict(), "build_s": build_s, "resolution": grid.resolution}
+            "params": p.to_dict(), "build_s": build_s, "resolution": grid.resolution,
+            "level_rotation": None if R is None else R.tolist()}
     return SceneGraph(
-        places.ids, places.positions, places.clearance, rooms.place_room, places.edges, places.edge_clearance,
+        places.ids, place_pos, places.clearance, rooms.place_room, places.edges, places.edge_clearance,
         room_pos, room_edges(places, rooms.place_room), obs.ids, obs.labels, obs.centroids, obs.lo, obs.hi,
         object_place, np.concatenate(robots) if robots else np.zeros(0, np.int64),
         np.concatenate(index) if index else np.zeros(0, np.int64),

@@ -22,6 +22,8 @@ class SceneGraphParams:
     """Parents more than this many voxels apart are distinct."""
     gvd_parent_cos: float = 0.2
     """... or parents seen at an angle whose cosine is below this."""
+    level: bool = True
+    """Build a tilted map (floor off the horizontal by over a degree) in its level frame."""
     hole_min_free: int = 4
     """An unknown cell with this many of its 6 face neighbours free is free (holes between rays;
     twice); 0: unknown is always an obstacle."""

@@ -154,3 +154,47 @@ def test_freespace_edges_join_components_through_free_space_only() -> None:
     # nothing through the wall at x = 4 (the door is at y in [1.5, 2.5]), none when disabled
     off = _freespace_edges(field, pos, e, w, SceneGraphParams(freespace_edge_max_length=0.0))
     assert off[0].tolist() == [[0, 1]]
+
+
+def _tilted(c: np.ndarray, free: np.ndarray, R: np.ndarray, t: np.ndarray) -> "object":
+    """The floor plan seen in a tilted frame ``p_map = R p + t`` (floor, ceiling and walls labelled),
+    binned into the map's grid (occupied wins where two cells land in one)."""
+    from kimera_multi_py.mapping import morton
+    from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
+    from kimera_multi_py.semantics import CLASS_IDS
+
+    from tests.scene_graph.helpers import HEIGHT, K, RES, WALL
+
+    cls = np.where(c[:, 2] < 0.0, CLASS_IDS["floor"], np.where(c[:, 2] > HEIGHT, CLASS_IDS["ceiling"], WALL))
+    codes = morton.points_to_codes(c @ R.T + t, RES)
+    order = np.lexsort((free, codes))  # per code, occupied (free = False) first
+    codes, keep = np.unique(codes[order], return_index=True)
+    sel = order[keep]
+    rows = np.zeros((len(codes), K + 1), dtype=np.int16)
+    rows[:, 1:] = -3 * SCALE
+    occ = ~free[sel]
+    rows[np.flatnonzero(occ), cls[sel][occ]] = 6 * SCALE
+    tree = SemanticOctree(RES, K)
+    tree.add(codes, rows)
+    return tree
+
+
+def test_a_tilted_map_is_built_level_and_answers_in_its_own_frame() -> None:
+    from kimera_multi_py.geometry import so3_exp
+
+    c, free = box_world(*TWO_ROOMS)
+    R = so3_exp(np.array([np.radians(25.0), np.radians(-10.0), np.radians(40.0)]))
+    t = np.array([1.0, -2.0, 0.5])
+    g = build_scene_graph(_tilted(c, free, R, t))
+    assert g.num_rooms == 2
+    L = np.array(g.metadata["level_rotation"])
+    assert np.degrees(np.arccos(np.clip((L @ R)[2, 2], -1, 1))) < 2.0  # level: the plan's z is up again
+    plan = (g.place_pos - t) @ R  # places back in the floor plan's frame
+    inside = (plan[:, 2] > 0.0) & (plan[:, 2] < 2.5) & (plan[:, 0] > -0.2) & (plan[:, 0] < 8.2)
+    assert inside.mean() > 0.98
+    west = g.place_room[plan[:, 0] < 3.5]
+    east = g.place_room[plan[:, 0] > 4.5]
+    assert len(set(west.tolist()) - {-1}) == 1 and len(set(east.tolist()) - {-1}) == 1
+    assert set(west.tolist()) != set(east.tolist())
+    # a level map is built as it stands
+    assert build_scene_graph(octree_of(c, free)).metadata["level_rotation"] is None
