@@ -157,7 +157,9 @@ class AgentNode:
         await self.send(self.agent.process_keyframe(kf))
 
     async def finish_stream(self) -> None:
-        """Our source has no more keyframes: say so (the leader then runs the final epoch)."""
+        """Our source has no more keyframes: say so (the leader then runs the final epoch). The last
+        submap's object fragments are merged now, so the final object table carries them."""
+        self.agent.objects.merge_fragments(self.agent.map.octree)
         self.finished = True
         await self._publish_state()
 

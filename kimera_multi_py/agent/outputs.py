@@ -84,7 +84,6 @@ def outcome_of(node: Any, server_weights: dict[tuple[int, int, int, int], float]
     """The outcome of a live :class:`~kimera_multi_py.agent.node.AgentNode`. In centralised mode
     the back-end weights come from the server (``(a, kf_a, b, kf_b) -> w``)."""
     agent: Agent = node.agent
-    agent.objects.merge_fragments(agent.map.octree)
     weights = _weights(node)
     rows = []
     for peer, group in sorted(agent.closures.items()):

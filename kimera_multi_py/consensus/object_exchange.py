@@ -124,7 +124,7 @@ class ObjectExchange:
         table = own_table(self.robot, self._version + 1, self.frame, self.landmarks(), self.num_classes,
                           self.poses(self.robot))
         old = self.tables.get(self.robot)
-        if old is None or _content(old) != _content(table):
+        if (old is None and len(table.ids)) or (old is not None and _content(old) != _content(table)):
             self._version += 1
             self.tables[self.robot] = table
         if not self.neighbours:

@@ -21,6 +21,7 @@ from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Subscription
 from kimera_multi_py.comms.messages import AgentState, KeyframeOdometry, LoopClosures, Message, PgoEpoch, PublicPoses
 from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
+from kimera_multi_py.consensus.object_exchange import OBJECT_MESSAGES, ObjectExchange
 from kimera_multi_py.consensus.server import solve_centralized
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.errors import KimeraMultiError
@@ -154,12 +155,19 @@ class ServerNode:
         self._final_keyframes: dict[int, int] = {}
         self._final: PgoEpoch | None = None
         self.maps: MapConsensus | None = None  # the team map: every robot's evidence, fused here
+        self.objects: ObjectExchange | None = None  # every robot's object table, relayed and fused here
 
     def fuse_maps(self, local: SubmapMap, mode: str = "exact") -> None:
         """Also fuse every robot's map evidence (a star: the agents' only map neighbour) and serve
         the team map back. ``local`` is an empty map with the agents' map parameters."""
         self.maps = get_map_consensus(self.robot, local, mode)
         self.maps.set_frame(0)  # the joint graph's frame: the lowest robot's
+        if self.maps.mode == "exact":
+            maps = self.maps
+            self.objects = ObjectExchange(self.robot, list,
+                                          lambda src: maps.poses[src][0] if src in maps.poses else None,
+                                          local.num_classes + 1)
+            self.objects.set_frame(0)
 
     @property
     def robot(self) -> int:
@@ -182,10 +190,11 @@ class ServerNode:
             if isinstance(msg, AgentState):
                 self.states[msg.robot] = msg
                 continue
-            if isinstance(msg, MAP_MESSAGES):
-                if self.maps is not None:
+            if isinstance(msg, MAP_MESSAGES + OBJECT_MESSAGES):
+                sink = self.maps if isinstance(msg, MAP_MESSAGES) else self.objects
+                if sink is not None:
                     try:
-                        self.maps.handle(msg)
+                        sink.handle(msg)
                     except (KimeraMultiError, ValueError, KeyError, IndexError) as exc:
                         self.server.stats.refused += 1
                         log.warning("server refused %s from robot %d: %s", type(msg).__name__, msg.robot, exc)
@@ -205,7 +214,11 @@ class ServerNode:
         if self.maps is not None:
             self.maps.set_neighbours({r for r in self.bus.peers() if r != self.robot})
             self.maps.set_team_size(max(1, len(self.states)))
-            for m in self.maps.step(wall):
+            out = self.maps.step(wall)
+            if self.objects is not None:
+                self.objects.set_neighbours({r for r in self.bus.peers() if r != self.robot})
+                out += self.objects.step(wall)
+            for m in out:
                 await self.bus.publish(self.bus.key(m.TOPIC), m)
                 sent += 1
         if self._all_finished(wall):

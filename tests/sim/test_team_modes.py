@@ -24,6 +24,7 @@ def runs(tmp_path_factory):
         d = tmp_path_factory.mktemp(mode)
         SimRunner(load_scenario(TINY), seed=0, mode=mode, out_dir=d).run()
         out[mode] = json.loads((d / "results.json").read_text())
+        out[f"{mode}/dir"] = d
     return out
 
 
@@ -60,6 +61,28 @@ def test_every_robot_ends_with_the_centralised_fusion_of_all_evidence(runs, tmp_
     assert all(central["agreement"][r]["identical"] == 1.0 for r in ("0", "1"))
     sg = runs["distributed"]["scene_graph"]
     assert sg["agree"]["places"] and sg["agree"]["rooms"]  # graphs built from one team map match
+
+
+@pytest.mark.parametrize("mode", ["distributed", "centralized"])
+def test_every_robot_holds_the_same_team_objects_from_every_robot(runs, mode):
+    """Object sharing (peer to peer, or through the server): both robots' team object maps are
+    identical, hold landmarks of both robots, and their scene graphs put every object in the same
+    room; a robot's own landmarks are all in its team map."""
+    d = runs[f"{mode}/dir"]
+    team = [json.loads((d / f"robot{r}" / "team_objects.json").read_text())["objects"] for r in (0, 1)]
+    assert len(team[0]) > 5
+    assert [(o["id"], o["class"], o["members"], o["sightings"]) for o in team[0]] == \
+        [(o["id"], o["class"], o["members"], o["sightings"]) for o in team[1]]
+    for k in ("centroid", "lo", "hi"):  # the same numbers, up to float rounding of the pose tables
+        np.testing.assert_allclose([o[k] for o in team[0]], [o[k] for o in team[1]], atol=1e-9)
+    members = [m for ob in team[0] for m in ob["members"]]
+    assert {m >> 24 for m in members} == {0, 1}
+    for r in (0, 1):
+        own = json.loads((d / f"robot{r}" / "objects.json").read_text())["objects"]
+        assert {(r << 24) | ob["id"] for ob in own} <= set(members)
+    assert runs[mode]["scene_graph"]["agree"] == {"places": True, "rooms": True, "object_rooms": True}
+    per_robot = runs[mode]["objects"]["team_per_robot"]
+    assert per_robot["0"]["matches"] == per_robot["1"]["matches"] and per_robot["0"]["objects"] == len(team[0])
 
 
 def test_same_seed_same_team_metrics(runs, tmp_path):
