@@ -156,14 +156,13 @@ def test_freespace_edges_join_components_through_free_space_only() -> None:
     assert off[0].tolist() == [[0, 1]]
 
 
-def _tilted(c: np.ndarray, free: np.ndarray, R: np.ndarray, t: np.ndarray) -> "object":
+def _tilted(c: np.ndarray, free: np.ndarray, R: np.ndarray, t: np.ndarray) -> object:
     """The floor plan seen in a tilted frame ``p_map = R p + t`` (floor, ceiling and walls labelled),
     binned into the map's grid (occupied wins where two cells land in one)."""
     from kimera_multi_py.mapping import morton
     from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
     from kimera_multi_py.semantics import CLASS_IDS
-
-    from tests.scene_graph.helpers import HEIGHT, K, RES, WALL
+    from tests.scene_graph.helpers import HEIGHT, RES, WALL, K
 
     cls = np.where(c[:, 2] < 0.0, CLASS_IDS["floor"], np.where(c[:, 2] > HEIGHT, CLASS_IDS["ceiling"], WALL))
     codes = morton.points_to_codes(c @ R.T + t, RES)
