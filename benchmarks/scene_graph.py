@@ -6,6 +6,7 @@ Maps scored (all with the default mapping configuration):
   SemanticOctree, with the object map built alongside (as ``tests/mapping/test_quality_sim.py``).
 * ``perfect_map`` (reference) -- the simulator's ground-truth voxel grid written into an octree
   (every cell observed, no noise): what the scene-graph builder does with a flawless map.
+* ``run`` (``--run DIR``) -- each robot's saved team map and team objects of a finished run.
 * ``team`` (``--team``) -- each robot's map after ``SimRunner(..., mode="distributed")``, in the team
   frame, placed in the world by one SE(3) alignment of the robots' keyframes to the truth.
 
@@ -16,6 +17,7 @@ accuracy >= 0.95, place coverage >= 0.95, build <= 2 s.
 
     python benchmarks/scene_graph.py --json
     python benchmarks/scene_graph.py --scenario my_plan.toml --team --json
+    python benchmarks/scene_graph.py --run DIR --json   # the team maps a `kimera-multi sim --out DIR` left
 """
 
 from __future__ import annotations
@@ -102,12 +104,34 @@ def team_maps(cfg: Any, seed: int, world: World, params: SceneGraphParams, repea
     return out
 
 
+def run_maps(run_dir: Path, world: World, params: SceneGraphParams, repeats: int) -> dict[str, Any]:
+    """Each robot's saved team map and team objects of a finished run (``kimera-multi sim ... --out
+    DIR``), placed in the world by the run's alignment (``robotI/dsg.json`` metadata)."""
+    from kimera_multi_py.io.tum import read_tum
+    from kimera_multi_py.mapping.octree_io import load_octree
+
+    out: dict[str, Any] = {"robots": {}}
+    graphs = []
+    for d in sorted(run_dir.glob("robot*/team_map.kmo")):
+        folder = d.parent
+        T = np.array(json.loads((folder / "dsg.json").read_text())["metadata"]["kimera_multi"]["T_world_map"])
+        obj_file = folder / "team_objects.json"
+        objects = json.loads(obj_file.read_text())["objects"] if obj_file.exists() else []
+        stamps, poses = read_tum(folder / "trajectory.tum")
+        g, m = score(load_octree(d), T, objects, {int(folder.name[5:]): (stamps, poses)}, world, params, repeats)
+        out["robots"][folder.name[5:]] = m
+        graphs.append(g)
+    out["agree"] = graphs_agree(graphs)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenario", default=str(REPO / "sims" / "office.toml"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeats", type=int, default=3, help="builds per map; the fastest counts")
     ap.add_argument("--team", action="store_true", help="also score the robots' maps of a distributed run")
+    ap.add_argument("--run", type=Path, help="score the team maps a finished run saved in this folder")
     ap.add_argument("--json", action="store_true", help="print JSON only")
     args = ap.parse_args()
     cfg = load_scenario(args.scenario, env=False)
@@ -128,6 +152,8 @@ def main() -> None:
                                for k, v in TARGETS.items()}
     if args.team:
         out["team"] = team_maps(cfg, args.seed, world, params, args.repeats)
+    if args.run is not None:
+        out["run"] = run_maps(args.run, world, params, args.repeats)
     if args.json:
         print(json.dumps(out, indent=2))
         return
