@@ -64,6 +64,10 @@ class NodeParams:
     resend_period: float = 5.0  # clock s between re-sends of unacknowledged closures
     server: int | None = None  # centralised mode: the server's id (then no team PGO)
     map_consensus: str = "exact"  # off, roam, exact or laplacian (DESIGN §4.5)
+    # lossy links: every descriptor goes out again with the next one (duplicates are ignored), and
+    # a constellation query that gets no reply is asked again this many times
+    descriptor_repeats: int = 1
+    query_retries: int = 2
 
 
 class AgentNode:
@@ -114,6 +118,8 @@ class AgentNode:
         self._peer_stamp = 0.0
         self.epochs_seen = 0
         self._closure_counts: dict[tuple[int, int], int] = {}
+        self._recent_descriptors: list[KeyframeDescriptor] = []  # the last ones sent (repeated)
+        self.queries_retried = 0
 
     @property
     def robot(self) -> int:
@@ -161,6 +167,9 @@ class AgentNode:
         submap's object fragments are merged now, so the final object table carries them."""
         self.agent.objects.merge_fragments(self.agent.map.octree)
         self.finished = True
+        for old in self._recent_descriptors:  # the last descriptors' repeats
+            await self._publish(old)
+        self._recent_descriptors = []
         await self._publish_state()
 
     # ------------------------------------------------------------------ messages
@@ -173,6 +182,10 @@ class AgentNode:
             if isinstance(msg, LoopClosures) and msg.peer != self.robot:
                 self._unacked[msg.peer] = msg
                 self._sent_at.pop(msg.peer, None)  # the re-send timer starts at the next tick
+            if isinstance(msg, KeyframeDescriptor) and self.params.descriptor_repeats > 0:
+                for old in self._recent_descriptors:
+                    await self._publish(old)
+                self._recent_descriptors = (self._recent_descriptors + [msg])[-self.params.descriptor_repeats:]
             await self._publish(msg)
 
     async def _publish(self, msg: Message) -> None:
@@ -180,11 +193,18 @@ class AgentNode:
 
     async def _query(self, msg: LoopClosureRequest) -> None:
         key = keys.keyframe_key(self.bus.team, msg.target, msg.keyframe)
-        try:
-            replies = await self.bus.query(key, msg, timeout=self.params.query_timeout)
-        except (KimeraMultiError, TimeoutError) as exc:
-            self._refuse("query", exc)
-            return
+        replies: list[Message] = []
+        for attempt in range(1 + max(self.params.query_retries, 0)):
+            try:
+                replies = await self.bus.query(key, msg, timeout=self.params.query_timeout)
+            except (KimeraMultiError, TimeoutError) as exc:
+                if attempt == self.params.query_retries:
+                    self._refuse("query", exc)
+                    return
+                continue
+            if replies or msg.target not in self.bus.peers():
+                break
+            self.queries_retried += 1
         for reply in replies:
             await self.send(self._handle_agent(reply))
 
