@@ -35,6 +35,8 @@ DEFAULT_DIR = Path(os.environ.get("KMP_DATASETS", REPO.parent / "shared" / "data
 
 def _params(args: argparse.Namespace) -> PgoParams:
     params = PgoParams(acceleration=args.acceleration)
+    if args.method is not None:
+        params.method = args.method
     if args.over_relaxation is not None:
         params.over_relaxation = args.over_relaxation
     params.distributed_init = args.distributed_init
@@ -70,6 +72,8 @@ def main() -> None:
                     help="Nesterov momentum instead of the default adaptive block SOR")
     ap.add_argument("--over-relaxation", type=float, default=None,
                     help="fixed SOR factor (1.0: plain Gauss-Seidel; default adaptive)")
+    ap.add_argument("--method", choices=("block_sor", "gn_pcg"), default=None,
+                    help="distributed solver (default: PgoParams' default)")
     ap.add_argument("--distributed-init", action="store_true",
                     help="chordal block Gauss-Seidel initialisation before the BCD")
     args = ap.parse_args()

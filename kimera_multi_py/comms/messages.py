@@ -509,6 +509,22 @@ class PgoStatus(Message):
     rel_change: float = _f(Float(lo=0.0))
 
 
+@message("PcgState", keys.PCG_STATE)
+class PcgState(Message):
+    """One lock-step of the distributed Gauss–Newton solve (``consensus.pgo_gn``).
+
+    ``scalars`` are the robot's shares of the team-wide sums of this step (costs, CG inner
+    products); ``vectors`` a tangent vector at its public poses, in the order of its
+    :class:`PublicPoses` keys (a CG direction or the Gauss–Newton step), or empty.
+    """
+
+    robot: int = robot_id()
+    round: int = count()
+    step: int = count()
+    scalars: np.ndarray = arr("float64", "s")
+    vectors: np.ndarray = arr("float64", "n", 6)
+
+
 @message("PgoCommand", keys.PGO_COMMAND)
 class PgoCommand(Message):
     """A schedule decision: which robots update in ``round`` (one colour of the robot graph)."""

@@ -26,6 +26,7 @@ from kimera_multi_py.comms.loopback import Faults, LoopbackNetwork
 from kimera_multi_py.consensus.evaluation import RobustEvaluation, evaluate_robust
 from kimera_multi_py.consensus.factors import graph_cost
 from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, split_local
+from kimera_multi_py.consensus.pgo_gn import make_agent
 from kimera_multi_py.consensus.robust import precision_recall, tls_threshold
 from kimera_multi_py.consensus.runner import RunStats, run_team
 from kimera_multi_py.consensus.server import CentralizedResult, solve_centralized
@@ -229,7 +230,7 @@ async def _distributed(graph: PoseGraph, params: PgoParams, transport: str, drop
                        seed: int, timeout: float, start_round: dict[int, int] | None
                        ) -> tuple[np.ndarray, RunStats, list[float], list[PgoAgent]]:
     """Run the team; ``stats.dropped`` (set here) counts the messages the network dropped."""
-    agents = [PgoAgent(local, params) for local in split_local(graph)]
+    agents = [make_agent(local, params) for local in split_local(graph)]
     index = [graph.robot_indices(a.robot) for a in agents]
     inliers = ~graph.outlier
     history: list[float] = []

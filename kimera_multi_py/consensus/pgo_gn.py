@@ -1,0 +1,268 @@
+"""Distributed Levenberg–Marquardt with pipelined conjugate gradients across the robots.
+
+:class:`GnPcgAgent` is a :class:`.pgo.PgoAgent` (same initialisation and frame alignment) whose
+solve is a Gauss–Newton outer loop instead of block Gauss–Seidel. The team's damped system
+``(H + λ diag H) δ = −g`` is a sum of robot blocks coupled only through inter-robot edges
+(:class:`.pgo_linear.LocalSystem`). It is solved by conjugate gradients preconditioned with
+each robot's own block, factored exactly (block Jacobi over robots: bending inside a block is
+solved exactly, CG fixes the coupling between blocks; its non-trivial spectrum is that of the
+block-Jacobi-preconditioned Schur complement on the separator poses).
+
+The CG is Ghysels–Vanroose's pipelined variant: the step's two team-wide inner products and its
+one neighbour exchange (a direction at the public poses, 6 floats each) travel in the same
+message, so one CG iteration is one round. The robots run in lock-step: step ``k`` of every
+robot uses only the step ``k − 1`` messages (:class:`PcgState`) of the others, and a robot
+missing one waits (repeating its own), so a lost message delays but never corrupts.
+
+One outer iteration: ``lin`` (linearise at the team estimate, send ``u₀ = M⁻¹r₀``), ``cg0``
+(``w₀ = A u₀``), CG iterations until the preconditioned residual drops by ``gn_forcing`` (or
+``gn_max_cg``), the last one sending the step ``δ`` at the public poses instead of a direction;
+``eval`` (each robot's cost at ``X ⊕ δ``, neighbours' trial poses from their ``δ``), then the
+team accepts the step when the team cost fell (LM: ``λ`` shrinks) or rejects it (``λ`` grows).
+Everything team-wide is a sum of per-robot scalars that every robot receives, so all robots
+take the same decisions.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from kimera_multi_py.comms.messages import Message, PcgState, PgoStatus, PublicPoses
+from kimera_multi_py.consensus.pgo import LocalGraph, PgoAgent, PgoParams
+from kimera_multi_py.consensus.pgo_linear import LocalSystem, edge_costs, se3_expmap
+
+log = logging.getLogger(__name__)
+
+
+class GnPcgAgent(PgoAgent):
+    """One robot of the distributed Levenberg–Marquardt / pipelined-PCG solve (see module)."""
+
+    def __init__(self, local: LocalGraph, params: PgoParams | None = None) -> None:
+        super().__init__(local, params)
+        self.k = 0  # the next lock-step to publish
+        self.kind = "start"
+        self.inbox: dict[tuple[int, int], PcgState] = {}
+        self.peer_public: dict[int, np.ndarray] = {}  # robot -> its public keys (order of vectors)
+        self.last_msg: PcgState | None = None
+        self.lam = self.params.gn_damping
+        self.team_cost = np.inf
+        self.outer = 0
+        self.cg_iterations = 0
+        self.peer_X: np.ndarray | None = None  # poses at the inter-robot edges' far ends
+        self._gather: np.ndarray | None = None
+
+    def dependencies(self) -> set[int]:
+        """Every step needs every robot's shares of the team sums."""
+        return set(self.team) - {self.robot}
+
+    # ---------------------------------------------------------------- messages in
+    def handle(self, msg: Message) -> None:
+        if isinstance(msg, PcgState):
+            if msg.robot != self.robot and msg.step >= self.k - 1:
+                self.inbox[(msg.robot, msg.step)] = msg
+            return
+        if isinstance(msg, PublicPoses) and msg.robot != self.robot:
+            self.peer_public[msg.robot] = np.array(msg.keys)
+            if self.peer_X is not None:
+                return  # the solve tracks neighbour poses itself (from their steps)
+        super().handle(msg)
+
+    # ---------------------------------------------------------------- the step
+    def step(self, rnd: int) -> list[Message]:
+        out: list[Message] = []
+        if self.done:
+            return out
+        if not self.aligned:
+            self._try_align()
+            if not self.aligned:
+                return [self._status(rnd)]
+            out.append(self._public(rnd, self.poses))
+        elif self.peer_X is None and rnd - self.last_sent_round >= self.params.resend_interval:
+            out.append(self._public(rnd, self.poses))
+        msg = self._advance(rnd)
+        if msg is not None:
+            out.append(msg)
+        elif self.last_msg is not None and rnd - self.last_msg.round >= self.params.resend_interval:
+            self.last_msg = PcgState(robot=self.robot, round=rnd, step=self.last_msg.step,
+                                     scalars=self.last_msg.scalars, vectors=self.last_msg.vectors)
+            out.append(self.last_msg)
+        out.append(self._status(rnd))
+        return out
+
+    def _status(self, rnd: int) -> PgoStatus:
+        rel = float(self.rel_change) if np.isfinite(self.rel_change) else 1e300
+        return PgoStatus(robot=self.robot, round=rnd, ready=bool(self.ready), cost=float(self.cost),
+                         rel_change=rel)
+
+    def _received(self, step: int) -> dict[int, PcgState] | None:
+        got = {r: self.inbox.get((r, step)) for r in self.team if r != self.robot}
+        if any(m is None for m in got.values()):
+            return None
+        return {r: m for r, m in got.items() if m is not None}
+
+    def _send(self, rnd: int, scalars: list[float], vectors: np.ndarray | None = None) -> PcgState:
+        vec = np.zeros((0, 6)) if vectors is None else vectors.reshape(-1, 6)[self.local.public]
+        msg = PcgState(robot=self.robot, round=rnd, step=self.k, scalars=np.asarray(scalars, float),
+                       vectors=np.ascontiguousarray(vec))
+        self.k += 1
+        self.last_msg = msg
+        for key in [key for key in self.inbox if key[1] < self.k - 2]:
+            del self.inbox[key]
+        return msg
+
+    def _advance(self, rnd: int) -> PcgState | None:
+        if self.kind == "start":
+            if not all(int(k) in self.neighbour_poses for k in self.local.inter_peer_key):
+                return None
+            if not all(int(r) in self.peer_public for r in self.local.neighbours):
+                return None
+            self.peer_X = np.stack([self.neighbour_poses[int(k)] for k in self.local.inter_peer_key]) \
+                if len(self.local.inter_peer_key) else np.zeros((0, 4, 4))
+            self._gather = self._gather_index()
+            self.cost = self._cost(self.poses, self.peer_X)
+            self.kind = "begin"
+            return self._send(rnd, [self.cost])
+        got = self._received(self.k - 1)
+        if got is None:
+            return None
+        if self.kind == "begin":
+            self.team_cost = self.cost + sum(float(m.scalars[0]) for m in got.values())
+            return self._linearise(rnd)
+        if self.kind == "cg0":
+            return self._cg_start(rnd, got)
+        if self.kind == "cg":
+            return self._cg_iterate(rnd, got)
+        if self.kind == "eval":
+            return self._evaluate(rnd, got)
+        return self._decide(rnd, got)
+
+    # ---------------------------------------------------------------- outer loop
+    def _gather_index(self) -> np.ndarray:
+        """For each inter-robot edge, its far end's row in the stacked neighbour vectors."""
+        lg = self.local
+        offsets, start = {}, 0
+        for r in lg.neighbours:
+            offsets[r] = start
+            start += len(self.peer_public[r])
+        idx = np.zeros(len(lg.inter_peer_key), dtype=int)
+        for e, (r, key) in enumerate(zip(lg.inter_peer.tolist(), lg.inter_peer_key.tolist(), strict=True)):
+            keys = self.peer_public[r]
+            pos = int(np.searchsorted(keys, key))
+            if pos >= len(keys) or keys[pos] != key:
+                pos = int(np.flatnonzero(keys == key)[0])
+            idx[e] = offsets[r] + pos
+        return idx
+
+    def _peer_vectors(self, got: dict[int, PcgState]) -> np.ndarray:
+        assert self._gather is not None
+        if not len(self._gather):
+            return np.zeros((0, 6))
+        stacked = np.concatenate([np.asarray(got[r].vectors) for r in self.local.neighbours])
+        return stacked[self._gather]
+
+    def _cost(self, poses: np.ndarray, peer_X: np.ndarray) -> float:
+        """The robot's share of the team cost: its intra edges and half of each inter edge."""
+        lg = self.local
+        c = float(edge_costs(poses[lg.intra_i], poses[lg.intra_j], lg.intra_meas, lg.intra_info).sum()) \
+            if len(lg.intra_i) else 0.0
+        if len(lg.inter_own):
+            own = poses[lg.inter_own]
+            sel = lg.inter_own_is_i[:, None, None]
+            Ti, Tj = np.where(sel, own, peer_X), np.where(sel, peer_X, own)
+            c += 0.5 * float(edge_costs(Ti, Tj, lg.inter_meas, lg.inter_info).sum())
+        return c
+
+    def _linearise(self, rnd: int) -> PcgState:
+        lg = self.local
+        assert self.peer_X is not None
+        self.sys = LocalSystem(self.poses, lg.intra_i, lg.intra_j, lg.intra_meas, lg.intra_info,
+                               lg.inter_own, lg.inter_own_is_i, self.peer_X, lg.inter_meas,
+                               lg.inter_info, anchor=self.root, damping=self.lam)
+        self.x = np.zeros(6 * len(lg.keys))
+        self.r = -self.sys.gradient
+        self.u = self.sys.precondition(self.r)
+        self.kind = "cg0"
+        self.cg_i = 0
+        return self._send(rnd, [], self.u)
+
+    def _cg_start(self, rnd: int, got: dict[int, PcgState]) -> PcgState:
+        self.w = self.sys.multiply(self.u, self._peer_vectors(got))
+        self.p = np.zeros_like(self.x)
+        self.s, self.q, self.z = self.p.copy(), self.p.copy(), self.p.copy()
+        self.m = self.sys.precondition(self.w)
+        self.kind = "cg"
+        return self._send(rnd, [float(self.r @ self.u), float(self.w @ self.u)], self.m)
+
+    def _cg_iterate(self, rnd: int, got: dict[int, PcgState]) -> PcgState:
+        """One pipelined-PCG iteration (the reduction and the matvec of ``m`` overlap)."""
+        gamma = float(self.r @ self.u) + sum(float(m.scalars[0]) for m in got.values())
+        delta = float(self.w @ self.u) + sum(float(m.scalars[1]) for m in got.values())
+        n = self.sys.multiply(self.m, self._peer_vectors(got))
+        if self.cg_i == 0:
+            self.gamma0 = gamma
+            beta, alpha = 0.0, gamma / delta if delta > 0 else 0.0
+        else:
+            beta = gamma / self.gamma_prev
+            denom = delta - beta * gamma / self.alpha_prev
+            alpha = gamma / denom if denom > 0 else 0.0
+        self.gamma_prev, self.alpha_prev = gamma, alpha
+        self.z = n + beta * self.z
+        self.q = self.m + beta * self.q
+        self.s = self.w + beta * self.s
+        self.p = self.u + beta * self.p
+        self.x = self.x + alpha * self.p
+        self.r = self.r - alpha * self.s
+        self.u = self.u - alpha * self.q
+        self.w = self.w - alpha * self.z
+        self.cg_i += 1
+        self.cg_iterations += 1
+        p = self.params
+        if alpha <= 0 or gamma <= (p.gn_forcing ** 2) * self.gamma0 or self.cg_i >= p.gn_max_cg:
+            self.kind = "eval"
+            return self._send(rnd, [], self.x)
+        self.m = self.sys.precondition(self.w)
+        return self._send(rnd, [float(self.r @ self.u), float(self.w @ self.u)], self.m)
+
+    def _trial(self, got: dict[int, PcgState]) -> tuple[np.ndarray, np.ndarray]:
+        assert self.peer_X is not None
+        poses = self.poses @ se3_expmap(self.x.reshape(-1, 6))
+        peer = self.peer_X @ se3_expmap(self._peer_vectors(got)) if len(self.peer_X) else self.peer_X
+        return poses, peer
+
+    def _evaluate(self, rnd: int, got: dict[int, PcgState]) -> PcgState:
+        self.trial_poses, self.trial_peer = self._trial(got)
+        self.trial_cost = self._cost(self.trial_poses, self.trial_peer)
+        self.kind = "decide"
+        return self._send(rnd, [self.trial_cost])
+
+    def _decide(self, rnd: int, got: dict[int, PcgState]) -> PcgState | None:
+        p = self.params
+        new_cost = self.trial_cost + sum(float(m.scalars[0]) for m in got.values())
+        self.outer += 1
+        decrease = (self.team_cost - new_cost) / max(abs(self.team_cost), 1e-300)
+        if new_cost < self.team_cost:
+            change = np.sqrt(np.sum((self.trial_poses - self.poses) ** 2) / max(np.sum(self.poses**2), 1e-300))
+            self.rel_change = float(change)
+            self.poses, self.peer_X = self.trial_poses, self.trial_peer
+            self.cost, self.team_cost = self.trial_cost, new_cost
+            self.lam = max(self.lam / p.gn_damping_factor, p.gn_damping_min)
+            converged = decrease < p.gn_rel_tol
+        else:
+            self.lam *= p.gn_damping_factor ** 2
+            converged = self.lam > p.gn_damping_max
+        log.debug("robot %d outer %d: cost %.9g lambda %.2e cg %d", self.robot, self.outer,
+                  self.team_cost, self.lam, self.cg_i)
+        if converged or self.outer >= p.gn_max_outer:
+            self.ready = True
+            self.done = True
+            return None
+        return self._linearise(rnd)
+
+
+def make_agent(local: LocalGraph, params: PgoParams) -> PgoAgent:
+    """The agent of ``params.method`` (robust runs always use block SOR: GNC weights live there)."""
+    if params.method == "gn_pcg" and not params.robust:
+        return GnPcgAgent(local, params)
+    return PgoAgent(local, params)
