@@ -45,7 +45,7 @@ class GnPcgAgent(PgoAgent):
         self.kind = "start"
         self.inbox: dict[tuple[int, int], PcgState] = {}
         self.peer_public: dict[int, np.ndarray] = {}  # robot -> its public keys (order of vectors)
-        self.last_msg: PcgState | None = None
+        self.sent: list[PcgState] = []  # the last two steps sent (resent while waiting)
         self.lam = self.params.gn_damping
         self.team_cost = np.inf
         self.outer = 0
@@ -84,10 +84,11 @@ class GnPcgAgent(PgoAgent):
         msg = self._advance(rnd)
         if msg is not None:
             out.append(msg)
-        elif self.last_msg is not None and rnd - self.last_msg.round >= self.params.resend_interval:
-            self.last_msg = PcgState(robot=self.robot, round=rnd, step=self.last_msg.step,
-                                     scalars=self.last_msg.scalars, vectors=self.last_msg.vectors)
-            out.append(self.last_msg)
+        elif self.sent and rnd - self.sent[-1].round >= self.params.resend_interval:
+            # another robot may still miss either of the last two steps (it is one behind at most)
+            self.sent = [PcgState(robot=self.robot, round=rnd, step=m.step, scalars=m.scalars,
+                                  vectors=m.vectors) for m in self.sent]
+            out.extend(self.sent)
         out.append(self._status(rnd))
         return out
 
@@ -96,9 +97,11 @@ class GnPcgAgent(PgoAgent):
         return PgoStatus(robot=self.robot, round=rnd, ready=bool(self.ready), cost=float(self.cost),
                          rel_change=rel)
 
-    def _received(self, step: int) -> dict[int, PcgState] | None:
+    def _received(self, step: int, rnd: int) -> dict[int, PcgState] | None:
+        """Every other robot's message of ``step``, if all were sent before round ``rnd`` (one
+        step per communication round, even when a robot happens to run after the others)."""
         got = {r: self.inbox.get((r, step)) for r in self.team if r != self.robot}
-        if any(m is None for m in got.values()):
+        if any(m is None or m.round >= rnd for m in got.values()):
             return None
         return {r: m for r, m in got.items() if m is not None}
 
@@ -107,7 +110,7 @@ class GnPcgAgent(PgoAgent):
         msg = PcgState(robot=self.robot, round=rnd, step=self.k, scalars=np.asarray(scalars, float),
                        vectors=np.ascontiguousarray(vec))
         self.k += 1
-        self.last_msg = msg
+        self.sent = [*self.sent[-1:], msg]
         for key in [key for key in self.inbox if key[1] < self.k - 2]:
             del self.inbox[key]
         return msg
@@ -124,7 +127,7 @@ class GnPcgAgent(PgoAgent):
             self.cost = self._cost(self.poses, self.peer_X)
             self.kind = "begin"
             return self._send(rnd, [self.cost])
-        got = self._received(self.k - 1)
+        got = self._received(self.k - 1, rnd)
         if got is None:
             return None
         if self.kind == "begin":
@@ -252,7 +255,7 @@ class GnPcgAgent(PgoAgent):
         else:
             self.lam *= p.gn_damping_factor ** 2
             converged = self.lam > p.gn_damping_max
-        log.debug("robot %d outer %d: cost %.9g lambda %.2e cg %d", self.robot, self.outer,
+        log.debug("robot %d round %d outer %d: cost %.9g lambda %.2e cg %d", self.robot, rnd, self.outer,
                   self.team_cost, self.lam, self.cg_i)
         if converged or self.outer >= p.gn_max_outer:
             self.ready = True
