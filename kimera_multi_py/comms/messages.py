@@ -516,6 +516,9 @@ class PcgState(Message):
     ``scalars`` are the robot's shares of the team-wide sums of this step (costs, CG inner
     products); ``vectors`` a tangent vector at its public poses, in the order of its
     :class:`PublicPoses` keys (a CG direction or the Gauss–Newton step), or empty.
+    ``chunks`` are the ids of its coarse unknowns (rigid pose chunks) and ``coarse`` a vector's
+    restriction to them; ``pairs`` / ``blocks`` its rows of the coarse matrix (6x6 blocks
+    joining two chunk ids). Any of these may be empty.
     """
 
     robot: int = robot_id()
@@ -523,6 +526,10 @@ class PcgState(Message):
     step: int = count()
     scalars: np.ndarray = arr("float64", "s")
     vectors: np.ndarray = arr("float64", "n", 6)
+    chunks: np.ndarray = arr("int64", "c", lo=0)
+    coarse: np.ndarray = arr("float64", "c", 6)
+    pairs: np.ndarray = arr("int64", "b", 2, lo=0)
+    blocks: np.ndarray = arr("float64", "b", 6, 6)
 
 
 @message("PgoCommand", keys.PGO_COMMAND)

@@ -30,7 +30,8 @@ import logging
 import numpy as np
 
 from kimera_multi_py.comms.messages import Message, PcgState, PgoStatus, PublicPoses
-from kimera_multi_py.consensus.pgo import LocalGraph, PgoAgent, PgoParams
+from kimera_multi_py.consensus.pgo import LocalGraph, PgoAgent, PgoParams, frame_root
+from kimera_multi_py.consensus.pgo_coarse import INDEX_MASK, CoarseRows, CoarseSolver
 from kimera_multi_py.consensus.pgo_linear import LocalSystem, edge_costs, se3_expmap
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,8 @@ class GnPcgAgent(PgoAgent):
         self.cg_iterations = 0
         self.peer_X: np.ndarray | None = None  # poses at the inter-robot edges' far ends
         self._gather: np.ndarray | None = None
+        self.coarse_rows: CoarseRows | None = None
+        self._peer_anchor = np.zeros(0, dtype=bool)
 
     def dependencies(self) -> set[int]:
         """Every step needs every robot's shares of the team sums."""
@@ -105,10 +108,20 @@ class GnPcgAgent(PgoAgent):
             return None
         return {r: m for r, m in got.items() if m is not None}
 
-    def _send(self, rnd: int, scalars: list[float], vectors: np.ndarray | None = None) -> PcgState:
+    def _send(self, rnd: int, scalars: list[float], vectors: np.ndarray | None = None,
+              restrict: np.ndarray | None = None, rows: bool = False) -> PcgState:
+        """Publish step ``k``: scalars, ``vectors`` at the public poses, the coarse
+        restriction of ``restrict`` and (``rows``) this robot's rows of the coarse matrix."""
         vec = np.zeros((0, 6)) if vectors is None else vectors.reshape(-1, 6)[self.local.public]
+        chunks, coarse = np.zeros(0, np.int64), np.zeros((0, 6))
+        if restrict is not None and self.coarse_rows is not None:
+            chunks, coarse = self.coarse_rows.own_ids, self.coarse_rows.restrict(restrict)
+        pairs, blocks = np.zeros((0, 2), np.int64), np.zeros((0, 6, 6))
+        if rows and self.coarse_rows is not None:
+            pairs, blocks = self.coarse_rows.rows(self.sys)
         msg = PcgState(robot=self.robot, round=rnd, step=self.k, scalars=np.asarray(scalars, float),
-                       vectors=np.ascontiguousarray(vec))
+                       vectors=np.ascontiguousarray(vec), chunks=chunks, coarse=coarse, pairs=pairs,
+                       blocks=blocks)
         self.k += 1
         self.sent = [*self.sent[-1:], msg]
         for key in [key for key in self.inbox if key[1] < self.k - 2]:
@@ -124,6 +137,10 @@ class GnPcgAgent(PgoAgent):
             self.peer_X = np.stack([self.neighbour_poses[int(k)] for k in self.local.inter_peer_key]) \
                 if len(self.local.inter_peer_key) else np.zeros((0, 4, 4))
             self._gather = self._gather_index()
+            # far ends that are a frame root's first pose: the team's gauge, never moved
+            roots = np.array([frame_root(int(r), self.team, self.local.robot_graph)
+                              for r in self.local.inter_peer], dtype=bool)
+            self._peer_anchor = roots & ((self.local.inter_peer_key & INDEX_MASK) == 0)
             self.cost = self._cost(self.poses, self.peer_X)
             self.kind = "begin"
             return self._send(rnd, [self.cost])
@@ -183,26 +200,51 @@ class GnPcgAgent(PgoAgent):
         self.sys = LocalSystem(self.poses, lg.intra_i, lg.intra_j, lg.intra_meas, lg.intra_info,
                                lg.inter_own, lg.inter_own_is_i, self.peer_X, lg.inter_meas,
                                lg.inter_info, anchor=self.root, damping=self.lam)
+        size = self.params.gn_coarse_size
+        self.coarse_rows = CoarseRows(self.robot, self.poses, self.peer_X, lg.inter_peer,
+                                      lg.inter_peer_key, size, self.sys.keep,
+                                      self._peer_anchor) if size > 0 else None
+        self.coarse: CoarseSolver | None = None
         self.x = np.zeros(6 * len(lg.keys))
         self.r = -self.sys.gradient
-        self.u = self.sys.precondition(self.r)
+        self.ub = self.sys.precondition(self.r)
         self.kind = "cg0"
         self.cg_i = 0
-        return self._send(rnd, [], self.u)
+        return self._send(rnd, [], self.ub, restrict=self.r, rows=True)
+
+    def _apply(self, got: dict[int, PcgState], own_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The preconditioned vector at the own poses and at the inter-robot edges' far ends:
+        block Jacobi (``own_b`` and the neighbours' received parts) plus the coarse correction."""
+        peer = self._peer_vectors(got)
+        cr = self.coarse_rows
+        if cr is None:
+            return own_b, peer
+        mine = self.sent[-1]
+        msgs = [got.get(r, mine) for r in sorted(self.team)]
+        if self.coarse is None:
+            self.coarse = CoarseSolver([np.asarray(m.pairs) for m in msgs],
+                                       [np.asarray(m.blocks) for m in msgs],
+                                       [np.asarray(m.chunks) for m in msgs])
+        y = self.coarse.solve([np.asarray(m.chunks) for m in msgs], [np.asarray(m.coarse) for m in msgs])
+        own = own_b + self.coarse.prolong(y, cr.own_ids[cr.local_chunk], cr.P_own).ravel()
+        return own, peer + self.coarse.prolong(y, cr.peer_ids, cr.P_peer)
 
     def _cg_start(self, rnd: int, got: dict[int, PcgState]) -> PcgState:
-        self.w = self.sys.multiply(self.u, self._peer_vectors(got))
+        self.u, u_peer = self._apply(got, self.ub)
+        self.w = self.sys.multiply(self.u, u_peer)
         self.p = np.zeros_like(self.x)
         self.s, self.q, self.z = self.p.copy(), self.p.copy(), self.p.copy()
-        self.m = self.sys.precondition(self.w)
+        self.mb = self.sys.precondition(self.w)
         self.kind = "cg"
-        return self._send(rnd, [float(self.r @ self.u), float(self.w @ self.u)], self.m)
+        return self._send(rnd, [float(self.r @ self.u), float(self.w @ self.u)], self.mb,
+                          restrict=self.w)
 
     def _cg_iterate(self, rnd: int, got: dict[int, PcgState]) -> PcgState:
         """One pipelined-PCG iteration (the reduction and the matvec of ``m`` overlap)."""
         gamma = float(self.r @ self.u) + sum(float(m.scalars[0]) for m in got.values())
         delta = float(self.w @ self.u) + sum(float(m.scalars[1]) for m in got.values())
-        n = self.sys.multiply(self.m, self._peer_vectors(got))
+        self.m, m_peer = self._apply(got, self.mb)
+        n = self.sys.multiply(self.m, m_peer)
         if self.cg_i == 0:
             self.gamma0 = gamma
             beta, alpha = 0.0, gamma / delta if delta > 0 else 0.0
@@ -225,8 +267,9 @@ class GnPcgAgent(PgoAgent):
         if alpha <= 0 or gamma <= (p.gn_forcing ** 2) * self.gamma0 or self.cg_i >= p.gn_max_cg:
             self.kind = "eval"
             return self._send(rnd, [], self.x)
-        self.m = self.sys.precondition(self.w)
-        return self._send(rnd, [float(self.r @ self.u), float(self.w @ self.u)], self.m)
+        self.mb = self.sys.precondition(self.w)
+        return self._send(rnd, [float(self.r @ self.u), float(self.w @ self.u)], self.mb,
+                          restrict=self.w)
 
     def _trial(self, got: dict[int, PcgState]) -> tuple[np.ndarray, np.ndarray]:
         assert self.peer_X is not None
