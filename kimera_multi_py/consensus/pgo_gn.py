@@ -112,16 +112,18 @@ class GnPcgAgent(PgoAgent):
               restrict: np.ndarray | None = None, rows: bool = False) -> PcgState:
         """Publish step ``k``: scalars, ``vectors`` at the public poses, the coarse
         restriction of ``restrict`` and (``rows``) this robot's rows of the coarse matrix."""
-        vec = np.zeros((0, 6)) if vectors is None else vectors.reshape(-1, 6)[self.local.public]
-        chunks, coarse = np.zeros(0, np.int64), np.zeros((0, 6))
+        f4 = np.float32
+        vec = np.zeros((0, 6), f4) if vectors is None else vectors.reshape(-1, 6)[self.local.public]
+        chunks, coarse = np.zeros(0, np.int64), np.zeros((0, 6), f4)
         if restrict is not None and self.coarse_rows is not None:
             chunks, coarse = self.coarse_rows.own_ids, self.coarse_rows.restrict(restrict)
-        pairs, blocks = np.zeros((0, 2), np.int64), np.zeros((0, 6, 6))
+        pairs, blocks = np.zeros((0, 2), np.int64), np.zeros((0, 6, 6), f4)
         if rows and self.coarse_rows is not None:
             pairs, blocks = self.coarse_rows.rows(self.sys)
         msg = PcgState(robot=self.robot, round=rnd, step=self.k, scalars=np.asarray(scalars, float),
-                       vectors=np.ascontiguousarray(vec), chunks=chunks, coarse=coarse, pairs=pairs,
-                       blocks=blocks)
+                       vectors=np.ascontiguousarray(vec, f4), chunks=chunks,
+                       coarse=np.ascontiguousarray(coarse, f4), pairs=pairs,
+                       blocks=np.ascontiguousarray(blocks, f4))
         self.k += 1
         self.sent = [*self.sent[-1:], msg]
         for key in [key for key in self.inbox if key[1] < self.k - 2]:
@@ -179,7 +181,7 @@ class GnPcgAgent(PgoAgent):
         assert self._gather is not None
         if not len(self._gather):
             return np.zeros((0, 6))
-        stacked = np.concatenate([np.asarray(got[r].vectors) for r in self.local.neighbours])
+        stacked = np.concatenate([np.asarray(got[r].vectors, dtype=float) for r in self.local.neighbours])
         return stacked[self._gather]
 
     def _cost(self, poses: np.ndarray, peer_X: np.ndarray) -> float:
@@ -207,7 +209,7 @@ class GnPcgAgent(PgoAgent):
         self.coarse: CoarseSolver | None = None
         self.x = np.zeros(6 * len(lg.keys))
         self.r = -self.sys.gradient
-        self.ub = self.sys.precondition(self.r)
+        self.ub = _single(self.sys.precondition(self.r))
         self.kind = "cg0"
         self.cg_i = 0
         return self._send(rnd, [], self.ub, restrict=self.r, rows=True)
@@ -223,9 +225,9 @@ class GnPcgAgent(PgoAgent):
         msgs = [got.get(r, mine) for r in sorted(self.team)]
         if self.coarse is None:
             self.coarse = CoarseSolver([np.asarray(m.pairs) for m in msgs],
-                                       [np.asarray(m.blocks) for m in msgs],
+                                       [np.asarray(m.blocks, dtype=float) for m in msgs],
                                        [np.asarray(m.chunks) for m in msgs])
-        y = self.coarse.solve([np.asarray(m.chunks) for m in msgs], [np.asarray(m.coarse) for m in msgs])
+        y = self.coarse.solve([np.asarray(m.chunks) for m in msgs], [np.asarray(m.coarse, dtype=float) for m in msgs])
         own = own_b + self.coarse.prolong(y, cr.own_ids[cr.local_chunk], cr.P_own).ravel()
         return own, peer + self.coarse.prolong(y, cr.peer_ids, cr.P_peer)
 
@@ -234,7 +236,7 @@ class GnPcgAgent(PgoAgent):
         self.w = self.sys.multiply(self.u, u_peer)
         self.p = np.zeros_like(self.x)
         self.s, self.q, self.z = self.p.copy(), self.p.copy(), self.p.copy()
-        self.mb = self.sys.precondition(self.w)
+        self.mb = _single(self.sys.precondition(self.w))
         self.kind = "cg"
         return self._send(rnd, [float(self.r @ self.u), float(self.w @ self.u)], self.mb,
                           restrict=self.w)
@@ -266,8 +268,9 @@ class GnPcgAgent(PgoAgent):
         p = self.params
         if alpha <= 0 or gamma <= (p.gn_forcing ** 2) * self.gamma0 or self.cg_i >= p.gn_max_cg:
             self.kind = "eval"
+            self.x = _single(self.x)  # the step as the neighbours receive it
             return self._send(rnd, [], self.x)
-        self.mb = self.sys.precondition(self.w)
+        self.mb = _single(self.sys.precondition(self.w))
         return self._send(rnd, [float(self.r @ self.u), float(self.w @ self.u)], self.mb,
                           restrict=self.w)
 
@@ -305,6 +308,11 @@ class GnPcgAgent(PgoAgent):
             self.done = True
             return None
         return self._linearise(rnd)
+
+
+def _single(v: np.ndarray) -> np.ndarray:
+    """``v`` rounded to float32 (what travels), back in float64."""
+    return np.asarray(v, dtype=np.float32).astype(np.float64)
 
 
 def make_agent(local: LocalGraph, params: PgoParams) -> PgoAgent:
