@@ -69,6 +69,8 @@ class PgoParams:
     gn_damping_max: float = 1e6  # a rejected step beyond this λ: converged
     gn_rel_tol: float = 1e-9  # done when an accepted step lowers the team cost by less (relative)
     gn_max_outer: int = 100
+    # line search: the team cost at every one of these multiples of the step, in one round
+    gn_step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 1.5, 2.0)
     gn_coarse_size: int = 20  # poses per rigid chunk of the coarse space (0: block Jacobi only)
     rel_tol: float = 1e-8  # ready when the relative pose change of an update is below this
     lm_iterations: int = 20  # per local solve (warm-started; usually 1-3 are used)

@@ -20,7 +20,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from kimera_multi_py.consensus.pgo_linear import LocalSystem, adjoint
+from kimera_multi_py.consensus.pgo_linear import LinearSystemError, LocalSystem, adjoint
 from kimera_multi_py.geometry import inverse
 
 INDEX_MASK = (1 << 56) - 1  # a pose key's index bits (robot_key)
@@ -101,8 +101,17 @@ class CoarseSolver:
             off = i != j
             np.add.at(A, (j[off], slice(None), i[off], slice(None)), np.swapaxes(blk[off], 1, 2))
         A = A.reshape(6 * m, 6 * m)
-        scale = float(np.trace(A)) / max(6 * m, 1)
-        self._factor = sla.cho_factor(A + 1e-10 * max(scale, 1e-300) * np.eye(6 * m))
+        # A_c = PᵀHP is positive semi-definite up to the float32 rounding of its blocks (and
+        # near-singular on degenerate information matrices): shift its diagonal until it factors
+        diag = np.maximum(np.abs(np.diagonal(A)), 1e-12 * max(float(np.abs(np.diagonal(A)).max(initial=0.0)), 1e-300))
+        for shift in (1e-10, 1e-7, 1e-4, 1e-2, 1.0):
+            try:
+                self._factor = sla.cho_factor(A + np.diag(shift * diag))
+                break
+            except np.linalg.LinAlgError:
+                continue
+        else:
+            raise LinearSystemError("coarse matrix not positive definite")
 
     def solve(self, chunks: list[np.ndarray], restricted: list[np.ndarray]) -> np.ndarray:
         """``A_c⁻¹ Pᵀv`` from every robot's ``(chunk ids, P_rᵀ v_r)``, as ``(m, 6)``."""

@@ -274,35 +274,43 @@ class GnPcgAgent(PgoAgent):
         return self._send(rnd, [float(self.r @ self.u), float(self.w @ self.u)], self.mb,
                           restrict=self.w)
 
-    def _trial(self, got: dict[int, PcgState]) -> tuple[np.ndarray, np.ndarray]:
+    def _trial(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Own and far-end poses after ``t`` times the step."""
         assert self.peer_X is not None
-        poses = self.poses @ se3_expmap(self.x.reshape(-1, 6))
-        peer = self.peer_X @ se3_expmap(self._peer_vectors(got)) if len(self.peer_X) else self.peer_X
+        poses = self.poses @ se3_expmap(t * self.x.reshape(-1, 6))
+        peer = self.peer_X @ se3_expmap(t * self.x_peer) if len(self.peer_X) else self.peer_X
         return poses, peer
 
     def _evaluate(self, rnd: int, got: dict[int, PcgState]) -> PcgState:
-        self.trial_poses, self.trial_peer = self._trial(got)
-        self.trial_cost = self._cost(self.trial_poses, self.trial_peer)
+        """The robot's cost at every step length of the line search (one round for all)."""
+        self.x_peer = self._peer_vectors(got)
+        self.trial_costs = [self._cost(*self._trial(t)) for t in self.params.gn_step_lengths]
         self.kind = "decide"
-        return self._send(rnd, [self.trial_cost])
+        return self._send(rnd, self.trial_costs)
 
     def _decide(self, rnd: int, got: dict[int, PcgState]) -> PcgState | None:
         p = self.params
-        new_cost = self.trial_cost + sum(float(m.scalars[0]) for m in got.values())
+        costs = np.array(self.trial_costs) + sum(np.asarray(m.scalars) for m in got.values())
+        best = int(np.argmin(costs))
+        new_cost, t = float(costs[best]), float(p.gn_step_lengths[best])
         self.outer += 1
         decrease = (self.team_cost - new_cost) / max(abs(self.team_cost), 1e-300)
         if new_cost < self.team_cost:
-            change = np.sqrt(np.sum((self.trial_poses - self.poses) ** 2) / max(np.sum(self.poses**2), 1e-300))
+            poses, peer = self._trial(t)
+            change = np.sqrt(np.sum((poses - self.poses) ** 2) / max(np.sum(self.poses**2), 1e-300))
             self.rel_change = float(change)
-            self.poses, self.peer_X = self.trial_poses, self.trial_peer
-            self.cost, self.team_cost = self.trial_cost, new_cost
-            self.lam = max(self.lam / p.gn_damping_factor, p.gn_damping_min)
+            self.poses, self.peer_X = poses, peer
+            self.cost, self.team_cost = self.trial_costs[best], new_cost
+            if t >= 1.0:
+                self.lam = max(self.lam / p.gn_damping_factor, p.gn_damping_min)
+            else:  # the model over-reached: damp a little more
+                self.lam = min(self.lam * p.gn_damping_factor, p.gn_damping_max)
             converged = decrease < p.gn_rel_tol
         else:
             self.lam *= p.gn_damping_factor ** 2
             converged = self.lam > p.gn_damping_max
-        log.debug("robot %d round %d outer %d: cost %.9g lambda %.2e cg %d", self.robot, rnd, self.outer,
-                  self.team_cost, self.lam, self.cg_i)
+        log.debug("robot %d round %d outer %d: cost %.9g t %g lambda %.2e cg %d", self.robot, rnd,
+                  self.outer, self.team_cost, t, self.lam, self.cg_i)
         if converged or self.outer >= p.gn_max_outer:
             self.ready = True
             self.done = True
