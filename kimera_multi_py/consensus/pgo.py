@@ -70,8 +70,9 @@ class PgoParams:
     gn_rel_tol: float = 1e-9  # done when an accepted step lowers the team cost by less (relative)
     gn_max_outer: int = 100
     # line search: the team cost at every one of these multiples of the step, in one round
-    gn_step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 1.5, 2.0)
+    gn_step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 1.5, 2.0, 3.0)
     gn_coarse_size: int = 20  # poses per rigid chunk of the coarse space (0: block Jacobi only)
+    gn_coarse_refresh: int = 3  # outer steps between rebuilds of the coarse space
     rel_tol: float = 1e-8  # ready when the relative pose change of an update is below this
     lm_iterations: int = 20  # per local solve (warm-started; usually 1-3 are used)
     lm_rel_tol: float = 1e-10

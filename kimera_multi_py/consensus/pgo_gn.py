@@ -54,7 +54,10 @@ class GnPcgAgent(PgoAgent):
         self.peer_X: np.ndarray | None = None  # poses at the inter-robot edges' far ends
         self._gather: np.ndarray | None = None
         self.coarse_rows: CoarseRows | None = None
+        self.coarse: CoarseSolver | None = None
         self._peer_anchor = np.zeros(0, dtype=bool)
+        self.last_decrease = np.inf  # relative team-cost decrease of the last outer step
+        self.coarse_built = 0
 
     def dependencies(self) -> set[int]:
         """Every step needs every robot's shares of the team sums."""
@@ -203,16 +206,23 @@ class GnPcgAgent(PgoAgent):
                                lg.inter_own, lg.inter_own_is_i, self.peer_X, lg.inter_meas,
                                lg.inter_info, anchor=self.root, damping=self.lam)
         size = self.params.gn_coarse_size
-        self.coarse_rows = CoarseRows(self.robot, self.poses, self.peer_X, lg.inter_peer,
-                                      lg.inter_peer_key, size, self.sys.keep,
-                                      self._peer_anchor) if size > 0 else None
-        self.coarse: CoarseSolver | None = None
+        # the coarse space (its maps P and A_c = PᵀHP) is rebuilt every gn_coarse_refresh outer
+        # steps (sooner while the team cost still falls by more than 1% a step: the poses,
+        # hence P and H, still move a lot); in between the old one stays a valid (SPD)
+        # preconditioner and costs no bytes
+        rebuild = size > 0 and (self.coarse_rows is None or self.last_decrease > 1e-2
+                                or self.outer - self.coarse_built >= self.params.gn_coarse_refresh)
+        if rebuild:
+            self.coarse_rows = CoarseRows(self.robot, self.poses, self.peer_X, lg.inter_peer,
+                                          lg.inter_peer_key, size, self.sys.keep, self._peer_anchor)
+            self.coarse = None
+            self.coarse_built = self.outer
         self.x = np.zeros(6 * len(lg.keys))
         self.r = -self.sys.gradient
         self.ub = _single(self.sys.precondition(self.r))
         self.kind = "cg0"
         self.cg_i = 0
-        return self._send(rnd, [], self.ub, restrict=self.r, rows=True)
+        return self._send(rnd, [], self.ub, restrict=self.r, rows=rebuild)
 
     def _apply(self, got: dict[int, PcgState], own_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The preconditioned vector at the own poses and at the inter-robot edges' far ends:
@@ -223,7 +233,7 @@ class GnPcgAgent(PgoAgent):
             return own_b, peer
         mine = self.sent[-1]
         msgs = [got.get(r, mine) for r in sorted(self.team)]
-        if self.coarse is None:
+        if self.coarse is None:  # the rows came with the first step after a rebuild
             self.coarse = CoarseSolver([np.asarray(m.pairs) for m in msgs],
                                        [np.asarray(m.blocks, dtype=float) for m in msgs],
                                        [np.asarray(m.chunks) for m in msgs])
@@ -295,6 +305,7 @@ class GnPcgAgent(PgoAgent):
         new_cost, t = float(costs[best]), float(p.gn_step_lengths[best])
         self.outer += 1
         decrease = (self.team_cost - new_cost) / max(abs(self.team_cost), 1e-300)
+        self.last_decrease = max(decrease, 0.0)
         if new_cost < self.team_cost:
             poses, peer = self._trial(t)
             change = np.sqrt(np.sum((poses - self.poses) ** 2) / max(np.sum(self.poses**2), 1e-300))
