@@ -25,6 +25,7 @@ take the same decisions.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -92,8 +93,7 @@ class GnPcgAgent(PgoAgent):
             out.append(msg)
         elif self.sent and rnd - self.sent[-1].round >= self.params.resend_interval:
             # another robot may still miss either of the last two steps (it is one behind at most)
-            self.sent = [PcgState(robot=self.robot, round=rnd, step=m.step, scalars=m.scalars,
-                                  vectors=m.vectors) for m in self.sent]
+            self.sent = [dataclasses.replace(m, round=rnd) for m in self.sent]
             out.extend(self.sent)
         out.append(self._status(rnd))
         return out
