@@ -12,6 +12,7 @@ from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, split_local
 from kimera_multi_py.consensus.pgo_gn import GnPcgAgent, make_agent
 from kimera_multi_py.consensus.pgo_linear import LocalSystem, linearise_edges, se3_expmap
 from kimera_multi_py.consensus.workflow import load_graph, run_pgo
+from kimera_multi_py.errors import ConfigError
 
 
 def pgo(datasets_dir: Path, name: str) -> Path:
@@ -99,3 +100,10 @@ def test_gn_pcg_meets_the_cap_block_sor_cannot(datasets_dir: Path) -> None:
     assert gn.relative_gap <= 1e-3 < sor.relative_gap
     # and without more bytes per round
     assert gn.bytes_sent / gn.rounds <= sor.bytes_sent / sor.rounds
+
+
+def test_run_pgo_method_argument(datasets_dir: Path) -> None:
+    res = run_pgo([pgo(datasets_dir, "tinyGrid3D")], robots=3, max_rounds=300, method="gn_pcg")
+    assert "pgo/pcg_state" in res.bytes_by_topic and abs(res.relative_gap) <= 1e-6
+    with pytest.raises(ConfigError, match="method"):
+        run_pgo([pgo(datasets_dir, "tinyGrid3D")], robots=3, method="newton")
