@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from kimera_multi_py.consensus.pgo import PgoParams  # noqa: E402
-from kimera_multi_py.consensus.workflow import run_pgo  # noqa: E402
+from kimera_multi_py.consensus.workflow import DEFAULT_METHOD, run_pgo  # noqa: E402
 
 DATASETS = ("tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "torus3D", "cubicle")
 ROBUST = ("smallGrid3D", 0.5)
@@ -34,7 +34,7 @@ DEFAULT_DIR = Path(os.environ.get("KMP_DATASETS", REPO.parent / "shared" / "data
 
 
 def _params(args: argparse.Namespace) -> PgoParams:
-    params = PgoParams(acceleration=args.acceleration)
+    params = PgoParams(acceleration=args.acceleration, method=args.method or DEFAULT_METHOD)
     if args.over_relaxation is not None:
         params.over_relaxation = args.over_relaxation
     params.distributed_init = args.distributed_init
@@ -70,6 +70,8 @@ def main() -> None:
                     help="Nesterov momentum instead of the default adaptive block SOR")
     ap.add_argument("--over-relaxation", type=float, default=None,
                     help="fixed SOR factor (1.0: plain Gauss-Seidel; default adaptive)")
+    ap.add_argument("--method", choices=("block_sor", "gn_pcg"), default=None,
+                    help="distributed solver (default: the CLI's, workflow.DEFAULT_METHOD)")
     ap.add_argument("--distributed-init", action="store_true",
                     help="chordal block Gauss-Seidel initialisation before the BCD")
     args = ap.parse_args()

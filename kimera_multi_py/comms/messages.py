@@ -509,6 +509,30 @@ class PgoStatus(Message):
     rel_change: float = _f(Float(lo=0.0))
 
 
+@message("PcgState", keys.PCG_STATE)
+class PcgState(Message):
+    """One lock-step of the distributed Gauss–Newton solve (``consensus.pgo_gn``).
+
+    ``scalars`` are the robot's shares of the team-wide sums of this step (costs, CG inner
+    products); ``vectors`` a tangent vector at its public poses, in the order of its
+    :class:`PublicPoses` keys (a CG direction or the Gauss–Newton step), or empty.
+    ``chunks`` are the ids of its coarse unknowns (rigid pose chunks) and ``coarse`` a vector's
+    restriction to them; ``pairs`` / ``blocks`` its rows of the coarse matrix (6x6 blocks
+    joining two chunk ids). Any of these may be empty. Vectors and blocks travel as float32
+    (the sender rounds its own copy the same way, so every robot applies the same operator).
+    """
+
+    robot: int = robot_id()
+    round: int = count()
+    step: int = count()
+    scalars: np.ndarray = arr("float64", "s")
+    vectors: np.ndarray = arr("float32", "n", 6)
+    chunks: np.ndarray = arr("int64", "c", lo=0)
+    coarse: np.ndarray = arr("float32", "c", 6)
+    pairs: np.ndarray = arr("int64", "b", 2, lo=0)
+    blocks: np.ndarray = arr("float32", "b", 6, 6)
+
+
 @message("PgoCommand", keys.PGO_COMMAND)
 class PgoCommand(Message):
     """A schedule decision: which robots update in ``round`` (one colour of the robot graph)."""

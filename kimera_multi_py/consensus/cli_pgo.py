@@ -28,6 +28,10 @@ def register(app: typer.Typer) -> None:
             help="add this fraction of wrong inter-robot closures")] = 0.0,
         seed: Annotated[int, typer.Option(help="seed of outliers and message faults")] = 0,
         max_rounds: Annotated[int, typer.Option(help="round cap")] = 500,
+        method: Annotated[str | None, typer.Option(help=(
+            "block_sor (block Gauss-Seidel with adaptive over-relaxation, the default) | "
+            "gn_pcg (distributed Levenberg-Marquardt with two-level CG); --robust always "
+            "uses block_sor"))] = None,
         json_out: Annotated[Path | None, typer.Option("--json", help="write figures here")] = None,
         out: Annotated[Path | None, typer.Option(help="write g2o, TUM and results.json here")]
         = None,
@@ -41,7 +45,8 @@ def register(app: typer.Typer) -> None:
         console = Console()
         try:
             result = run_pgo(inputs, robots=robots, transport=transport, robust=robust,
-                             outliers=outliers, seed=seed, max_rounds=max_rounds, out_dir=out)
+                             outliers=outliers, seed=seed, max_rounds=max_rounds, out_dir=out,
+                             method=method)
         except KimeraMultiError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(1) from None

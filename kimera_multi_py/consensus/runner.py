@@ -110,8 +110,7 @@ async def run_team(agents: Sequence[PgoAgent], buses: Sequence[Bus], max_rounds:
 
 async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, timeout: float,
                  round_log: _RoundLog, stats: RunStats, start: int) -> int:
-    depends = set(agent.team if agent.robot == agent.leader else agent.local.neighbours)
-    depends.discard(agent.robot)
+    depends = agent.dependencies()
     seen: dict[int, int] = {}  # robot -> latest status round
     stopped: set[int] = set()
     rnd = 0
