@@ -45,91 +45,13 @@ from kimera_multi_py.consensus.chordal import edge_weights
 from kimera_multi_py.consensus.factors import between, fixed_neighbour, to_values
 from kimera_multi_py.consensus.frame_decision import FrameDecision
 from kimera_multi_py.consensus.pgo_init import Initialisation
+from kimera_multi_py.consensus.pgo_params import PgoParams
 from kimera_multi_py.consensus.pgo_weights import RobustWeights
 from kimera_multi_py.consensus.robust import GncSchedule, tls_threshold
 from kimera_multi_py.geometry import inverse, so3_exp, so3_log, to_gtsam
 from kimera_multi_py.io.pose_graph import INTER_ROBOT, ODOMETRY, PoseGraph, robot_key
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class PgoParams:
-    """Knobs of the distributed solver (defaults tuned on the DPGO benchmark graphs)."""
-
-    max_rounds: int = 500
-    # "block_sor": block Gauss–Seidel with adaptive over-relaxation (this module);
-    # "gn_pcg": Levenberg–Marquardt with pipelined block-Jacobi CG across the robots (.pgo_gn)
-    method: str = "block_sor"
-    gn_forcing: float = 0.1  # CG stops when the preconditioned residual fell by this factor
-    gn_max_cg: int = 60  # CG iterations per outer step at most
-    gn_damping: float = 1e-4  # initial λ of λ·diag(H)
-    gn_damping_factor: float = 3.0  # λ /= this on an accepted step, *= its square on a rejected one
-    gn_damping_min: float = 1e-8
-    gn_damping_max: float = 1e6  # a rejected step beyond this λ: converged
-    gn_rel_tol: float = 1e-9  # done when an accepted step lowers the team cost by less (relative)
-    gn_max_outer: int = 100
-    # line search: the team cost at every one of these multiples of the step, in one round
-    gn_step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 1.5, 2.0, 3.0)
-    gn_coarse_size: int = 20  # poses per rigid chunk of the coarse space (0: block Jacobi only)
-    gn_coarse_refresh: int = 3  # outer steps between rebuilds of the coarse space
-    rel_tol: float = 1e-8  # ready when the relative pose change of an update is below this
-    lm_iterations: int = 20  # per local solve (warm-started; usually 1-3 are used)
-    lm_rel_tol: float = 1e-10
-    chordal_init: bool = True  # local chordal initialisation (else the robot's odometry)
-    acceleration: bool = False  # Nesterov momentum on published poses (measured: SOR is better)
-    # block SOR: publish X ⊕ ω(X* ⊖ X). None adapts ω per robot (Young's estimate from the
-    # ratio of successive block steps); a number fixes it (1.0: plain Gauss–Seidel)
-    over_relaxation: float | None = None
-    max_over_relaxation: float = 1.98
-    restart_interval: int = 50  # momentum restart every this many updates (besides on cost rise)
-    resend_interval: int = 5  # re-publish unchanged public poses this often (message loss)
-    robust: bool = False
-    inlier_probability: float = 0.999  # χ²₆ quantile of the TLS threshold c̄² (22.5)
-    tls_dof: int = 6  # degrees of freedom of that χ² (3 for a planar, 2-D graph)
-    gnc_round_cap: int = 10  # rounds between weight updates at most
-    # robust: which inter-robot edges start at weight 0 (GNC revisits them): "support" those no
-    # other edge agrees with (random outliers; every consistent group stays for the joint GNC),
-    # "alignment" those outside the alignment's majority hypothesis, "none"
-    screen: str = "support"
-    gnc_mu0_trusted: bool = True  # μ₀ from the largest residual of the current inliers only
-    # one μ for the team: robots propose their μ₀ and apply the smallest this many rounds later
-    gnc_team_mu: bool = True
-    gnc_mu_delay: int = 3
-    # ceiling of μ₀: start at least this convex. μ₀ from the current residuals is too large when
-    # the start already sits in an aliased hypothesis (a warm restart after a wrong solve: the
-    # aliased closures fit, so GNC starts near-binary and keeps them; gtsam's GNC takes μ₀ from
-    # the initial values' residuals, usually far larger). Measured on the office graphs.
-    gnc_mu0_max: float = 1e-3
-    gnc_max_steps: int = 40
-    gnc_rechecks: int = 2  # after GNC: re-decide every edge at the converged solution (χ² test)
-    recheck_factor: float = 3.0  # first re-check admits r² ≤ factor·c̄², the last one r² ≤ c̄²
-    align_patience: int = 20  # rounds with < 3 alignment inliers before a plain alignment
-    # robust mode: frame alignment by hypotheses (alignment.frame_hypotheses). A robot aligns to
-    # the hypothesis supported by the most distinct places, when it leads the runner-up by
-    # ``align_min_margin`` places and rests on ``align_min_places`` or more; it decides before
-    # every neighbour pose is known only with a lead of ``align_early_margin``. A robot with no
-    # such hypothesis stays out of the team frame for the epoch (its own frame, edges off).
-    align_hypotheses: bool = True
-    align_min_places: int = 2
-    align_min_margin: int = 1
-    align_early_margin: int = 1
-    # no hypothesis leads when the epoch's evidence is in: "consensus" aligns by the robust
-    # consensus of every edge and leaves the choice to GNC; "exclude" keeps the robot out of the
-    # team frame (its own frame) for the epoch
-    align_tie: str = "consensus"
-    place_radius: float = 2.0  # m: own closure poses closer than this are one place
-    # safety: an estimate that bends away from the robot's own odometry beyond its drift model
-    # (odometry_disagreement > 1) is not adopted; the robot falls back to its own frame
-    drift_check: bool = True
-    drift_z: float = 4.0
-    drift_floor: float = 0.5  # m
-    # chordal block Gauss–Seidel over the team before the BCD (measured: no faster on the
-    # benchmark graphs, worse on cubicle whose chordal relaxation is poor; off by default)
-    distributed_init: bool = False
-    init_rel_tol: float = 1e-3  # an initialising robot is ready below this relative change
-    init_max_rounds: int = 40  # the leader starts the BCD after this many rounds at most
-    start_resend: int = 5  # the leader repeats ``start`` this many rounds (message loss)
 
 
 @dataclass
