@@ -70,8 +70,6 @@ def test_a_partition_that_heals_keeps_both_sides_optimising(partitioned, clean):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="issue 16, open: after a 60 s partition the team ATE ends at 0.149 m against "
-                   "0.092 m clean on small seed 0, with 3 false inter-robot closures accepted (registration merged)")
 def test_a_healed_partition_ends_as_accurate_as_clean(partitioned, clean):
     _, res = partitioned
     assert res["loop_closures"]["false_accepted_inter"] == 0
