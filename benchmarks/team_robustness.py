@@ -22,6 +22,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -46,8 +47,7 @@ def measure(scenario: str, robots: int, seed: int, mode: str) -> dict[str, Any]:
     import numpy as np
 
     from kimera_multi_py.eval.metrics import align_se3, ate_rmse
-    from kimera_multi_py.eval.slam import score_closures
-    from kimera_multi_py.eval.team import team_frame_estimates, trajectory_results
+    from kimera_multi_py.eval.team import scored_closures, team_frame_estimates, trajectory_results
     from kimera_multi_py.sim import load_scenario
     from kimera_multi_py.sim.runner import SimRunner
 
@@ -76,20 +76,10 @@ def measure(scenario: str, robots: int, seed: int, mode: str) -> dict[str, Any]:
         p = np.c_[e[:, :3, 3], np.ones(len(e))]
         off = np.linalg.norm((p @ (T_r - T_wt).T)[:, :3], axis=1).mean()
         frames.append("aliased" if off > ALIASED_M else "true")
-    rows = {"inter": [], "intra": []}  # (true, pcm accepted, gnc accepted)
-    for o in outcomes:
-        if not o.closures:
-            continue
-        Z = np.stack([c.Z for c in o.closures])
-        ok = score_closures(Z, truth[o.robot][[c.own_kf for c in o.closures]],
-                            np.stack([truth[c.peer][c.peer_kf] for c in o.closures]))
-        for c, true in zip(o.closures, ok, strict=True):
-            w = c.weight if c.weight is not None else 0.0
-            rows["inter" if c.peer != o.robot else "intra"].append((bool(true), c.accepted, c.accepted and w >= 0.5))
+    scored_rows = scored_closures(truth, outcomes)
     closures: dict[str, int] = {}
-    for kind, rr in rows.items():
-        a = np.array(rr, dtype=bool).reshape(-1, 3)
-        true, pcm_ok, gnc_ok = a.T
+    for kind, sel in (("inter", scored_rows[:, 0]), ("intra", ~scored_rows[:, 0])):
+        pcm_ok, gnc_ok, true = scored_rows[sel, 1:].T
         for label, t in (("true", true), ("false", ~true)):
             closures[f"{kind}_{label}_verified"] = int(t.sum())
             closures[f"{kind}_{label}_rejected_pcm"] = int((t & ~pcm_ok).sum())
@@ -168,6 +158,17 @@ def table(runs: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _done_runs(path: Path) -> dict[tuple[str, int, int, str], dict[str, Any]]:
+    """Runs already recorded in a ``--jsonl`` file, by (scenario, robots, seed, mode)."""
+    out: dict[tuple[str, int, int, str], dict[str, Any]] = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                out[(r["scenario"], r["robots"], r["seed"], r["mode"])] = r
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenarios", nargs="+", default=SCENARIOS)
@@ -177,14 +178,29 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="2 seeds x 3 robots on office (for the test)")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per run")
     ap.add_argument("--json", action="store_true", help="print the JSON only")
+    ap.add_argument("--jsonl", type=Path, help="append each run to this file as it ends; runs already in it are "
+                    "not run again (a long sweep survives being stopped)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="runs at once (default: one per core)")
     args = ap.parse_args()
     if args.quick:
         args.scenarios, args.seeds, args.robots = SCENARIOS[:1], [0, 1], [3]
     jobs = [(s, n, seed, m) for s in args.scenarios for n in args.robots for seed in args.seeds for m in args.modes]
+    done = _done_runs(args.jsonl) if args.jsonl else {}
+
+    def one(job: tuple[str, int, int, str]) -> dict[str, Any]:
+        key = (Path(job[0]).stem, job[1], job[2], job[3])
+        if key in done:
+            return done[key]
+        run = run_one(*job, args.timeout)
+        if args.jsonl and "error" not in run:
+            with lock, args.jsonl.open("a") as f:
+                f.write(json.dumps(run) + "\n")
+        return run
+
+    lock = threading.Lock()
     # each run is its own process: run as many at once as there are cores (--jobs)
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        runs = list(pool.map(lambda j: run_one(*j, args.timeout), jobs))
+        runs = list(pool.map(one, jobs))
     out = {"runs": runs, "summary": summary(runs)}
     if args.json:
         print(json.dumps(out, indent=1))

@@ -84,13 +84,10 @@ def team_results(world: Any, truth: Sequence[np.ndarray], outcomes: Sequence[Rob
             "refused_messages": {o.robot: dict(o.traffic.get("refused", {})) for o in outcomes}}
 
 
-def closure_stats(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome]) -> dict[str, int]:
-    """Loop closures through the pipeline, scored against the true poses.
-
-    ``candidates`` were fetched and verified; ``verified`` passed geometry; PCM then kept a
-    consistent set and the back end's GNC weights decided the rest (weight < 0.5 = rejected).
-    """
-    rows = []  # (inter, pcm accepted, gnc accepted, true)
+def scored_closures(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome]) -> np.ndarray:
+    """Every verified loop closure of the team, one boolean row each: ``(inter-robot, PCM
+    accepted, accepted after the back end's GNC (weight >= 0.5), true against the true poses)``."""
+    rows = []
     for o in outcomes:
         if not o.closures:
             continue
@@ -100,7 +97,16 @@ def closure_stats(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome])
         for c, true in zip(o.closures, ok, strict=True):
             w = c.weight if c.weight is not None else 0.0
             rows.append((c.peer != o.robot, c.accepted, c.accepted and w >= 0.5, bool(true)))
-    r = np.array(rows, dtype=bool).reshape(-1, 4)
+    return np.array(rows, dtype=bool).reshape(-1, 4)
+
+
+def closure_stats(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome]) -> dict[str, int]:
+    """Loop closures through the pipeline, scored against the true poses.
+
+    ``candidates`` were fetched and verified; ``verified`` passed geometry; PCM then kept a
+    consistent set and the back end's GNC weights decided the rest (weight < 0.5 = rejected).
+    """
+    r = scored_closures(truth, outcomes)
     inter, pcm_ok, final, true = r.T
     fe = [o.front_end for o in outcomes]
     return {
