@@ -71,8 +71,6 @@ class GnPcgAgent(PgoAgent):
         self._peer_anchor = np.zeros(0, dtype=bool)
         self.last_decrease = np.inf  # relative team-cost decrease of the last outer step
         self.small_steps = 0  # consecutive accepted steps that lowered the cost by < gn_rel_tol
-        self.forcing = self.params.gn_forcing  # this outer step's CG tolerance
-        self.prev_gamma0 = np.inf  # ‖g‖² (preconditioned) at the previous linearisation
         self.coarse_built = 0
         self.recycle: list[tuple[np.ndarray, np.ndarray]] = []  # last steps (own, far ends)
         self.rec_steps: list[tuple[np.ndarray, np.ndarray]] = []  # those in this coarse space
@@ -299,7 +297,6 @@ class GnPcgAgent(PgoAgent):
         n = self.sys.multiply(self.m, m_peer)
         if self.cg_i == 0:
             self.gamma0 = gamma
-            self.forcing = self._forcing(gamma)
             beta, alpha = 0.0, gamma / delta if delta > 0 else 0.0
         else:
             beta = gamma / self.gamma_prev
@@ -317,29 +314,13 @@ class GnPcgAgent(PgoAgent):
         self.cg_i += 1
         self.cg_iterations += 1
         p = self.params
-        if alpha <= 0 or gamma <= (self.forcing ** 2) * self.gamma0 or self.cg_i >= p.gn_max_cg:
+        if alpha <= 0 or gamma <= (p.gn_forcing ** 2) * self.gamma0 or self.cg_i >= p.gn_max_cg:
             self.kind = "eval"
             self.x = _single(self.x)  # the step as the neighbours receive it
             return self._send(rnd, [], self.x)
         self.mb = _single(self.sys.precondition(self.w))
         return self._send(rnd, [float(self.r @ self.u), float(self.w @ self.u)], self.mb,
                           restrict=self.w)
-
-    def _forcing(self, gamma0: float) -> float:
-        """The CG tolerance of this outer step: ``gn_forcing``, or (``gn_forcing_ew``)
-        Eisenstat–Walker's choice 2, ``0.9 (‖g_k‖/‖g_{k−1}‖)²`` in the preconditioned norm with
-        its safeguard, clipped to ``[gn_forcing_min, gn_forcing]``: loose while the gradient
-        falls fast, tight once Newton's linear rate is limited by the inexact solve.
-        Every robot has the same ``γ₀`` (a team sum), hence the same tolerance."""
-        p = self.params
-        prev, self.prev_gamma0 = self.prev_gamma0, gamma0
-        if not p.gn_forcing_ew or not np.isfinite(prev) or prev <= 0:
-            return p.gn_forcing
-        eta = 0.9 * gamma0 / prev
-        guard = 0.9 * self.forcing ** 2
-        if guard > 0.1:
-            eta = max(eta, guard)
-        return float(np.clip(eta, p.gn_forcing_min, p.gn_forcing))
 
     def _trial(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Own and far-end poses after ``t`` times the step."""
