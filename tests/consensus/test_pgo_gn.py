@@ -167,7 +167,7 @@ def test_cli_default_is_gn_pcg_outside_robust(datasets_dir: Path) -> None:
 
 
 @pytest.mark.slow
-def test_recycling_speeds_up_cubicle_like_interleaving(datasets_dir: Path) -> None:
+def test_recycling_speeds_up_parking_garage(datasets_dir: Path) -> None:
     """parking-garage (5 robots, nearly every pose public): recycling the last steps in the
     coarse space reaches 1e-3 no later than without, within the issue's 200 rounds."""
     path = [pgo(datasets_dir, "parking-garage")]
