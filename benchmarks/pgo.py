@@ -24,8 +24,9 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from kimera_multi_py.consensus.cli_pgo import CLI_METHOD  # noqa: E402
 from kimera_multi_py.consensus.pgo import PgoParams  # noqa: E402
-from kimera_multi_py.consensus.workflow import DEFAULT_METHOD, run_pgo  # noqa: E402
+from kimera_multi_py.consensus.workflow import run_pgo  # noqa: E402
 
 DATASETS = ("tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "torus3D", "cubicle")
 ROBUST = ("smallGrid3D", 0.5)
@@ -34,7 +35,7 @@ DEFAULT_DIR = Path(os.environ.get("KMP_DATASETS", REPO.parent / "shared" / "data
 
 
 def _params(args: argparse.Namespace) -> PgoParams:
-    params = PgoParams(acceleration=args.acceleration, method=args.method or DEFAULT_METHOD)
+    params = PgoParams(acceleration=args.acceleration, method=args.method or CLI_METHOD)
     if args.over_relaxation is not None:
         params.over_relaxation = args.over_relaxation
     params.distributed_init = args.distributed_init
@@ -71,7 +72,7 @@ def main() -> None:
     ap.add_argument("--over-relaxation", type=float, default=None,
                     help="fixed SOR factor (1.0: plain Gauss-Seidel; default adaptive)")
     ap.add_argument("--method", choices=("block_sor", "gn_pcg"), default=None,
-                    help="distributed solver (default: the CLI's, workflow.DEFAULT_METHOD)")
+                    help="distributed solver (default: the CLI's, cli_pgo.CLI_METHOD)")
     ap.add_argument("--distributed-init", action="store_true",
                     help="chordal block Gauss-Seidel initialisation before the BCD")
     args = ap.parse_args()
@@ -88,14 +89,15 @@ def main() -> None:
                       outliers=args.outliers if robust else 0.0, seed=0,
                       max_rounds=args.max_rounds, params=_params(args))
         fig = _figures(res)
+        fig["method"] = "block_sor" if robust else (args.method or CLI_METHOD)  # robust: block SOR
         rows.append(fig)
         if args.json:
             print(json.dumps(fig), flush=True)
-    print(f"{'dataset':16s} {'robots':>6s} {'robust':6s} {'central':>12s} {'distrib':>12s} "
+    print(f"{'dataset':16s} {'method':9s} {'robots':>6s} {'robust':6s} {'central':>12s} {'distrib':>12s} "
           f"{'gap':>9s} {'rounds':>6s} {'r1e-2':>5s} {'r1e-3':>5s} {'kB/rnd':>7s} {'MB':>7s} "
           f"{'wall_s':>7s} {'cwall_s':>7s}", file=sys.stderr)
     for f in rows:
-        print(f"{f['dataset']:16s} {f['robots']:6d} {str(f['robust']):6s} "
+        print(f"{f['dataset']:16s} {f['method']:9s} {f['robots']:6d} {str(f['robust']):6s} "
               f"{f['centralized_cost']:12.6g} {f['distributed_cost']:12.6g} "
               f"{f['relative_gap']:9.2e} {f['rounds']:6d} {str(f['rounds_to_1e-2']):>5s} "
               f"{str(f['rounds_to_1e-3']):>5s} {f['bytes_per_round'] / 1e3:7.2f} "

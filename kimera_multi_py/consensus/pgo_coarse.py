@@ -12,6 +12,16 @@ robot's restriction ``P_rᵀ v_r`` (6 floats per chunk), and the prolongation on
 pose is computed locally from its pose and chunk (both known).
 
 Chunk ids are ``robot << 32 | chunk``; all robots number the coarse unknowns by sorted id.
+
+Recycling (Krylov subspace recycling across the Gauss–Newton steps): the coarse space also
+holds the team's last few steps ``d`` (each robot knows its own part and, from the step
+exchange, its part at the inter-robot edges' far ends). Truncated CG leaves the same smooth
+error in the next linear system (the line search then picks steps of 1.5-3x), so the old step
+is close to the slow modes of the new one. Their coarse rows ``Pᵀ H d`` and ``dᵀ H d`` are
+recomputed with the current ``H`` every linearisation (6 floats per chunk, one block per robot)
+and their restriction ``dᵀ v`` travels as one more row of ``coarse`` (id ``RECYCLE | robot``).
+The extended coarse matrix is solved by block elimination; directions whose Schur complement
+is not clearly positive (a step in the span of the chunks or of the other steps) are dropped.
 """
 
 from __future__ import annotations
@@ -24,6 +34,8 @@ from kimera_multi_py.consensus.pgo_linear import LinearSystemError, LocalSystem,
 from kimera_multi_py.geometry import inverse
 
 INDEX_MASK = (1 << 56) - 1  # a pose key's index bits (robot_key)
+RECYCLE = 1 << 62  # coarse ids of the recycled steps: restriction ``RECYCLE | robot``, rows
+MAX_RECYCLE = 6  # recycled steps in one 6-wide row at most
 
 
 def chunk_ids(robot: int | np.ndarray, index: np.ndarray, size: int) -> np.ndarray:
@@ -85,17 +97,46 @@ class CoarseRows:
         return np.asarray(self.P.T @ v).reshape(-1, 6)
 
 
+def recycled_rows(coarse: CoarseRows, system: LocalSystem, steps: list[tuple[np.ndarray, np.ndarray]]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """This robot's rows of the recycled steps ``(own (n, 6), far ends (k, 6))``: per own chunk
+    ``P_cᵀ H D`` ``(6, k)`` and its share ``D_rᵀ (H D)_r`` of ``Dᵀ H D``, packed flat (chunk
+    order) into 6x6 blocks with pairs ``(RECYCLE | robot, RECYCLE | i)``."""
+    HD = np.stack([system.multiply(own.ravel(), peer) for own, peer in steps], axis=1)  # (6n, k)
+    D = np.stack([own.ravel() for own, _ in steps], axis=1)
+    flat = np.concatenate([np.asarray(coarse.P.T @ HD).ravel(), (D.T @ HD).ravel()])
+    blocks = np.zeros(-(-len(flat) // 36) * 36)
+    blocks[:len(flat)] = flat
+    robot = int(coarse.own_ids[0] >> 32) if len(coarse.own_ids) else 0
+    nb = len(blocks) // 36
+    pairs = np.stack([np.full(nb, RECYCLE | robot), RECYCLE | np.arange(nb)], axis=1)
+    return pairs.astype(np.int64), blocks.reshape(nb, 6, 6)
+
+
+def recycled_restriction(robot: int, steps: list[tuple[np.ndarray, np.ndarray]], v: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """``D_rᵀ v_r`` as one coarse row (id ``RECYCLE | robot``, padded to 6)."""
+    row = np.zeros((1, 6))
+    for j, (own, _) in enumerate(steps):
+        row[0, j] = own.ravel() @ v
+    return np.array([RECYCLE | robot], dtype=np.int64), row
+
+
 class CoarseSolver:
     """``A_c`` assembled from every robot's rows (the same on every robot), factored."""
 
     def __init__(self, ids: list[np.ndarray], blocks: list[np.ndarray], chunks: list[np.ndarray]
                  ) -> None:
-        self.order = np.sort(np.concatenate(chunks))
+        allc = np.concatenate(chunks)
+        self.order = np.sort(allc[allc < RECYCLE])
         m = len(self.order)
         A = np.zeros((m, 6, m, 6))
+        self.k = 0  # recycled directions in use
         for pair, blk in zip(ids, blocks, strict=True):
-            if not len(pair):
+            keep = (pair[:, 0] < RECYCLE) & (pair[:, 1] < RECYCLE) if len(pair) else None
+            if not len(pair) or not keep.any():
                 continue
+            pair, blk = pair[keep], blk[keep]
             i, j = np.searchsorted(self.order, pair[:, 0]), np.searchsorted(self.order, pair[:, 1])
             np.add.at(A, (i, slice(None), j, slice(None)), blk)
             off = i != j
@@ -113,12 +154,52 @@ class CoarseSolver:
         else:
             raise LinearSystemError("coarse matrix not positive definite")
 
-    def solve(self, chunks: list[np.ndarray], restricted: list[np.ndarray]) -> np.ndarray:
-        """``A_c⁻¹ Pᵀv`` from every robot's ``(chunk ids, P_rᵀ v_r)``, as ``(m, 6)``."""
+    def extend(self, ids: list[np.ndarray], blocks: list[np.ndarray], chunks: list[np.ndarray],
+               k: int) -> None:
+        """Add ``k`` recycled steps from every robot's :func:`recycled_rows` (0: none);
+        ``chunks`` are the coarse ids each robot sent with them (its own chunks first)."""
+        self.k = 0
+        if k <= 0:
+            return
+        m = len(self.order)
+        B, C = np.zeros((m, 6, k)), np.zeros((k, k))
+        for pair, blk, own in zip(ids, blocks, chunks, strict=True):
+            rec = pair[:, 0] >= RECYCLE if len(pair) else np.zeros(0, dtype=bool)
+            if not rec.any():
+                continue
+            own = own[own < RECYCLE]
+            flat = blk[rec][np.argsort(pair[rec, 1])].ravel()
+            nb = 6 * k * len(own)
+            B[np.searchsorted(self.order, own)] += flat[:nb].reshape(len(own), 6, k)
+            C += flat[nb:nb + k * k].reshape(k, k)
+        B = B.reshape(6 * m, k)
+        C = 0.5 * (C + C.T)
+        AinvB = np.asarray(sla.cho_solve(self._factor, B)).reshape(6 * m, k)
+        S = C - B.T @ AinvB
+        w, V = np.linalg.eigh(0.5 * (S + S.T))
+        ok = w > 1e-3 * max(float(np.max(np.diag(C), initial=0.0)), 1e-300)
+        if not ok.any():
+            return
+        self.k = k
+        self._B, self._AinvB = B, AinvB
+        self._Sinv = (V[:, ok] / w[ok]) @ V[:, ok].T
+
+    def solve(self, chunks: list[np.ndarray], restricted: list[np.ndarray]
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """The coarse solution from every robot's ``(coarse ids, restriction)``: ``(m, 6)`` at
+        the chunks and ``(k,)`` at the recycled steps."""
         rhs = np.zeros((len(self.order), 6))
+        g = np.zeros(max(self.k, 1))
         for c, v in zip(chunks, restricted, strict=True):
-            rhs[np.searchsorted(self.order, c)] += v
-        return np.asarray(sla.cho_solve(self._factor, rhs.ravel())).reshape(-1, 6)
+            rec = c >= RECYCLE
+            rhs[np.searchsorted(self.order, c[~rec])] += v[~rec]
+            if self.k and rec.any():
+                g += v[rec][:, :self.k].sum(axis=0)
+        y = np.asarray(sla.cho_solve(self._factor, rhs.ravel()))
+        if not self.k:
+            return y.reshape(-1, 6), np.zeros(0)
+        z = self._Sinv @ (g - self._B.T @ y)
+        return (y - self._AinvB @ z).reshape(-1, 6), z
 
     def prolong(self, y: np.ndarray, ids: np.ndarray, P: np.ndarray) -> np.ndarray:
         """``P y`` at poses in chunks ``ids`` ``(k,)`` with rigid maps ``P`` ``(k, 6, 6)``."""

@@ -21,6 +21,11 @@ One outer iteration: ``lin`` (linearise at the team estimate, send ``u₀ = M⁻
 team accepts the step when the team cost fell (LM: ``λ`` shrinks) or rejects it (``λ`` grows).
 Everything team-wide is a sum of per-robot scalars that every robot receives, so all robots
 take the same decisions.
+
+The coarse space also recycles the team's last ``gn_recycle`` steps (:mod:`.pgo_coarse`):
+truncated CG leaves the same smooth error in consecutive linear systems. The team stops after
+two accepted steps in a row that lower the team cost by less than ``gn_rel_tol`` (relative),
+when a rejected step pushes ``λ`` past ``gn_damping_max``, or after ``gn_max_outer`` steps.
 """
 
 from __future__ import annotations
@@ -32,7 +37,14 @@ import numpy as np
 
 from kimera_multi_py.comms.messages import Message, PcgState, PgoStatus, PublicPoses
 from kimera_multi_py.consensus.pgo import LocalGraph, PgoAgent, PgoParams, frame_root
-from kimera_multi_py.consensus.pgo_coarse import INDEX_MASK, CoarseRows, CoarseSolver
+from kimera_multi_py.consensus.pgo_coarse import (
+    INDEX_MASK,
+    MAX_RECYCLE,
+    CoarseRows,
+    CoarseSolver,
+    recycled_restriction,
+    recycled_rows,
+)
 from kimera_multi_py.consensus.pgo_linear import LocalSystem, edge_costs, se3_expmap
 
 log = logging.getLogger(__name__)
@@ -58,7 +70,11 @@ class GnPcgAgent(PgoAgent):
         self.coarse: CoarseSolver | None = None
         self._peer_anchor = np.zeros(0, dtype=bool)
         self.last_decrease = np.inf  # relative team-cost decrease of the last outer step
+        self.small_steps = 0  # consecutive accepted steps that lowered the cost by < gn_rel_tol
         self.coarse_built = 0
+        self.recycle: list[tuple[np.ndarray, np.ndarray]] = []  # last steps (own, far ends)
+        self.rec_steps: list[tuple[np.ndarray, np.ndarray]] = []  # those in this coarse space
+        self._extend = False
 
     def dependencies(self) -> set[int]:
         """Every step needs every robot's shares of the team sums."""
@@ -112,17 +128,26 @@ class GnPcgAgent(PgoAgent):
         return {r: m for r, m in got.items() if m is not None}
 
     def _send(self, rnd: int, scalars: list[float], vectors: np.ndarray | None = None,
-              restrict: np.ndarray | None = None, rows: bool = False) -> PcgState:
+              restrict: np.ndarray | None = None, rows: bool = False,
+              recycled: bool = False) -> PcgState:
         """Publish step ``k``: scalars, ``vectors`` at the public poses, the coarse
-        restriction of ``restrict`` and (``rows``) this robot's rows of the coarse matrix."""
+        restriction of ``restrict`` and (``rows``) this robot's rows of the coarse matrix
+        (its recycled steps' rows go with every linearisation that recycles)."""
         f4 = np.float32
         vec = np.zeros((0, 6), f4) if vectors is None else vectors.reshape(-1, 6)[self.local.public]
         chunks, coarse = np.zeros(0, np.int64), np.zeros((0, 6), f4)
-        if restrict is not None and self.coarse_rows is not None:
-            chunks, coarse = self.coarse_rows.own_ids, self.coarse_rows.restrict(restrict)
+        cr = self.coarse_rows
+        if restrict is not None and cr is not None:
+            chunks, coarse = cr.own_ids, cr.restrict(restrict)
+            if self.rec_steps:
+                ids, row = recycled_restriction(self.robot, self.rec_steps, restrict)
+                chunks, coarse = np.concatenate([chunks, ids]), np.concatenate([coarse, row])
         pairs, blocks = np.zeros((0, 2), np.int64), np.zeros((0, 6, 6), f4)
-        if rows and self.coarse_rows is not None:
-            pairs, blocks = self.coarse_rows.rows(self.sys)
+        if rows and cr is not None:
+            pairs, blocks = cr.rows(self.sys)
+        if recycled and self.rec_steps and cr is not None:
+            ids2, blk2 = recycled_rows(cr, self.sys, self.rec_steps)
+            pairs, blocks = np.concatenate([pairs, ids2]), np.concatenate([blocks, blk2])
         msg = PcgState(robot=self.robot, round=rnd, step=self.k, scalars=np.asarray(scalars, float),
                        vectors=np.ascontiguousarray(vec, f4), chunks=chunks,
                        coarse=np.ascontiguousarray(coarse, f4), pairs=pairs,
@@ -217,12 +242,15 @@ class GnPcgAgent(PgoAgent):
                                           lg.inter_peer_key, size, self.sys.keep, self._peer_anchor)
             self.coarse = None
             self.coarse_built = self.outer
+        k = min(self.params.gn_recycle, MAX_RECYCLE)
+        self.rec_steps = self.recycle[-k:] if k > 0 and self.coarse_rows is not None else []
+        self._extend = True
         self.x = np.zeros(6 * len(lg.keys))
         self.r = -self.sys.gradient
         self.ub = _single(self.sys.precondition(self.r))
         self.kind = "cg0"
         self.cg_i = 0
-        return self._send(rnd, [], self.ub, restrict=self.r, rows=rebuild)
+        return self._send(rnd, [], self.ub, restrict=self.r, rows=rebuild, recycled=True)
 
     def _apply(self, got: dict[int, PcgState], own_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The preconditioned vector at the own poses and at the inter-robot edges' far ends:
@@ -237,9 +265,19 @@ class GnPcgAgent(PgoAgent):
             self.coarse = CoarseSolver([np.asarray(m.pairs) for m in msgs],
                                        [np.asarray(m.blocks, dtype=float) for m in msgs],
                                        [np.asarray(m.chunks) for m in msgs])
-        y = self.coarse.solve([np.asarray(m.chunks) for m in msgs], [np.asarray(m.coarse, dtype=float) for m in msgs])
+        if self._extend:  # the recycled steps' rows came with the linearisation's message
+            self.coarse.extend([np.asarray(m.pairs) for m in msgs],
+                               [np.asarray(m.blocks, dtype=float) for m in msgs],
+                               [np.asarray(m.chunks) for m in msgs], len(self.rec_steps))
+            self._extend = False
+        y, z = self.coarse.solve([np.asarray(m.chunks) for m in msgs],
+                                 [np.asarray(m.coarse, dtype=float) for m in msgs])
         own = own_b + self.coarse.prolong(y, cr.own_ids[cr.local_chunk], cr.P_own).ravel()
-        return own, peer + self.coarse.prolong(y, cr.peer_ids, cr.P_peer)
+        peer = peer + self.coarse.prolong(y, cr.peer_ids, cr.P_peer)
+        for zj, (d_own, d_peer) in zip(z, self.rec_steps, strict=False):
+            own = own + zj * d_own.ravel()
+            peer = peer + zj * d_peer
+        return own, peer
 
     def _cg_start(self, rnd: int, got: dict[int, PcgState]) -> PcgState:
         self.u, u_peer = self._apply(got, self.ub)
@@ -304,6 +342,7 @@ class GnPcgAgent(PgoAgent):
         best = int(np.argmin(costs))
         new_cost, t = float(costs[best]), float(p.gn_step_lengths[best])
         self.outer += 1
+        self.recycle = [*self.recycle[-(MAX_RECYCLE - 1):], (self.x.reshape(-1, 6).copy(), self.x_peer.copy())]
         decrease = (self.team_cost - new_cost) / max(abs(self.team_cost), 1e-300)
         self.last_decrease = max(decrease, 0.0)
         if new_cost < self.team_cost:
@@ -316,7 +355,8 @@ class GnPcgAgent(PgoAgent):
                 self.lam = max(self.lam / p.gn_damping_factor, p.gn_damping_min)
             else:  # the model over-reached: damp a little more
                 self.lam = min(self.lam * p.gn_damping_factor, p.gn_damping_max)
-            converged = decrease < p.gn_rel_tol
+            self.small_steps = self.small_steps + 1 if decrease < p.gn_rel_tol else 0
+            converged = self.small_steps >= 2
         else:
             self.lam *= p.gn_damping_factor ** 2
             converged = self.lam > p.gn_damping_max

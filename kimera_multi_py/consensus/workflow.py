@@ -42,9 +42,9 @@ log = logging.getLogger(__name__)
 
 TRANSPORTS = ("loopback", "zenoh")
 METHODS = ("block_sor", "gn_pcg")
-# the solver of ``kimera-multi pgo`` and ``run_pgo`` (the agents' team PGO uses PgoParams').
-# "gn_pcg" (consensus.pgo_gn) reaches a 1e-3 gap within the 500-round cap on every graph of
-# benchmarks/pgo.py but cubicle needs 244 rounds (target 200): block SOR stays the default
+# the solver of ``run_pgo`` called without a method (the agents' team PGO uses PgoParams').
+# ``kimera-multi pgo`` and benchmarks/pgo.py pass cli_pgo.CLI_METHOD ("gn_pcg"); block SOR
+# stays the library default: it tolerates late joiners (gn_pcg needs the whole team at start)
 DEFAULT_METHOD = "block_sor"
 
 
