@@ -1,15 +1,16 @@
 """The fault suite's figures (issue 16), each beside the clean run's, measured in this run.
 
-Loopback simulation of ``sims/small.toml`` (seed 0, distributed, exact map consensus):
+Loopback simulation of ``sims/faults.toml`` (small's building, shorter and faster routes: 39 s of
+stream; seed 0, distributed, exact map consensus, PGO period 20 s), the tests' setting:
 
 * ``clean`` -- the reference: team ATE, map agreement (share of cells identical to the
   centralised fusion, worst robot), false inter-robot closures;
 * ``loss`` -- 20 % of messages dropped on every link;
-* ``partition`` -- robots {0, 1} cut off from {2} from 30 s to 90 s, then healed: the epochs each
+* ``partition`` -- robots {0, 1} cut off from {2} from 10 s to 30 s, then healed: the epochs each
   side began during the cut, and the end figures; ``partition_heals_at_stream_end`` the same
-  from 60 s to 120 s, which heals about a second before the streams end (about 121 s);
-* ``late_join`` -- robot 2 joins 70 s late: when it was first a PGO member (after its join, vs
-  the PGO period) and its closures.
+  from 18 s to 38 s, which heals about a second before the streams end (about 39 s);
+* ``late_join`` -- robot 2 joins 20 s late (one PGO period): when it was first a PGO member
+  (after its join, vs the PGO period) and its closures.
 
 Real Zenoh sessions on 127.0.0.1:
 
@@ -22,6 +23,9 @@ Real Zenoh sessions on 127.0.0.1:
 
 Processes (``--processes``; ``sims/tiny.toml``, 2 robots at 4x real time): a clean launch,
 ``--kill 1@40`` (the rejoin time), ``--restart-router 25``, ``--partition 0|1@20:45`` and ``--tls``.
+
+``--scenario sims/small.toml --period 60`` gives the simulation cases on small (the windows and
+the join scale with its stream).
 
     python benchmarks/faults.py --json [--fuzz 10000] [--skip-sim] [--processes]
 """
@@ -54,15 +58,17 @@ from kimera_multi_py.sim.runner import SimRunner, agent_params, keyframe_input
 from kimera_multi_py.team.certs import make_certs
 
 ROOT = Path(__file__).resolve().parents[1]
-SMALL = ROOT / "sims" / "small.toml"
+FAULTS = ROOT / "sims" / "faults.toml"
 TINY = ROOT / "sims" / "tiny.toml"
 TEAM = "t0"
 
 
 # ---------------------------------------------------------------------------- simulation
-def _sim(faults: Faults | None = None, join: dict[int, float] | None = None) -> tuple[SimRunner, dict[str, Any]]:
+def _sim(scenario: Path, period: float, faults: Faults | None = None, join: dict[int, float] | None = None
+         ) -> tuple[SimRunner, dict[str, Any]]:
     t0 = time.perf_counter()
-    runner = SimRunner(load_scenario(SMALL), seed=0, mode="distributed", faults=faults, join=join)
+    runner = SimRunner(load_scenario(scenario), seed=0, mode="distributed", faults=faults, join=join,
+                       pgo_period=period, quality=False)
     res = runner.run().to_dict()
     lc = res["loop_closures"]
     fig = {"team_ate_m": res["team"]["ate_rmse_m"],
@@ -72,16 +78,21 @@ def _sim(faults: Faults | None = None, join: dict[int, float] | None = None) -> 
     return runner, fig
 
 
-def sim_cases() -> dict[str, Any]:
-    _, clean = _sim()
+def sim_cases(scenario: Path, period: float) -> dict[str, Any]:
+    """The cases of ``tests/sim/test_faults.py``; the windows scale with the stream (a partition of
+    one PGO period from a quarter of the stream; another that heals a second before its end)."""
+    duration = Simulation(load_scenario(scenario), 0).duration
+    _, clean = _sim(scenario, period)
     out: dict[str, Any] = {"clean": clean}
-    runner, loss = _sim(sim_faults(drop=0.2))
+    runner, loss = _sim(scenario, period, sim_faults(drop=0.2))
     st = runner.nodes[0].bus.network.stats  # type: ignore[attr-defined]
     loss.update(dropped=st.dropped, attempted=st.attempted,
                 ate_ratio_to_clean=loss["team_ate_m"] / clean["team_ate_m"])
     out["loss"] = {**loss, "must": "ate_ratio_to_clean <= 1.1 and map_identical_min == 1.0"}
-    for name, (start, end) in (("partition", (30.0, 90.0)), ("partition_heals_at_stream_end", (60.0, 120.0))):
-        runner, part = _sim(sim_faults(partitions=[f"0,1|2@{start}:{end}"]))
+    q = round(duration / 4)
+    for name, (start, end) in (("partition", (q, q + period)),
+                               ("partition_heals_at_stream_end", (round(duration) - 1 - period, round(duration) - 1))):
+        runner, part = _sim(scenario, period, sim_faults(partitions=[f"0,1|2@{start}:{end}"]))
         began = sorted({(h[0], h[1], round(h[3], 1)) for n in runner.nodes for h in n.pgo.history
                         if start <= h[3] < end})
         part.update(window_s=[start, end],
@@ -89,8 +100,8 @@ def sim_cases() -> dict[str, Any]:
                     epochs_during=[{"epoch": e, "members": list(m), "began_s": b} for e, m, b in began],
                     ate_ratio_to_clean=part["team_ate_m"] / clean["team_ate_m"])
         out[name] = {**part, "must": "both sides began epochs during the cut; ATE and agreement as clean"}
-    at = 70.0
-    runner, late = _sim(join={2: at})
+    at = period
+    runner, late = _sim(scenario, period, join={2: at})
     first = next((h[3] for h in runner.nodes[0].pgo.history if 2 in h[1]), None)
     late.update(join_s=at, first_member_s=first, pgo_period_s=runner.schedule.period,
                 in_pgo_within_s=None if first is None else round(first - at, 1))
@@ -251,12 +262,14 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print JSON (the only output format)")
     ap.add_argument("--fuzz", type=int, default=10_000, help="fuzzed payloads")
     ap.add_argument("--skip-sim", action="store_true", help="only the Zenoh cases (seconds, not minutes)")
+    ap.add_argument("--scenario", type=Path, default=FAULTS, help="scenario of the simulation cases")
+    ap.add_argument("--period", type=float, default=20.0, help="PGO period (s) of the simulation cases")
     ap.add_argument("--processes", action="store_true", help="also launch the team as processes: kill + "
                                                              "resume, router restart, mutual TLS")
     args = ap.parse_args()
-    out: dict[str, Any] = {"scenario": "sims/small.toml", "seed": 0}
+    out: dict[str, Any] = {"scenario": str(args.scenario), "seed": 0, "pgo_period_s": args.period}
     if not args.skip_sim:
-        out.update(sim_cases())
+        out.update(sim_cases(args.scenario, args.period))
     out["fuzz"] = asyncio.run(fuzz_case(args.fuzz))
     out["second_team"] = asyncio.run(second_team_case())
     out["mtls"] = asyncio.run(mtls_case())

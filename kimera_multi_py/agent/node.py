@@ -360,7 +360,7 @@ class AgentNode:
     # ------------------------------------------------------------------ one robot per process
     async def run(self, keyframes: Iterable[KeyframeInput], rate: float = math.inf,
                   on_keyframe: Callable[[KeyframeInput], object] | None = None,
-                  tick_s: float = 0.005, linger: float = 2.0) -> None:
+                  tick_s: float = 0.005, linger: float = 2.0, epoch_wait: float = 30.0) -> None:
         """Feed ``keyframes`` (paced at ``rate`` × their stamps; ``inf``: as fast as possible),
         handle messages and timers, and return once the team's final optimisation is done
         (then keep serving peers for ``linger`` s)."""
@@ -373,8 +373,11 @@ class AgentNode:
                 await self.drain()
                 await self.tick()
                 await asyncio.sleep(tick_s)
+            # linger; an epoch still running then (a final epoch re-run for late closures) may
+            # finish, for at most ``epoch_wait`` s more, so that its poses are in our outputs
             end = time.monotonic() + linger
-            while time.monotonic() < end:
+            while time.monotonic() < end or (self.pgo is not None and self.pgo.busy
+                                             and time.monotonic() < end + epoch_wait):
                 await self.drain()
                 await self.tick()
                 await asyncio.sleep(tick_s)

@@ -7,7 +7,8 @@ messages to publish. The node (:mod:`kimera_multi_py.agent.node`) moves them.
   with a :class:`PgoEpoch` naming its members (the robots alive now) and its robot graph, when
   ``period`` seconds of team time passed since the last epoch, when new inter-robot closures
   were accepted (at most every ``closure_interval`` s), and once more (``final``) when every
-  robot it knows has ended its stream. Every member then builds a fresh :class:`PgoAgent` from
+  robot it knows has ended its stream (again if closures were accepted after that epoch opened:
+  they would never be optimised otherwise). Every member then builds a fresh :class:`PgoAgent` from
   its robot's current graph (warm-started from the current estimate, which is in the team frame
   once aligned) and runs rounds until the leader's ``stop``; the result is applied to the
   robot's poses. The robot's graph is the persistent state: it grows with every keyframe and
@@ -169,6 +170,8 @@ class TeamPgo:
         depends = set(members if self.robot == leader else [*local.neighbours, leader]) & set(members)
         depends.discard(self.robot)
         self.session = Session(msg.epoch, members, bool(msg.final), pgo, depends, keyframes, began=self._now)
+        if msg.final:  # a member that leads later re-runs the final epoch only for closures newer than this
+            self._closures_at_open = max(self._closures_at_open, self._accepted())
         future, self._future = self._future, []
         for m in future:
             epoch, rnd = divmod(m.round, EPOCH_ROUNDS)  # type: ignore[attr-defined]
@@ -266,7 +269,9 @@ class TeamPgo:
         due = now - self._opened_at >= self.schedule.period
         fresh = closures > self._closures_at_open and now - self._opened_at >= self.schedule.closure_interval
         if final:
-            if self.final_done:
+            # closures accepted since the last final epoch opened (verified during it, or answered
+            # late) would never be optimised: the team runs one more final epoch with them
+            if self.final_done and closures <= self._closures_at_open:
                 return []
         elif not (due or fresh) or self.final_done:
             return []

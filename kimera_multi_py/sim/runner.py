@@ -115,7 +115,8 @@ class SimRunner:
                  pgo_period: float = 60.0, params: AgentParams | None = None,
                  pgo_params: PgoParams | None = None, join: dict[int, float] | None = None,
                  leave: dict[int, float] | None = None, map_consensus: str = "exact",
-                 comm_range: float | None = None, drop: float = 0.0, faults: Faults | None = None) -> None:
+                 comm_range: float | None = None, drop: float = 0.0, faults: Faults | None = None,
+                 quality: bool = True) -> None:
         if mode not in MODES:
             raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
         if transport not in TRANSPORTS:
@@ -133,6 +134,8 @@ class SimRunner:
         self.schedule = ScheduleParams(period=pgo_period, round_timeout=0.5 if transport == "zenoh" else None)
         self.clock = _SimClock()
         self.map_mode = map_consensus
+        # score the maps and the scene graph against truth (off: team ATE, closures, map agreement only)
+        self.quality = quality
         # loopback link faults (``faults`` wins over ``drop``); partitions run on the simulated clock
         self.faults = faults if faults is not None else Faults(drop=drop)
         check_robots(self.faults.partitions, range(self.sim.num_robots))
@@ -317,8 +320,8 @@ class SimRunner:
 
     def _record_phi(self, force: bool = False) -> None:
         """φ between neighbouring robots' team maps, every ``PHI_EVERY_S`` of sim time."""
-        if self.map_report is None or (self.clock.t < self._next_phi and not force):
-            return
+        if self.map_report is None or (not force and (self.clock.t < self._next_phi or not self.quality)):
+            return  # (without quality scores only the end's φ)
         self._next_phi = self.clock.t + PHI_EVERY_S
         live = [n for n in self.nodes if n.maps is not None and n._sub is not None]
         cells = {n.robot: n.maps.team_cells() for n in live if n.maps is not None}
@@ -412,14 +415,17 @@ class SimRunner:
             extra.update(team_results(self.sim.world, truth, self.outcomes, T_world_team,
                                       self.params.team_object_sightings))
             extra["pgo_runs"] = self._epochs()
-            extra.update(accuracy_results(self.sim.world, self.params.mapping, truth, [tr.scans for tr in self.tracks],
-                                          self.agents, self.outcomes, T_world_team, excluded_robots(self.outcomes)))
+            if self.quality:
+                extra.update(accuracy_results(self.sim.world, self.params.mapping, truth,
+                                              [tr.scans for tr in self.tracks], self.agents, self.outcomes,
+                                              T_world_team, excluded_robots(self.outcomes)))
             extra["transport"] = self.transport
             team_maps = None
             if self.map_report is not None:
                 extra["map_consensus"], team_maps = self._map_results(T_world_team)
-            extra["scene_graph"] = scene_graph_results(self.sim.world, self.outcomes, T_world_team, self.out_dir,
-                                                       team_maps, self._reference_map())
+            if self.quality:
+                extra["scene_graph"] = scene_graph_results(self.sim.world, self.outcomes, T_world_team, self.out_dir,
+                                                           team_maps, self._reference_map())
         return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
 
@@ -444,11 +450,12 @@ class SimRunner:
                               (ref.model.lo, ref.model.hi), sent,
                               {n.robot: n.maps.roam_bytes for n in live if n.maps is not None}, self.map_report)
         out = rep.to_dict()
-        grid = self.sim.world.gt_voxel_grid(ref.resolution)
-        centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
         maps = {n.robot: n.maps.team_map for n in live if n.maps is not None}
-        out["team_map"] = {str(r): map_quality(t, T_world_team, centers, gt) for r, t in maps.items()}
-        out["centralised_fusion"] = map_quality(ref, T_world_team, centers, gt)
+        if self.quality:
+            grid = self.sim.world.gt_voxel_grid(ref.resolution)
+            centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
+            out["team_map"] = {str(r): map_quality(t, T_world_team, centers, gt) for r, t in maps.items()}
+            out["centralised_fusion"] = map_quality(ref, T_world_team, centers, gt)
         out["comm_range"] = self.comm_range
         if self.out_dir is not None:
             for r, t in maps.items():

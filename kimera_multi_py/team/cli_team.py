@@ -115,6 +115,7 @@ def register(app: typer.Typer) -> None:
         join: Annotated[list[str] | None, typer.Option("--join", help="I@T: start agent I once the team's "
                                                                        "stream reaches T s.")] = None,
         checkpoint_every: Annotated[float, typer.Option(help="Seconds between agent checkpoints.")] = 5.0,
+        pgo_period: Annotated[float, typer.Option(help="Team-time seconds between PGO epochs.")] = 60.0,
         timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 1800.0,
         map_consensus: MapMode = "exact",
         restart_router: Annotated[list[str] | None, typer.Option("--restart-router", help="T: SIGKILL the router "
@@ -136,7 +137,8 @@ def register(app: typer.Typer) -> None:
         _setup_logging(verbose)
         try:
             job = LaunchJob(scenario, robots, seed, mode, out, _rate(rate), [parse_kill(k) for k in kill or []],
-                            dict(_robot_at(j, "join") for j in join or []), checkpoint_every, timeout=timeout,
+                            dict(_robot_at(j, "join") for j in join or []), checkpoint_every, pgo_period=pgo_period,
+                            timeout=timeout,
                             verbose=verbose, map_consensus=map_consensus, tls=tls,
                             router_restarts=[parse_restart(t) for t in restart_router or []],
                             partitions=[parse_partition(p) for p in partition or []])

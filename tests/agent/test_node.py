@@ -101,3 +101,28 @@ def test_epoch_tags_keep_other_epochs_out():
         await node.close()
 
     asyncio.run(main())
+
+
+def test_closures_accepted_after_the_final_epoch_get_a_final_epoch_of_their_own():
+    """A closure the team accepts once its final epoch opened (verified during it, or answered
+    late) is optimised: the leader runs one more final epoch, and only when there is something new."""
+    from kimera_multi_py.consensus.team_pgo import TeamPgo
+
+    sim = Simulation(load_scenario(TINY), seed=0)
+    agent = Agent(0, None, agent_params(sim.cfg))
+    for kf, _ in zip(sim.keyframes(0), range(6), strict=False):
+        agent.process_keyframe(keyframe_input(kf))
+    accepted = [3]  # inter-robot closures accepted in the team, as this robot heard
+    pgo = TeamPgo(0, PgoParams(robust=True, max_rounds=50), ScheduleParams(round_timeout=None),
+                  agent.local_graph, agent.apply_poses, lambda: agent.robot_graph, lambda: accepted[0])
+
+    def run(ticks: int = 200) -> list[bool]:
+        for t in range(ticks):
+            pgo.tick(10.0, float(t), set(), finished=True, force=True)
+        return [h[2] for h in pgo.history]
+
+    assert run() == [True] and pgo.final_done
+    assert run() == [True]  # nothing new: no epoch
+    accepted[0] = 4  # one more closure, after the final epoch
+    assert run() == [True, True] and pgo.final_done
+    assert run() == [True, True]

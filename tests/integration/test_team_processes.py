@@ -1,5 +1,8 @@
 """The team as OS processes over Zenoh: a router, agent processes, kills with --resume, and the
-recorded source. Every process is a real ``kimera-multi`` command on 127.0.0.1."""
+recorded source. Every process is a real ``kimera-multi`` command on 127.0.0.1.
+
+The team runs ``sims/faults.toml`` (small's building, 39 s of stream, PGO period 20 s; see
+``tests/sim/test_faults.py``) at 4x real time, so that a launch takes well under a minute."""
 
 from __future__ import annotations
 
@@ -17,7 +20,8 @@ from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.runner import SimRunner
 
 REPO = Path(__file__).resolve().parents[2]
-SMALL = REPO / "sims" / "small.toml"
+FAULTS = REPO / "sims" / "faults.toml"
+PERIOD = "20"  # s of team time between PGO epochs (small's 60 s scaled to the stream)
 TINY = REPO / "sims" / "tiny.toml"
 pytestmark = pytest.mark.integration
 
@@ -28,8 +32,8 @@ def cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
 
 
 def launch(out: Path, *extra: str) -> dict:
-    res = cli("launch", str(SMALL), "--robots", "3", "--seed", "0", "--out", str(out), "--rate", "4",
-              "--checkpoint-every", "2", *extra)
+    res = cli("launch", str(FAULTS), "--robots", "3", "--seed", "0", "--out", str(out), "--rate", "4",
+              "--checkpoint-every", "2", "--pgo-period", PERIOD, *extra)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     return json.loads((out / "results.json").read_text())
 
@@ -42,16 +46,16 @@ def clean(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def odometry_ate():
-    return SimRunner(load_scenario(SMALL), seed=0, mode="odometry").run().team["ate_rmse_m"]
+    return SimRunner(load_scenario(FAULTS), seed=0, mode="odometry").run().team["ate_rmse_m"]
 
 
 @pytest.mark.slow
 def test_launch_runs_three_agent_processes_to_a_team_estimate(clean, odometry_ate):
     out, res = clean
-    sim = Simulation(load_scenario(SMALL), seed=0)
+    sim = Simulation(load_scenario(FAULTS), seed=0)
     assert [r["keyframes"] for r in res["robots"]] == [len(p.stamps) for p in sim.plans]
     lc = res["loop_closures"]
-    assert lc["false_accepted_inter"] == 0 and lc["true_accepted_inter"] >= 10
+    assert lc["false_accepted_inter"] == 0 and lc["true_accepted_inter"] >= 5
     assert res["pgo_runs"] >= 2 and res["transport"] == "zenoh-processes"
     # one team frame, better than dead reckoning even when that is anchored at the true starts
     assert res["team"]["ate_rmse_m"] < odometry_ate
@@ -71,14 +75,46 @@ def test_launch_runs_three_agent_processes_to_a_team_estimate(clean, odometry_at
 
 @pytest.mark.slow
 def test_a_killed_agent_resumes_and_loses_no_keyframe(tmp_path, odometry_ate):
-    res = launch(tmp_path, "--kill", "1@40")
+    """SIGKILL robot 1 mid-stream, restart it with ``--resume``: nothing of its last checkpoint
+    (keyframes, closures, submap evidence) is lost, and it is back in the team within 10 s."""
+    from kimera_multi_py.agent.checkpoint import load_checkpoint
+    from kimera_multi_py.mapping.octree_io import load_octree, octree_to_bytes
+
+    res = launch(tmp_path, "--kill", "1@30")  # after its intra-robot closure (19.5 s)
     log = (tmp_path / "logs" / "robot1.log").read_text()
     assert log.count("keyframes,") == 1  # the killed incarnation never finished; the resumed one did
-    sim = Simulation(load_scenario(SMALL), seed=0)
+    kill = json.loads((tmp_path / "faults.json").read_text())["kills"][0]
+    assert kill["killed_stream_s"] >= 30 and kill["checkpoint"] is not None
+    assert kill["rejoin_s"] is not None and kill["rejoin_s"] <= 10.0
+    sim = Simulation(load_scenario(FAULTS), seed=0)
     stamps, _ = read_tum(tmp_path / "robot1" / "trajectory.tum")
     assert np.allclose(stamps, sim.plans[1].stamps, atol=1e-6, rtol=0)  # every keyframe, once, in order
+    # the last checkpoint before the kill, and the resumed agent's state at its end (written with
+    # its outputs): every keyframe, closure and submap of the first is in the second
+    before, _ = load_checkpoint(kill["checkpoint"])
+    after, _ = load_checkpoint(tmp_path / "robot1" / "checkpoint.kmc")
+    assert 0 < before.num_keyframes < after.num_keyframes == len(sim.plans[1].stamps)
+    assert after.stamps[: before.num_keyframes] == before.stamps
+    assert after.submap_of[: before.num_keyframes] == before.submap_of
+    final = {(c["own_kf"], c["peer"], c["peer_kf"])
+             for c in json.loads((tmp_path / "robot1" / "closures.json").read_text())["closures"]}
+    kept = {(c.own_kf, peer, c.peer_kf) for peer, group in before.closures.items() for c in group}
+    assert kept and kept <= final
+    open_submap = before.submap_of[-1]  # the one still growing at the checkpoint
+    assert set(before.map.submaps) <= set(after.map.submaps)
+    for sid, s in before.map.submaps.items():
+        t = after.map.submaps[sid]
+        assert np.array_equal(t.T_ref, s.T_ref)
+        if sid == open_submap:  # grown since: every cell it had is still there, and more scans
+            assert t.num_scans >= s.num_scans and np.isin(s.codes, t.codes).all()
+        else:  # closed: its evidence bit for bit
+            assert t.num_scans == s.num_scans
+            assert np.array_equal(t.codes, s.codes) and np.array_equal(t.rows, s.rows)
+    # and the map the resumed robot wrote is the fusion of exactly those submaps
+    written = load_octree(tmp_path / "robot1" / "map.kmo")
+    assert octree_to_bytes(written) == octree_to_bytes(after.map.octree)
     assert res["loop_closures"]["false_accepted_inter"] == 0
-    # (process runs of this scenario vary, clean or not: 0.23-0.34 m measured; see the issue note)
+    # (process runs vary, clean or not; the team estimate beats dead reckoning)
     assert res["team"]["ate_rmse_m"] < odometry_ate
 
 
@@ -115,15 +151,15 @@ def test_corrupt_checkpoint_and_source_are_one_line_errors(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_robot_joining_late_is_aligned_into_the_team(clean, tmp_path, odometry_ate):
-    res = launch(tmp_path, "--join", "2@40")
+def test_a_robot_joining_late_is_aligned_into_the_team(tmp_path, odometry_ate):
+    res = launch(tmp_path, "--join", "2@20")
     assert "joins" not in res  # the schema is the sim's
-    sim = Simulation(load_scenario(SMALL), seed=0)
+    sim = Simulation(load_scenario(FAULTS), seed=0)
     assert [r["keyframes"] for r in res["robots"]] == [len(p.stamps) for p in sim.plans]
     assert res["loop_closures"]["false_accepted_inter"] == 0
     closures = json.loads((tmp_path / "robot2" / "closures.json").read_text())
     assert closures["pgo_epochs"] >= 1
-    # robot 2's closures are with robots that started 40 s before it, and they entered PGO
+    # robot 2's closures are with robots that started 20 s (one PGO period) before it, and they entered PGO
     peers = {c["peer"] for r in range(2)
              for c in json.loads((tmp_path / f"robot{r}" / "closures.json").read_text())["closures"]
              if c["weight"] is not None and c["weight"] >= 0.5}

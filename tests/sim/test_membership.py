@@ -10,21 +10,23 @@ from kimera_multi_py.sim.runner import SimRunner
 
 from .helpers import REPO
 
-SMALL = REPO / "sims" / "small.toml"
+FAULTS = REPO / "sims" / "faults.toml"  # small's building, 39 s of stream (see tests/sim/test_faults.py)
+JOIN = 20.0  # robot 2 starts after the team's first epoch is due, when the others are halfway
 
 
 @pytest.mark.slow
 def test_a_robot_joining_late_is_aligned_and_in_pgo(tmp_path):
-    runner = SimRunner(load_scenario(SMALL), seed=0, mode="distributed", out_dir=tmp_path, join={2: 70.0})
+    runner = SimRunner(load_scenario(FAULTS), seed=0, mode="distributed", out_dir=tmp_path, join={2: JOIN},
+                       pgo_period=20.0, quality=False)
     res = runner.run().to_dict()
     late = runner.nodes[2]
-    assert late.agent.stamps[0] == pytest.approx(70.0)
+    assert late.agent.stamps[0] == pytest.approx(JOIN)
     last = late.pgo.last_pgo
     assert last is not None and last.aligned and len(last.local.inter_edge) > 0
     # robot 2 is a member of the first epoch after it joined, within one PGO period
     first = next(h for h in runner.nodes[0].pgo.history if 2 in h[1])
-    assert 70.0 <= first[3] <= 70.0 + runner.schedule.period
-    assert all(2 not in h[1] for h in runner.nodes[0].pgo.history if h[3] < 70.0)
+    assert JOIN <= first[3] <= JOIN + runner.schedule.period
+    assert all(2 not in h[1] for h in runner.nodes[0].pgo.history if h[3] < JOIN)
     odo = json.loads((tmp_path / "results.json").read_text())["robots"][2]["ate_rmse_m"]
     assert odo == res["robots"][2]["ate_rmse_m"]
     # robot 2's estimate is in the team frame: its part of the team trajectory is as good as the rest
