@@ -167,14 +167,17 @@ class FrameDecision:
             # one group and no competitor: nothing to tell an alias from here; adopted, and
             # reported as resting on one place (the drift check and later epochs revisit it)
             best = hyps[0]
-        if best is None and final and self.in_team_frame:
+        # a tie between groups of single places is aliasing itself (twin rooms): neither staying
+        # nor the consensus of the edges is evidence, so the robot is kept out of the team frame
+        settled = bool(hyps) and hyps[0].places >= p.align_tie_min_places
+        if best is None and final and self.in_team_frame and settled:
             # a tie, and the robot already sits in the team frame (an earlier epoch aligned it):
             # it keeps that frame while the hypothesis at the identity is among the leaders;
             # switching frames takes a clear lead
             stay = [h for h in hyps if h.places == hyps[0].places and _near_identity(h.T)]
             if stay:
                 best = stay[0]
-        if best is None and final and p.align_tie == "consensus":
+        if best is None and final and p.align_tie == "consensus" and settled:
             # competing hypotheses and none leads: the robust consensus of every edge aligns the
             # robot and the team's GNC decides between the groups; the report says it was a tie
             self._align_consensus(known)

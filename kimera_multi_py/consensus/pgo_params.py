@@ -73,6 +73,11 @@ class PgoParams:
     # consensus of every edge and leaves the choice to GNC; "exclude" keeps the robot out of the
     # team frame (its own frame) for the epoch
     align_tie: str = "consensus"
+    # ... but only between hypotheses that each rest on this many places or more: a tie between
+    # single-place groups is the aliasing case itself (twin rooms: each group is one room), where
+    # more edges are no evidence at all; the robot stays out of the team frame (issue 11's safety
+    # property: a frame resting on a single aliased group is not merged)
+    align_tie_min_places: int = 2
     place_radius: float = 2.0  # m: own closure poses closer than this are one place
     # safety: an estimate that bends away from the robot's own odometry beyond its drift model
     # (odometry_disagreement > 1) is not adopted; the robot falls back to its own frame
