@@ -47,7 +47,7 @@ def measure(scenario: str, robots: int, seed: int, mode: str) -> dict[str, Any]:
     import numpy as np
 
     from kimera_multi_py.eval.metrics import align_se3, ate_rmse
-    from kimera_multi_py.eval.team import scored_closures, team_frame_estimates, trajectory_results
+    from kimera_multi_py.eval.team import excluded_robots, scored_closures, team_frame_estimates, trajectory_results
     from kimera_multi_py.sim import load_scenario
     from kimera_multi_py.sim.runner import SimRunner
 
@@ -61,9 +61,9 @@ def measure(scenario: str, robots: int, seed: int, mode: str) -> dict[str, Any]:
     outcomes = runner.outcomes
     est = [o.poses for o in outcomes]
     report = [dict(o.alignment) for o in outcomes]
-    excluded = [a.get("status") == "excluded" for a in report]
+    own = excluded_robots(outcomes)
+    excluded = [r in own for r in range(len(est))]
     # excluded robots stay in their own frame: anchored at their true start, like dead reckoning
-    own = [r for r in range(len(est)) if excluded[r]]
     scored = team_frame_estimates(truth, est, own)
     _, odo_team, _ = trajectory_results(truth, odom, anchored=True)
     _, team, T_wt = trajectory_results(truth, est, anchored=False, own_frame=own)

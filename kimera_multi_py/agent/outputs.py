@@ -104,6 +104,8 @@ def outcome_of(node: Any, server_weights: dict[tuple[int, int, int, int], float]
     epochs = node.pgo.stats.epochs if getattr(node, "pgo", None) is not None else 0
     last = getattr(getattr(node, "pgo", None), "last_pgo", None)
     alignment = dict(getattr(last, "alignment", {}) or {})
+    if hasattr(node, "frame"):  # the root robot of the frame the poses are in (own id: its own frame)
+        alignment["frame"] = int(node.frame)
     sharing = getattr(node, "objects", None)
     return RobotOutcome(agent.robot, np.array(agent.stamps), np.array(agent.poses).reshape(-1, 4, 4),
                         agent.map.octree, objects, rows,

@@ -21,8 +21,8 @@ from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality
 def team_frame_estimates(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarray],
                          own_frame: Collection[int] = ()) -> list[np.ndarray]:
     """The estimates in the team frame (robot 0's); a robot in ``own_frame`` (kept out of the team
-    frame) is anchored like dead reckoning: its own frame placed at its true start."""
-    return [np.linalg.inv(truth[0][0]) @ truth[i][0] @ est if i in own_frame else est
+    frame) is anchored like dead reckoning: its first pose placed at its true start."""
+    return [np.linalg.inv(truth[0][0]) @ truth[i][0] @ np.linalg.inv(est[0]) @ est if i in own_frame else est
             for i, est in enumerate(estimates)]
 
 
@@ -137,8 +137,14 @@ def alignment_report(outcomes: Sequence[RobotOutcome]) -> dict[str, dict[str, An
 
 
 def excluded_robots(outcomes: Sequence[RobotOutcome]) -> list[int]:
-    """Robots that kept themselves out of the team frame (their estimate is in their own frame)."""
-    return [o.robot for o in outcomes if o.alignment.get("status") == "excluded"]
+    """Robots whose estimate is not in the team frame (the lowest robot id's): those that kept
+    themselves out of it, and those whose frame is another root's (a robot no inter-robot edge
+    ever joined to the team reports its own id as ``frame``)."""
+    if not outcomes:
+        return []
+    root = min(o.robot for o in outcomes)
+    return [o.robot for o in outcomes
+            if o.alignment.get("status") == "excluded" or int(o.alignment.get("frame", root)) != root]
 
 
 def traffic_totals(outcomes: Sequence[RobotOutcome]) -> dict[str, Any]:

@@ -159,6 +159,7 @@ def test_a_robot_joining_late_is_aligned_into_the_team(tmp_path, odometry_ate):
     assert res["loop_closures"]["false_accepted_inter"] == 0
     closures = json.loads((tmp_path / "robot2" / "closures.json").read_text())
     assert closures["pgo_epochs"] >= 1
+    assert res["alignment"]["2"]["status"] == "aligned" and res["alignment"]["2"]["frame"] == 0
     # robot 2's closures are with robots that started 20 s (one PGO period) before it, and they entered PGO
     peers = {c["peer"] for r in range(2)
              for c in json.loads((tmp_path / f"robot{r}" / "closures.json").read_text())["closures"]
