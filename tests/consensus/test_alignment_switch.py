@@ -119,3 +119,18 @@ def test_aliased_robot_switches_to_the_true_frame() -> None:
     w = agents[0].inter_weights  # robot 0 owns (decides) the 0-1 edges
     outlier = g2.outlier[agents[0].local.inter_edge]
     assert outlier.sum() == len(alias) and np.all(w[outlier] < 0.5) and np.all(w[~outlier] > 0.5)
+
+
+def test_a_tie_between_single_place_groups_keeps_the_robot_out_of_the_team_frame() -> None:
+    """Twin rooms and nothing else: the alias (robot 0's room A against robot 1's room B) and the
+    truth (room A against room A) each rest on one place. No number of edges tells them apart, so
+    robot 1 is excluded (its own frame) instead of aligned by the consensus of every edge."""
+    trajs, odo, first = _team()
+    rng = np.random.default_rng(2)
+    a, b = np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0])
+    edges = _closures(trajs, first, [(a, b, True), (a, a, False)], rng)
+    agents, poses = asyncio.run(_epoch(_graph(trajs, odo + edges, _odometry_start(trajs, odo))))
+    report = agents[1].alignment
+    assert report["status"] == "excluded", report
+    assert [c[0] for c in report["competitors"]] == [1, 1]  # two hypotheses, one place each
+    assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)  # returned in its own frame
