@@ -12,9 +12,9 @@ from kimera_multi_py.errors import KimeraMultiError
 
 # the distributed solver of ``kimera-multi pgo`` (and of benchmarks/pgo.py): distributed
 # Levenberg–Marquardt (consensus.pgo_gn) reaches a 1e-3 gap within the 500-round cap on every
-# graph of shared/datasets/pgo, where block SOR stalls on parking-garage and cubicle. Robust
-# runs use block SOR whatever the method (the GNC weights live there), and so does the team PGO
-# inside the agents (PgoParams' default), and run_pgo called without a method
+# graph of shared/datasets/pgo, where block SOR stalls on parking-garage and cubicle; robust
+# runs put GNC on its outer loop (consensus.pgo_gn_weights). The team PGO inside the agents
+# keeps block SOR (PgoParams' default), and so does run_pgo called without a method
 # (workflow.DEFAULT_METHOD).
 CLI_METHOD = "gn_pcg"
 
@@ -38,8 +38,7 @@ def register(app: typer.Typer) -> None:
         max_rounds: Annotated[int, typer.Option(help="round cap")] = 500,
         method: Annotated[str | None, typer.Option(help=(
             "gn_pcg (distributed Levenberg-Marquardt with two-level CG, the default) | "
-            "block_sor (block Gauss-Seidel with adaptive over-relaxation); --robust always "
-            "uses block_sor"))] = None,
+            "block_sor (block Gauss-Seidel with adaptive over-relaxation)"))] = None,
         json_out: Annotated[Path | None, typer.Option("--json", help="write figures here")] = None,
         out: Annotated[Path | None, typer.Option(help="write g2o, TUM and results.json here")]
         = None,

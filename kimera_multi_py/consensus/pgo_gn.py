@@ -35,7 +35,7 @@ import logging
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import Message, PcgState, PgoStatus, PublicPoses
+from kimera_multi_py.comms.messages import GncWeights, Message, PcgState, PgoStatus, PublicPoses
 from kimera_multi_py.consensus.pgo import LocalGraph, PgoAgent, PgoParams, frame_root
 from kimera_multi_py.consensus.pgo_coarse import (
     INDEX_MASK,
@@ -45,13 +45,15 @@ from kimera_multi_py.consensus.pgo_coarse import (
     recycled_restriction,
     recycled_rows,
 )
+from kimera_multi_py.consensus.pgo_gn_weights import GnRobust
 from kimera_multi_py.consensus.pgo_linear import LocalSystem, edge_costs, se3_expmap
 
 log = logging.getLogger(__name__)
 
 
-class GnPcgAgent(PgoAgent):
-    """One robot of the distributed Levenberg–Marquardt / pipelined-PCG solve (see module)."""
+class GnPcgAgent(GnRobust, PgoAgent):
+    """One robot of the distributed Levenberg–Marquardt / pipelined-PCG solve (see module;
+    robust mode: :mod:`.pgo_gn_weights`)."""
 
     def __init__(self, local: LocalGraph, params: PgoParams | None = None) -> None:
         super().__init__(local, params)
@@ -75,6 +77,8 @@ class GnPcgAgent(PgoAgent):
         self.recycle: list[tuple[np.ndarray, np.ndarray]] = []  # last steps (own, far ends)
         self.rec_steps: list[tuple[np.ndarray, np.ndarray]] = []  # those in this coarse space
         self._extend = False
+        self._anchor_built: bool | None = None  # the anchoring the coarse space was built for
+        self._robust_setup()
 
     def dependencies(self) -> set[int]:
         """Every step needs every robot's shares of the team sums."""
@@ -90,6 +94,10 @@ class GnPcgAgent(PgoAgent):
             self.peer_public[msg.robot] = np.array(msg.keys)
             if self.peer_X is not None:
                 return  # the solve tracks neighbour poses itself (from their steps)
+        if isinstance(msg, GncWeights):
+            if self.kind in ("start", "begin"):  # only the owners' screened weights, at the start
+                self._absorb_start_weights(msg)
+            return
         super().handle(msg)
 
     # ---------------------------------------------------------------- the step
@@ -97,20 +105,28 @@ class GnPcgAgent(PgoAgent):
         out: list[Message] = []
         if self.done:
             return out
-        if not self.aligned:
+        p = self.params
+        if not self.aligned and not self.excluded:
             self._try_align()
-            if not self.aligned:
+            if not self.aligned and not self.excluded:
                 return [self._status(rnd)]
+            out.append(self._public(rnd, self.poses))  # an excluded robot takes part, edges off
+        elif self.peer_X is None and rnd - self.last_sent_round >= p.resend_interval:
             out.append(self._public(rnd, self.poses))
-        elif self.peer_X is None and rnd - self.last_sent_round >= self.params.resend_interval:
-            out.append(self._public(rnd, self.poses))
+        if p.robust and not self.screened and not self.excluded and p.screen != "none":
+            self._screen()
         msg = self._advance(rnd)
         if msg is not None:
             out.append(msg)
-        elif self.sent and rnd - self.sent[-1].round >= self.params.resend_interval:
+            if msg.step == 0:
+                out.extend(self._start_weight_messages(rnd))
+        elif self.sent and rnd - self.sent[-1].round >= p.resend_interval:
             # another robot may still miss either of the last two steps (it is one behind at most)
             self.sent = [dataclasses.replace(m, round=rnd) for m in self.sent]
             out.extend(self.sent)
+            if self.kind == "begin":
+                self.start_weights = [dataclasses.replace(m, round=rnd) for m in self.start_weights]
+                out.extend(self.start_weights)
         out.append(self._status(rnd))
         return out
 
@@ -159,6 +175,7 @@ class GnPcgAgent(PgoAgent):
         return msg
 
     def _advance(self, rnd: int) -> PcgState | None:
+        p = self.params
         if self.kind == "start":
             if not all(int(k) in self.neighbour_poses for k in self.local.inter_peer_key):
                 return None
@@ -171,14 +188,17 @@ class GnPcgAgent(PgoAgent):
             roots = np.array([frame_root(int(r), self.team, self.local.robot_graph)
                               for r in self.local.inter_peer], dtype=bool)
             self._peer_anchor = roots & ((self.local.inter_peer_key & INDEX_MASK) == 0)
-            self.cost = self._cost(self.poses, self.peer_X)
+            if p.robust and not (self.screened or self.excluded or p.screen == "none"):
+                return None
             self.kind = "begin"
-            return self._send(rnd, [self.cost])
+            return self._send(rnd, self._start_scalars())
         got = self._received(self.k - 1, rnd)
         if got is None:
             return None
         if self.kind == "begin":
-            self.team_cost = self.cost + sum(float(m.scalars[0]) for m in got.values())
+            if not self._start_weights_in():
+                return None
+            self._apply_start(got)
             return self._linearise(rnd)
         if self.kind == "cg0":
             return self._cg_start(rnd, got)
@@ -215,28 +235,33 @@ class GnPcgAgent(PgoAgent):
     def _cost(self, poses: np.ndarray, peer_X: np.ndarray) -> float:
         """The robot's share of the team cost: its intra edges and half of each inter edge."""
         lg = self.local
-        c = float(edge_costs(poses[lg.intra_i], poses[lg.intra_j], lg.intra_meas, lg.intra_info).sum()) \
+        c = float(edge_costs(poses[lg.intra_i], poses[lg.intra_j], lg.intra_meas, self.w_intra_info).sum()) \
             if len(lg.intra_i) else 0.0
         if len(lg.inter_own):
             own = poses[lg.inter_own]
             sel = lg.inter_own_is_i[:, None, None]
             Ti, Tj = np.where(sel, own, peer_X), np.where(sel, peer_X, own)
-            c += 0.5 * float(edge_costs(Ti, Tj, lg.inter_meas, lg.inter_info).sum())
+            c += 0.5 * float(edge_costs(Ti, Tj, lg.inter_meas, self.w_inter_info).sum())
         return c
 
     def _linearise(self, rnd: int) -> PcgState:
         lg = self.local
         assert self.peer_X is not None
-        self.sys = LocalSystem(self.poses, lg.intra_i, lg.intra_j, lg.intra_meas, lg.intra_info,
+        anchored = self._anchored()
+        self.sys = LocalSystem(self.poses, lg.intra_i, lg.intra_j, lg.intra_meas, self.w_intra_info,
                                lg.inter_own, lg.inter_own_is_i, self.peer_X, lg.inter_meas,
-                               lg.inter_info, anchor=self.root, damping=self.lam)
+                               self.w_inter_info, anchor=anchored, damping=self.lam)
+        # the robot's share of the team cost (at the current weights) and its non-binary weights
+        self.cost = self._cost(self.poses, self.peer_X)
         size = self.params.gn_coarse_size
         # the coarse space (its maps P and A_c = PᵀHP) is rebuilt every gn_coarse_refresh outer
         # steps (sooner while the team cost still falls by more than 1% a step: the poses,
         # hence P and H, still move a lot); in between the old one stays a valid (SPD)
         # preconditioner and costs no bytes
         rebuild = size > 0 and (self.coarse_rows is None or self.last_decrease > 1e-2
-                                or self.outer - self.coarse_built >= self.params.gn_coarse_refresh)
+                                or self.outer - self.coarse_built >= self.params.gn_coarse_refresh
+                                or anchored != self._anchor_built)
+        self._anchor_built = anchored
         if rebuild:
             self.coarse_rows = CoarseRows(self.robot, self.poses, self.peer_X, lg.inter_peer,
                                           lg.inter_peer_key, size, self.sys.keep, self._peer_anchor)
@@ -250,7 +275,8 @@ class GnPcgAgent(PgoAgent):
         self.ub = _single(self.sys.precondition(self.r))
         self.kind = "cg0"
         self.cg_i = 0
-        return self._send(rnd, [], self.ub, restrict=self.r, rows=rebuild, recycled=True)
+        scalars = [self.cost, float(self._nonbinary())] if self.params.robust else [self.cost]
+        return self._send(rnd, scalars, self.ub, restrict=self.r, rows=rebuild, recycled=True)
 
     def _apply(self, got: dict[int, PcgState], own_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The preconditioned vector at the own poses and at the inter-robot edges' far ends:
@@ -280,6 +306,9 @@ class GnPcgAgent(PgoAgent):
         return own, peer
 
     def _cg_start(self, rnd: int, got: dict[int, PcgState]) -> PcgState:
+        self.team_cost = self.cost + sum(float(m.scalars[0]) for m in got.values())
+        if self.params.robust:
+            self.team_nonbinary = self._nonbinary() + sum(int(m.scalars[1]) for m in got.values())
         self.u, u_peer = self._apply(got, self.ub)
         self.w = self.sys.multiply(self.u, u_peer)
         self.p = np.zeros_like(self.x)
@@ -345,7 +374,8 @@ class GnPcgAgent(PgoAgent):
         self.recycle = [*self.recycle[-(MAX_RECYCLE - 1):], (self.x.reshape(-1, 6).copy(), self.x_peer.copy())]
         decrease = (self.team_cost - new_cost) / max(abs(self.team_cost), 1e-300)
         self.last_decrease = max(decrease, 0.0)
-        if new_cost < self.team_cost:
+        accepted = new_cost < self.team_cost
+        if accepted:
             poses, peer = self._trial(t)
             change = np.sqrt(np.sum((poses - self.poses) ** 2) / max(np.sum(self.poses**2), 1e-300))
             self.rel_change = float(change)
@@ -362,7 +392,11 @@ class GnPcgAgent(PgoAgent):
             converged = self.lam > p.gn_damping_max
         log.debug("robot %d round %d outer %d: cost %.9g t %g lambda %.2e cg %d", self.robot, rnd,
                   self.outer, self.team_cost, t, self.lam, self.cg_i)
-        if converged or self.outer >= p.gn_max_outer:
+        done = self._robust_after_step(accepted, converged, self.outer)
+        if self.weights_outer == self.outer:  # the weights changed: a new problem to converge
+            self.small_steps = 0
+            self.lam = min(self.lam, p.gn_damping)
+        if done or self.outer - self.weights_outer >= p.gn_max_outer:
             self.ready = True
             self.done = True
             return None
@@ -375,7 +409,7 @@ def _single(v: np.ndarray) -> np.ndarray:
 
 
 def make_agent(local: LocalGraph, params: PgoParams) -> PgoAgent:
-    """The agent of ``params.method`` (robust runs always use block SOR: GNC weights live there)."""
-    if params.method == "gn_pcg" and not params.robust:
+    """The agent of ``params.method``."""
+    if params.method == "gn_pcg":
         return GnPcgAgent(local, params)
     return PgoAgent(local, params)

@@ -28,6 +28,7 @@ class PgoParams:
     gn_coarse_size: int = 20  # poses per rigid chunk of the coarse space (0: block Jacobi only)
     gn_coarse_refresh: int = 3  # outer steps between rebuilds of the coarse space
     gn_recycle: int = 2  # the team's last steps added to the coarse space (Krylov recycling)
+    gn_weight_every: int = 1  # robust: accepted outer steps between GNC weight updates
     rel_tol: float = 1e-8  # ready when the relative pose change of an update is below this
     lm_iterations: int = 20  # per local solve (warm-started; usually 1-3 are used)
     lm_rel_tol: float = 1e-10

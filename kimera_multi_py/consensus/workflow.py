@@ -206,7 +206,7 @@ def run_pgo(inputs: Sequence[str | Path], robots: int | None = None,
     """Centralised reference and distributed solve of the same graph, scored against each other.
 
     ``method`` picks the distributed solver (:data:`METHODS`; default :data:`DEFAULT_METHOD`
-    unless ``params`` is given, whose ``method`` then holds). Robust runs use block SOR.
+    unless ``params`` is given, whose ``method`` then holds).
     """
     graph = _inject(load_graph(inputs, robots), outliers, seed)
     params = params or PgoParams(method=DEFAULT_METHOD)

@@ -58,8 +58,8 @@ def test_make_agent_picks_the_method(datasets_dir: Path) -> None:
     local = split_local(load_graph([pgo(datasets_dir, "tinyGrid3D")], robots=3))[0]
     assert isinstance(make_agent(local, PgoParams(method="gn_pcg")), GnPcgAgent)
     assert type(make_agent(local, PgoParams())) is PgoAgent
-    # robust runs keep block SOR (the GNC weights live there)
-    assert type(make_agent(local, PgoParams(method="gn_pcg", robust=True))) is PgoAgent
+    # robust runs too: GNC rides on the Levenberg–Marquardt outer loop (pgo_gn_weights)
+    assert isinstance(make_agent(local, PgoParams(method="gn_pcg", robust=True)), GnPcgAgent)
 
 
 @pytest.mark.parametrize(("name", "robots"), [("tinyGrid3D", 3), ("smallGrid3D", 5)])
@@ -160,10 +160,10 @@ def test_gn_pcg_stops_once_converged(datasets_dir: Path) -> None:
     assert tight.rounds > res.rounds
 
 
-def test_cli_default_is_gn_pcg_outside_robust(datasets_dir: Path) -> None:
+def test_cli_default_is_gn_pcg_robust_or_not(datasets_dir: Path) -> None:
     assert CLI_METHOD == "gn_pcg"
     local = split_local(load_graph([pgo(datasets_dir, "tinyGrid3D")], robots=3))[0]
-    assert type(make_agent(local, PgoParams(method=CLI_METHOD, robust=True))) is PgoAgent
+    assert isinstance(make_agent(local, PgoParams(method=CLI_METHOD, robust=True)), GnPcgAgent)
 
 
 @pytest.mark.slow
