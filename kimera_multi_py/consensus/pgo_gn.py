@@ -78,6 +78,8 @@ class GnPcgAgent(GnRobust, PgoAgent):
         self.rec_steps: list[tuple[np.ndarray, np.ndarray]] = []  # those in this coarse space
         self._extend = False
         self._anchor_built: bool | None = None  # the anchoring the coarse space was built for
+        self.joined = False  # aligned, or excluded for good: the robot takes part in the solve
+        self.unaligned_rounds = 0
         self._robust_setup()
 
     def dependencies(self) -> set[int]:
@@ -106,11 +108,14 @@ class GnPcgAgent(GnRobust, PgoAgent):
         if self.done:
             return out
         p = self.params
-        if not self.aligned and not self.excluded:
+        if not self.aligned and not self.joined:
+            # an excluded robot keeps deciding while evidence arrives; it takes part (edges off)
+            # once the exclusion is final: every far end known, or waited long enough
             self._try_align()
-            if not self.aligned and not self.excluded:
+            self.joined = self.aligned or (self.excluded and self._exclusion_final())
+            if not self.joined:
                 return [self._status(rnd)]
-            out.append(self._public(rnd, self.poses))  # an excluded robot takes part, edges off
+            out.append(self._public(rnd, self.poses))
         elif self.peer_X is None and rnd - self.last_sent_round >= p.resend_interval:
             out.append(self._public(rnd, self.poses))
         if p.robust and not self.screened and not self.excluded and p.screen != "none":
@@ -129,6 +134,13 @@ class GnPcgAgent(GnRobust, PgoAgent):
                 out.extend(self.start_weights)
         out.append(self._status(rnd))
         return out
+
+    def _exclusion_final(self) -> bool:
+        """No more evidence can change the exclusion: every inter-robot edge's far end is known
+        (the frame decision has seen them all), or ``3·align_patience`` rounds have passed."""
+        self.unaligned_rounds += 1
+        known = all(int(k) in self.neighbour_poses for k in self.local.inter_peer_key)
+        return known or self.unaligned_rounds >= 3 * self.params.align_patience
 
     def _status(self, rnd: int) -> PgoStatus:
         rel = float(self.rel_change) if np.isfinite(self.rel_change) else 1e300
