@@ -151,8 +151,12 @@ def solve_centralized(graph: PoseGraph, robust: bool = False, chordal: bool = Tr
         if chordal:
             starts.append(("given", to_values(keys, graph.poses)))
         priors = [fg.at(k) for k in range(graph.num_edges, fg.size())]
+        # GNC's inner solves at gtsam's default LM tolerances (each graduated step is re-solved
+        # from the last one; the re-check below solves to ``relative_tol``): on cubicle a GNC at
+        # 1e-8 / 500 iterations runs for half an hour, at the defaults 7 minutes
+        gnc_lm = gtsam.LevenbergMarquardtParams()
         for name, start in starts:
-            res, w = _gnc(graph, fg, start, lm, barc2)
+            res, w = _gnc(graph, fg, start, gnc_lm, barc2)
             # gtsam's GNC can stop with every weight at 1 (it judged the start converged), aliased
             # closures included: re-decide every closure at the converged solution with the plain
             # TLS threshold (first with slack, as the distributed solver's rechecks), re-solve
@@ -161,7 +165,7 @@ def solve_centralized(graph: PoseGraph, robust: bool = False, chordal: bool = Tr
                 # GNC's decisions did not survive the check: GNC again from the checked solution
                 # (measured on the aliased ring: the all-in least-squares start re-checked keeps no
                 # alias but drops 9 true closures; GNC from there keeps every true one)
-                res, _ = _gnc(graph, fg, checked, lm, barc2)
+                res, _ = _gnc(graph, fg, checked, gnc_lm, barc2)
                 checked, w_checked = recheck(graph, priors, res, lm, barc2, recheck_factor)
             res, w = checked, w_checked
             r2 = residuals_sq(graph, from_values(res, keys))
