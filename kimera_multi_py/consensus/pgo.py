@@ -186,7 +186,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
         self.neighbour_poses: dict[int, np.ndarray] = {}
         self.inter_weights = np.ones(len(local.inter_edge))
         self.intra_weights = np.ones(len(local.intra_edge))
-        self.gnc = GncSchedule(tls_threshold(p.inlier_probability, p.tls_dof))
+        self.gnc = GncSchedule(tls_threshold(p.inlier_probability, p.tls_dof), mu_step=p.gnc_mu_step)
         self.gnc_pending: int | None = None  # round of a pending weight update
         self.gnc_last_round = 0
         self.mu_proposals: dict[int, float] = {}  # robot -> proposed μ₀ (team-wide GNC)

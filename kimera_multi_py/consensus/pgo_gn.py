@@ -287,7 +287,7 @@ class GnPcgAgent(GnRobust, PgoAgent):
         self.ub = _single(self.sys.precondition(self.r))
         self.kind = "cg0"
         self.cg_i = 0
-        scalars = [self.cost, float(self._nonbinary())] if self.params.robust else [self.cost]
+        scalars = [self.cost, float(self._nonbinary()), float(self.flipped)] if self.params.robust else [self.cost]
         return self._send(rnd, scalars, self.ub, restrict=self.r, rows=rebuild, recycled=True)
 
     def _apply(self, got: dict[int, PcgState], own_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -321,6 +321,7 @@ class GnPcgAgent(GnRobust, PgoAgent):
         self.team_cost = self.cost + sum(float(m.scalars[0]) for m in got.values())
         if self.params.robust:
             self.team_nonbinary = self._nonbinary() + sum(int(m.scalars[1]) for m in got.values())
+            self.team_flipped = self.flipped + sum(int(m.scalars[2]) for m in got.values())
         self.u, u_peer = self._apply(got, self.ub)
         self.w = self.sys.multiply(self.u, u_peer)
         self.p = np.zeros_like(self.x)
@@ -404,7 +405,7 @@ class GnPcgAgent(GnRobust, PgoAgent):
             converged = self.lam > p.gn_damping_max
         log.debug("robot %d round %d outer %d: cost %.9g t %g lambda %.2e cg %d", self.robot, rnd,
                   self.outer, self.team_cost, t, self.lam, self.cg_i)
-        done = self._robust_after_step(accepted, converged, self.outer)
+        done = self._robust_after_step(accepted, converged, self.outer, decrease)
         if self.weights_outer == self.outer:  # the weights changed: a new problem to converge
             self.small_steps = 0
             self.lam = min(self.lam, p.gn_damping)

@@ -10,14 +10,18 @@ threshold). What differs is the timing and the bookkeeping, which ride on the lo
   of each inter-robot edge owns its screened weight and sends it (:class:`GncWeights`) with the
   first step; the first step's scalars also carry each robot's ``μ₀`` proposal and whether it
   is excluded from the team frame (its edges are then off on both sides for the epoch).
-- **Weight updates** happen between outer steps: after every ``gn_weight_every`` accepted steps
-  (or a converged one), at the same step on every robot, since every decision of the outer
+- **Weight updates** happen between outer steps: after ``gn_weight_every`` accepted steps, or
+  one that lowered the team cost by less than ``gn_weight_tol`` (relative: the solve at this
+  ``μ`` has settled), or a converged one, at the same step on every robot, since every decision of the outer
   loop is team-wide. A TLS weight is a function of the edge's residual alone, and both robots
   of an inter-robot edge hold the same two poses (a neighbour's poses are tracked from its own
   float32 steps), so both compute the same weight and no weight message is needed.
 - **End of GNC**: when every weight of the team is binary after an update (the count of
   non-binary weights travels with the linearisation) or after ``gnc_max_steps``; then the
-  ``gnc_rechecks`` re-checks, each at a converged solution; then the solve stops when converged.
+  ``gnc_rechecks`` re-checks, each at a converged solution, and more (plain threshold, up to
+  ``gnc_max_rechecks``) while the last one flipped a decision anywhere in the team (that count
+  travels with the linearisation too), as the centralised reference does; then the solve stops
+  when converged.
 
 The team cost is re-summed at every linearisation (each robot's share travels with it), so a
 weight change never corrupts the accept/reject test of the line search.
@@ -63,6 +67,8 @@ class GnRobust:
         self.accepted_since_weights = 0
         self.weights_outer = 0  # the outer step of the last weight change
         self.team_nonbinary = 0
+        self.flipped = 0  # inlier decisions the last weight change flipped (own)
+        self.team_flipped = 0
         self._refresh_info()
 
     # ---------------------------------------------------------------- weighted information
@@ -160,14 +166,17 @@ class GnRobust:
 
     def _set_weights(self, w: np.ndarray, outer: int) -> None:
         loop = np.flatnonzero(~self.local.intra_odometry)
+        before = np.concatenate([self.intra_weights[loop], self.inter_weights]) > 0.5
         self.intra_weights[loop] = w[: len(loop)]
         self.inter_weights[:] = w[len(loop):]
         self._force_off()
         self._refresh_info()
+        after = np.concatenate([self.intra_weights[loop], self.inter_weights]) > 0.5
+        self.flipped = int(np.count_nonzero(before != after))
         self.weights_outer = outer
         self.accepted_since_weights = 0
 
-    def _robust_after_step(self, accepted: bool, converged: bool, outer: int) -> bool:
+    def _robust_after_step(self, accepted: bool, converged: bool, outer: int, decrease: float) -> bool:
         """Between outer steps: update the weights when due; True when the solve is done."""
         p = self.params
         if self.phase == "off":
@@ -177,7 +186,8 @@ class GnRobust:
             over = (self.gnc.steps > 0 and self.team_nonbinary == 0) or self.gnc.steps >= p.gnc_max_steps
             if over:
                 self.phase = "recheck"
-            elif converged or self.accepted_since_weights >= p.gn_weight_every:
+            elif (converged or self.accepted_since_weights >= p.gn_weight_every
+                  or (accepted and decrease < p.gn_weight_tol)):
                 r2 = np.concatenate(self._robust_r2_all())
                 self._set_weights(self.gnc.update(r2, mu0=self.team_mu0), outer)
                 return False
@@ -185,7 +195,10 @@ class GnRobust:
                 return False
         if not converged:
             return False
-        if self.phase == "recheck" and self.rechecks < p.gnc_rechecks:
+        # re-checks until the decisions are stable (at most gnc_max_rechecks): a closure dropped
+        # at the last one may fit the re-converged solution, and TLS keeps what fits
+        unstable = self.rechecks < p.gnc_rechecks or (self.team_flipped > 0 and self.rechecks < p.gnc_max_rechecks)
+        if self.phase == "recheck" and unstable:
             # the TLS decision at the converged solution, first with slack (see .pgo_weights)
             last = self.rechecks + 1 >= p.gnc_rechecks
             factor = 1.0 if last else p.recheck_factor
