@@ -10,7 +10,7 @@ REPO = Path(__file__).resolve().parents[1]
 EXE = Path(sys.executable).parent / "kimera-multi"
 
 
-def cli(*args, timeout=120):
+def cli(*args, timeout=600):
     return subprocess.run([str(EXE), *map(str, args)], capture_output=True, text=True, timeout=timeout,
                           cwd=REPO)
 

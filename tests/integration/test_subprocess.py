@@ -32,7 +32,7 @@ def test_two_processes_ping_each_other(port: int) -> None:
     results = []
     try:
         for proc in procs:
-            out, err = proc.communicate(timeout=45)
+            out, err = proc.communicate(timeout=180)
             assert proc.returncode == 0, err
             results.append(json.loads(out.strip().splitlines()[-1]))
     finally:

@@ -26,7 +26,7 @@ def test_over_mutual_tls_a_router_restart_and_a_partition_the_team_completes(tmp
     res = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli", "launch", str(TINY), "--robots", "2",
                           "--out", str(out), "--rate", "4", "--tls", "--restart-router", "25",
                           "--partition", "0|1@20:45"],
-                         capture_output=True, text=True, timeout=400, cwd=REPO)
+                         capture_output=True, text=True, timeout=900, cwd=REPO)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     results = json.loads((out / "results.json").read_text())
     sim = Simulation(load_scenario(TINY, robots=2), seed=0)

@@ -125,7 +125,7 @@ def test_a_lone_agent_runs_a_recorded_folder_to_the_end(tmp_path):
     assert (rec / "manifest.json").exists() and (rec / "ground_truth").is_dir()
     port = free_ports(1)[0]
     res = cli("agent", "--robot", "0", "--source", str(rec), "--out", str(tmp_path / "run"),
-              "--listen", f"tcp/127.0.0.1:{port}", timeout=300)
+              "--listen", f"tcp/127.0.0.1:{port}", timeout=600)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     stamps, poses = read_tum(tmp_path / "run" / "robot0" / "trajectory.tum")
     sim = Simulation(load_scenario(TINY, robots=1), seed=3)
@@ -139,14 +139,14 @@ def test_corrupt_checkpoint_and_source_are_one_line_errors(tmp_path):
     ckpt.parent.mkdir(parents=True)
     ckpt.write_bytes(b"not a checkpoint at all" * 10)
     res = cli("agent", "--robot", "0", "--source", f"sim:{TINY}", "--out", str(tmp_path), "--resume",
-              "--listen", f"tcp/127.0.0.1:{port}", timeout=120)
+              "--listen", f"tcp/127.0.0.1:{port}", timeout=300)
     assert res.returncode == 1 and "checkpoint.kmc" in res.stderr and "Traceback" not in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
     bad = tmp_path / "bad_rec"
     bad.mkdir()
     (bad / "manifest.json").write_bytes(b"\x00\xff garbage")
     res = cli("agent", "--robot", "0", "--source", str(bad), "--out", str(tmp_path / "o"),
-              "--listen", f"tcp/127.0.0.1:{port}", timeout=120)
+              "--listen", f"tcp/127.0.0.1:{port}", timeout=300)
     assert res.returncode == 1 and "manifest.json" in res.stderr and "Traceback" not in res.stderr
 
 
