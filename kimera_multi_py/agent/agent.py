@@ -49,6 +49,7 @@ from kimera_multi_py.comms.messages import (
 )
 from kimera_multi_py.consensus.pcm import PcmNoise, odometry_consistent_path, pcm
 from kimera_multi_py.consensus.pgo import LocalGraph
+from kimera_multi_py.consensus.robust import correlated_votes
 from kimera_multi_py.geometry import inverse, so3_log, transform_points
 from kimera_multi_py.io.pose_graph import robot_key, split_key
 from kimera_multi_py.mapping.config import MappingConfig, get_object_map, get_submap_map
@@ -83,6 +84,7 @@ class AgentParams:
     budget_period: float = 20.0  # s
     verify_eps: float = 0.3
     min_inliers: int = 5
+    closure_votes: bool = True  # closures sharing a keyframe and a robot split one vote in the robust cost
     pcm_min_size: int = 2
     pcm_groups: int = 3  # consistent groups per robot pair handed to the back end (see consensus.pcm)
     intra_min_gap: int = 40  # keyframes between an intra-robot closure's ends
@@ -567,20 +569,30 @@ class Agent:
         cinfo = self._info(self.params.closure_sigmas)
         lower = np.array([k[1] < self.robot for k, _ in edges], dtype=bool)
         meas = np.array([v[0] for _, v in edges]).reshape(-1, 4, 4)
+        # robust votes of correlated closures (consensus.robust.correlated_votes), in the infos
+        me = np.full(len(i), self.robot)
+        intra_vote = np.ones(len(i))
+        if self.params.closure_votes:
+            intra_vote[~odo] = correlated_votes(me[~odo], i[~odo], me[~odo], j[~odo])
+        peer = np.array([k[1] for k, _ in edges], dtype=int)
+        inter_vote = (correlated_votes(np.full(len(edges), self.robot), np.array([k[0] for k, _ in edges], dtype=int),
+                                       peer, np.array([k[2] for k, _ in edges], dtype=int))
+                      if self.params.closure_votes else np.ones(len(edges)))
         return LocalGraph(
             robot=self.robot,
             keys=np.array([robot_key(self.robot, k) for k in range(self.num_keyframes)], dtype=np.int64),
             poses=np.array(self.poses),
-            intra_i=i, intra_j=j, intra_meas=Z, intra_info=info, intra_odometry=odo,
+            intra_i=i, intra_j=j, intra_meas=Z, intra_info=info * intra_vote[:, None, None], intra_odometry=odo,
             intra_edge=np.arange(len(i)),
             inter_own=np.array([k[0] for k, _ in edges], dtype=int),
             inter_own_is_i=~lower,
             inter_peer=np.array([k[1] for k, _ in edges], dtype=int),
             inter_peer_key=np.array([robot_key(k[1], k[2]) for k, _ in edges], dtype=np.int64),
             inter_meas=np.where(lower[:, None, None], inverse(meas), meas),
-            inter_info=np.tile(cinfo, (len(edges), 1, 1)),
+            inter_info=np.tile(cinfo, (len(edges), 1, 1)) * inter_vote[:, None, None],
             inter_edge=np.arange(len(edges)),
             robot_graph=sorted(self.robot_graph), team=self.team or (self.robot,),
+            intra_vote=intra_vote, inter_vote=inter_vote,
         )
 
     def apply_poses(self, poses: np.ndarray) -> int:

@@ -76,6 +76,16 @@ class LocalGraph:
     inter_edge: np.ndarray  # (k,) global edge index
     robot_graph: list[tuple[int, int]] = field(default_factory=list)  # team topology
     team: tuple[int, ...] = ()
+    # robust votes (:func:`.robust.correlated_votes`; the infos above already carry them, the TLS
+    # decisions divide the squared residuals by them); None: 1 for every edge
+    intra_vote: np.ndarray | None = None
+    inter_vote: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.intra_vote is None:
+            self.intra_vote = np.ones(len(self.intra_i))
+        if self.inter_vote is None:
+            self.inter_vote = np.ones(len(self.inter_own))
 
     @property
     def neighbours(self) -> list[int]:
@@ -95,9 +105,11 @@ class LocalGraph:
                          information=self.intra_info)
 
 
-def split_local(graph: PoseGraph, frames: str = "own") -> list[LocalGraph]:
+def split_local(graph: PoseGraph, frames: str = "own", votes: np.ndarray | None = None) -> list[LocalGraph]:
     """Each robot's :class:`LocalGraph`; ``frames="own"`` re-expresses a robot's initial values
-    relative to its first pose (robots do not share a frame), ``"given"`` keeps them."""
+    relative to its first pose (robots do not share a frame), ``"given"`` keeps them.
+    ``votes``: robust votes per edge (already in ``graph``'s information), as the agents'."""
+    vote = np.ones(graph.num_edges) if votes is None else np.asarray(votes, dtype=float)
     kind = graph.edge_kind()
     inter_edges = kind == INTER_ROBOT
     ra, rb = graph.robot[graph.edge_i[inter_edges]], graph.robot[graph.edge_j[inter_edges]]
@@ -129,7 +141,7 @@ def split_local(graph: PoseGraph, frames: str = "own") -> list[LocalGraph]:
             inter_peer_key=np.array([robot_key(int(graph.robot[p]), int(graph.local[p]))
                                      for p in peer_idx], dtype=np.int64),
             inter_meas=graph.measurement[inter], inter_info=graph.information[inter],
-            inter_edge=inter, robot_graph=pairs, team=team,
+            inter_edge=inter, robot_graph=pairs, team=team, intra_vote=vote[intra], inter_vote=vote[inter],
         ))
     return out
 

@@ -161,8 +161,8 @@ class GnRobust:
             own = self.poses[lg.inter_own]
             sel = lg.inter_own_is_i[:, None, None]
             Ti, Tj = np.where(sel, own, self.peer_X), np.where(sel, self.peer_X, own)
-            r2_inter = 2.0 * edge_costs(Ti, Tj, lg.inter_meas, lg.inter_info)
-        return r2_loop, r2_inter
+            r2_inter = 2.0 * edge_costs(Ti, Tj, lg.inter_meas, lg.inter_info) / np.asarray(lg.inter_vote)
+        return r2_loop / np.asarray(lg.intra_vote)[loop], r2_inter  # the TLS test at Ω (votes)
 
     def _set_weights(self, w: np.ndarray, outer: int) -> None:
         loop = np.flatnonzero(~self.local.intra_odometry)

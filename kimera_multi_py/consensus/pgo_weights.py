@@ -107,7 +107,8 @@ class RobustWeights:
         loop = np.flatnonzero(~lg.intra_odometry)
         known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
         inter = np.flatnonzero((lg.inter_peer > self.robot) & known)
-        r2 = np.concatenate([self._intra_r2(loop), self._inter_r2(inter)])
+        vote = np.concatenate([np.asarray(lg.intra_vote)[loop], np.asarray(lg.inter_vote)[inter]])
+        r2 = np.concatenate([self._intra_r2(loop), self._inter_r2(inter)]) / vote  # the TLS test at Ω
         trusted = np.concatenate([self.intra_weights[loop] > 0.5, self.inter_weights[inter] > 0.5])
         return r2, trusted, loop, inter
 

@@ -23,6 +23,7 @@ from kimera_multi_py.consensus.factors import (
     residuals_sq,
     to_values,
 )
+from kimera_multi_py.consensus.robust import MU_STEP, initial_mu, tls_weights
 from kimera_multi_py.errors import GraphError
 from kimera_multi_py.geometry import to_gtsam
 from kimera_multi_py.io.pose_graph import ODOMETRY, PoseGraph
@@ -98,17 +99,55 @@ def _gnc(graph: PoseGraph, fg: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     return result, np.asarray(opt.getWeights())[: graph.num_edges]
 
 
+def _gnc_votes(graph: PoseGraph, priors: list[gtsam.NonlinearFactor], values: gtsam.Values,
+               lm: gtsam.LevenbergMarquardtParams, barc2: float, votes: np.ndarray,
+               max_iterations: int = 100, weights_tol: float = 1e-4,
+               cost_tol: float = 1e-5) -> tuple[gtsam.Values, np.ndarray]:
+    """GNC-TLS with a vote per closure (:func:`.robust.correlated_votes`; ``graph``'s
+    information already carries them): gtsam's schedule (μ₀ from the largest residual, μ ×1.4,
+    odometry and priors known inliers, done when the weights are binary or the cost settles),
+    the TLS test on ``r²/ω``. gtsam's Python GNC takes one threshold for every factor, which
+    is why this loop is ours; each step is gtsam's LM on the weighted graph."""
+    odo = graph.edge_kind() == ODOMETRY
+    loop = ~odo
+    keys = graph.keys
+    w = np.ones(graph.num_edges)
+
+    def solve(w: np.ndarray, values: gtsam.Values) -> gtsam.Values:
+        on = odo | (w > 1e-9)
+        fg = build_graph(graph, weights=w, mask=on)
+        for f in priors:
+            fg.add(f)
+        return gtsam.LevenbergMarquardtOptimizer(fg, values, lm).optimize()
+
+    r2 = residuals_sq(graph, from_values(values, keys)) / votes
+    mu = initial_mu(float(r2[loop].max()) if loop.any() else 0.0, barc2)
+    cost = np.inf
+    for _ in range(max_iterations):
+        w[loop] = tls_weights(r2[loop], mu, barc2)
+        values = solve(w, values)
+        r2 = residuals_sq(graph, from_values(values, keys)) / votes
+        new = float((votes * np.where(odo, r2, np.minimum(r2, barc2))).sum())
+        binary = np.all((w[loop] < weights_tol) | (w[loop] > 1.0 - weights_tol))
+        if binary or abs(cost - new) <= cost_tol * max(new, 1e-12):
+            break
+        cost = new
+        mu *= MU_STEP
+    return values, np.where(odo, 1.0, w)
+
+
 def recheck(graph: PoseGraph, priors: list[gtsam.NonlinearFactor], values: gtsam.Values,
             lm: gtsam.LevenbergMarquardtParams, barc2: float, factor: float = 3.0,
-            rounds: int = 4) -> tuple[gtsam.Values, np.ndarray]:
+            rounds: int = 4, votes: np.ndarray | None = None) -> tuple[gtsam.Values, np.ndarray]:
     """TLS decisions at a converged robust solution: keep the closures with ``r² ≤ factor·c̄²``,
     re-solve (odometry and priors always in), then ``r² ≤ c̄²`` until the set is stable.
-    Returns the solution and binary weights (odometry 1)."""
+    Returns the solution and binary weights (odometry 1). ``votes``: the test is on ``r²/ω``."""
     odo = graph.edge_kind() == ODOMETRY
     keys = graph.keys
     w = np.ones(graph.num_edges)
+    vote = np.ones(graph.num_edges) if votes is None else votes
     for k in range(rounds):
-        r2 = residuals_sq(graph, from_values(values, keys))
+        r2 = residuals_sq(graph, from_values(values, keys)) / vote
         new = np.where(odo | (r2 <= (factor if k == 0 else 1.0) * barc2), 1.0, 0.0)
         if k > 0 and np.array_equal(new, w):
             break
@@ -122,9 +161,11 @@ def recheck(graph: PoseGraph, priors: list[gtsam.NonlinearFactor], values: gtsam
 
 def solve_centralized(graph: PoseGraph, robust: bool = False, chordal: bool = True,
                       inlier_probability: float = 0.999, relative_tol: float = 1e-8,
-                      max_iterations: int = 500, dof: int = 6, recheck_factor: float = 3.0) -> CentralizedResult:
+                      max_iterations: int = 500, dof: int = 6, recheck_factor: float = 3.0,
+                      votes: np.ndarray | None = None) -> CentralizedResult:
     """Optimise the joint graph. The cost reported is over the non-outlier edges, unweighted.
-    ``dof``: degrees of freedom of a residual for the TLS threshold (3 for a planar graph)."""
+    ``dof``: degrees of freedom of a residual for the TLS threshold (3 for a planar graph).
+    ``votes``: robust votes per edge (:func:`_gnc_votes`), already in the graph's information."""
     if graph.num_poses == 0:
         raise GraphError("empty graph")
     t0 = time.perf_counter()
@@ -155,21 +196,29 @@ def solve_centralized(graph: PoseGraph, robust: bool = False, chordal: bool = Tr
         # from the last one; the re-check below solves to ``relative_tol``): on cubicle a GNC at
         # 1e-8 / 500 iterations runs for half an hour, at the defaults 7 minutes
         gnc_lm = gtsam.LevenbergMarquardtParams()
+        voted = votes is not None and not np.all(votes == 1.0)
+        vote = np.ones(graph.num_edges) if votes is None else np.asarray(votes, dtype=float)
+
+        def gnc(start: gtsam.Values) -> tuple[gtsam.Values, np.ndarray]:
+            if voted:
+                return _gnc_votes(graph, priors, start, gnc_lm, barc2, vote)
+            return _gnc(graph, fg, start, gnc_lm, barc2)
+
         for name, start in starts:
-            res, w = _gnc(graph, fg, start, gnc_lm, barc2)
+            res, w = gnc(start)
             # gtsam's GNC can stop with every weight at 1 (it judged the start converged), aliased
             # closures included: re-decide every closure at the converged solution with the plain
             # TLS threshold (first with slack, as the distributed solver's rechecks), re-solve
-            checked, w_checked = recheck(graph, priors, res, lm, barc2, recheck_factor)
+            checked, w_checked = recheck(graph, priors, res, lm, barc2, recheck_factor, votes=vote)
             if not np.array_equal(w_checked > 0.5, w > 0.5):
                 # GNC's decisions did not survive the check: GNC again from the checked solution
                 # (measured on the aliased ring: the all-in least-squares start re-checked keeps no
                 # alias but drops 9 true closures; GNC from there keeps every true one)
-                res, _ = _gnc(graph, fg, checked, gnc_lm, barc2)
-                checked, w_checked = recheck(graph, priors, res, lm, barc2, recheck_factor)
+                res, _ = gnc(checked)
+                checked, w_checked = recheck(graph, priors, res, lm, barc2, recheck_factor, votes=vote)
             res, w = checked, w_checked
             r2 = residuals_sq(graph, from_values(res, keys))
-            tls = float(0.5 * np.minimum(r2, barc2).sum())
+            tls = float(0.5 * np.minimum(r2, vote * barc2).sum())
             if best is None or tls < best[0]:
                 best = (tls, res, w, name)
         assert best is not None

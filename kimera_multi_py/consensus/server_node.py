@@ -22,6 +22,7 @@ from kimera_multi_py.comms.bus import Bus, Subscription
 from kimera_multi_py.comms.messages import AgentState, KeyframeOdometry, LoopClosures, Message, PgoEpoch, PublicPoses
 from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
 from kimera_multi_py.consensus.object_exchange import OBJECT_MESSAGES, ObjectExchange
+from kimera_multi_py.consensus.robust import correlated_votes
 from kimera_multi_py.consensus.server import solve_centralized
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.errors import KimeraMultiError
@@ -49,13 +50,15 @@ class Server:
     """Joint-graph GNC over what the agents stream (see the module docstring)."""
 
     def __init__(self, server_id: int, team: tuple[int, ...] | None, closure_sigmas: tuple[float, float],
-                 odom_sigmas: tuple[float, float]) -> None:
+                 odom_sigmas: tuple[float, float], closure_votes: bool = True) -> None:
         self.id = server_id
         self.team = tuple(team) if team is not None else None  # None: whoever streams to it
         self.odometry: dict[int, list[np.ndarray]] = {r: [] for r in self.team or ()}
         self.closures: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self.closure_info = np.diag(np.repeat(1.0 / np.square(closure_sigmas), 3))
         self.odom_info = np.diag(np.repeat(1.0 / np.square(odom_sigmas), 3))
+        self.closure_votes = closure_votes  # as the agents' AgentParams.closure_votes
+        self.votes = np.ones(0)
         self.stats = ServerStats()
         self.round = 0
 
@@ -103,11 +106,17 @@ class Server:
                 Z.append(T)
                 info.append(self.closure_info)
                 tags.append((ra, ia, rb, ib))
+        info_arr = np.array(info).reshape(-1, 6, 6)
+        self.votes = np.ones(len(info_arr))
+        if self.closure_votes and tags:
+            t = np.array(tags, dtype=int)
+            self.votes[len(info_arr) - len(tags):] = correlated_votes(t[:, 0], t[:, 1], t[:, 2], t[:, 3])
         g = PoseGraph(
             poses=np.array(poses).reshape(-1, 4, 4), robot=np.array(robot, dtype=int), local=np.array(local, dtype=int),
             ids=np.array([robot_key(r, k) for r, k in zip(robot, local, strict=True)], dtype=np.int64),
             edge_i=np.array(ei, dtype=int), edge_j=np.array(ej, dtype=int),
-            measurement=np.array(Z).reshape(-1, 4, 4), information=np.array(info).reshape(-1, 6, 6), source="server",
+            measurement=np.array(Z).reshape(-1, 4, 4), information=info_arr * self.votes[:, None, None],
+            source="server",
         )
         return g, tags
 
@@ -117,7 +126,7 @@ class Server:
         if g.num_poses == 0:
             return []
         t0 = time.perf_counter()
-        res = solve_centralized(g, robust=True)
+        res = solve_centralized(g, robust=True, votes=self.votes)
         self.stats.wall_s += time.perf_counter() - t0
         self.stats.solves += 1
         self.stats.poses, self.stats.edges, self.stats.inter_edges = g.num_poses, g.num_edges, len(tags)

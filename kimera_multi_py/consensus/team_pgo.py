@@ -197,7 +197,7 @@ class TeamPgo:
             inter_own=local.inter_own[sel], inter_own_is_i=local.inter_own_is_i[sel],
             inter_peer=local.inter_peer[sel], inter_peer_key=local.inter_peer_key[sel],
             inter_meas=local.inter_meas[sel], inter_info=local.inter_info[sel],
-            inter_edge=np.arange(len(sel)),
+            inter_vote=np.asarray(local.inter_vote)[sel], inter_edge=np.arange(len(sel)),
             robot_graph=sorted(p for p in pairs if p[0] in ms and p[1] in ms), team=members)
         return local, seeded
 
