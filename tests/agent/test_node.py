@@ -29,8 +29,8 @@ def _run_free(sim, period=20.0):
         for n in nodes:
             await n.start()
         streams = [[keyframe_input(kf) for kf in sim.keyframes(r)] for r in range(sim.num_robots)]
-        await asyncio.wait_for(asyncio.gather(*(n.run(s, rate=math.inf, linger=0.2)
-                                                 for n, s in zip(nodes, streams, strict=True))), 900)  # a hang guard only
+        runs = (n.run(s, rate=math.inf, linger=0.2) for n, s in zip(nodes, streams, strict=True))
+        await asyncio.wait_for(asyncio.gather(*runs), 900)  # a hang guard only
         for n in nodes:
             await n.close()
         return nodes
