@@ -39,9 +39,11 @@ def initial_mu(r2_max: float, barc2: float) -> float:
 
 
 def correlated_votes(robot_i: np.ndarray, kf_i: np.ndarray, robot_j: np.ndarray, kf_j: np.ndarray) -> np.ndarray:
-    """Each loop closure's vote ``ω = 1 / n`` in the robust cost: ``n`` closures between one
-    keyframe and one robot (the most at either end) are one observation of the same place, not
-    ``n`` independent ones. A keyframe whose view also matches a place shifted by the pitch of a
+    """Each loop closure's vote ``ω = 1/√n`` in the robust cost: ``n`` closures between one
+    keyframe and one robot (the most at either end) are not ``n`` independent observations of
+    the same place (fully correlated would be ``1/n``; ``1/√n`` keeps the group's pull on the
+    inter-robot alignment, which ``1/n`` weakens enough to slow the distributed solve: small
+    seed 0 ended 6 % above centralised with ``1/n``). A keyframe whose view also matches a place shifted by the pitch of a
     repeated structure (a row of identical desks) registers that way against every keyframe of
     the other robot there, and the group would outvote an odometry segment that only bending
     can reconcile (office, 5 robots, seed 9: five 2 m-slid closures, all accepted by the
@@ -58,7 +60,7 @@ def correlated_votes(robot_i: np.ndarray, kf_i: np.ndarray, robot_j: np.ndarray,
         return np.ones(0)
     _, inv, counts = np.unique(ends.astype(np.int64), axis=0, return_inverse=True, return_counts=True)
     n = counts[inv.reshape(-1)]
-    return 1.0 / np.maximum(n[:m], n[m:]).astype(float)
+    return 1.0 / np.sqrt(np.maximum(n[:m], n[m:]).astype(float))
 
 
 @dataclass

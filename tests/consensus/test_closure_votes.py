@@ -28,11 +28,11 @@ def test_votes_count_closures_per_keyframe_and_robot_and_agree_on_both_robots() 
     rb = np.array([3, 3, 3, 3, 3, 3])
     kb = np.array([12, 12, 12, 12, 14, 12])
     v = correlated_votes(ra, ka, rb, kb)
-    assert np.allclose(v, [1 / 4, 1 / 4, 1 / 4, 1 / 4, 1 / 2, 1.0])
+    assert np.allclose(v, [1 / 2, 1 / 2, 1 / 2, 1 / 2, 1 / np.sqrt(2), 1.0])  # 1/sqrt(n)
     assert np.allclose(correlated_votes(rb, kb, ra, ka), v)  # robot 3's view of the same edges
     # intra-robot closures: keyframes of one robot
     assert np.allclose(correlated_votes(np.zeros(3, int), np.array([50, 50, 70]), np.zeros(3, int),
-                                        np.array([2, 3, 4])), [1 / 2, 1 / 2, 1.0])
+                                        np.array([2, 3, 4])), [1 / np.sqrt(2), 1 / np.sqrt(2), 1.0])
     assert correlated_votes(*(np.zeros(0, int),) * 4).shape == (0,)
 
 
