@@ -43,11 +43,12 @@ def correlated_votes(robot_i: np.ndarray, kf_i: np.ndarray, robot_j: np.ndarray,
     keyframe and one robot (the most at either end) are not ``n`` independent observations of
     the same place (fully correlated would be ``1/n``; ``1/√n`` keeps the group's pull on the
     inter-robot alignment, which ``1/n`` weakens enough to slow the distributed solve: small
-    seed 0 ended 6 % above centralised with ``1/n``). A keyframe whose view also matches a place shifted by the pitch of a
-    repeated structure (a row of identical desks) registers that way against every keyframe of
-    the other robot there, and the group would outvote an odometry segment that only bending
-    can reconcile (office, 5 robots, seed 9: five 2 m-slid closures, all accepted by the
-    centralised GNC as well). With votes, rejecting such a group costs about one closure.
+    seed 0 ended 6 % above centralised with ``1/n``). A keyframe whose view also matches a
+    place shifted by the pitch of a repeated structure (a row of identical desks) registers that
+    way against every keyframe of the other robot there, and the group would outvote an
+    odometry segment that only bending can reconcile (office, 5 robots, seed 9: five 2 m-slid
+    closures, all accepted by the centralised GNC as well). With votes, rejecting such a group
+    costs less than the bend.
 
     The closure enters the least squares with ``ω·Ω``, and the TLS decision uses the residual
     with ``Ω`` (callers divide the squared residual by ``ω``): an edge is an inlier by the same
