@@ -569,24 +569,28 @@ class Agent:
         cinfo = self._info(self.params.closure_sigmas)
         lower = np.array([k[1] < self.robot for k, _ in edges], dtype=bool)
         meas = np.array([v[0] for _, v in edges]).reshape(-1, 4, 4)
-        # robust votes of correlated closures (consensus.robust.correlated_votes), in the infos
-        me = np.full(len(i), self.robot)
-        intra_vote = np.ones(len(i))
-        if self.params.closure_votes:
-            intra_vote[~odo] = correlated_votes(me[~odo], i[~odo], me[~odo], j[~odo])
+        # robust votes of correlated closures (consensus.robust.correlated_votes), in the infos;
+        # one call over intra and inter closures: votes are counted per robot pair, so they don't mix
+        own = np.array([k[0] for k, _ in edges], dtype=int)
         peer = np.array([k[1] for k, _ in edges], dtype=int)
-        inter_vote = (correlated_votes(np.full(len(edges), self.robot), np.array([k[0] for k, _ in edges], dtype=int),
-                                       peer, np.array([k[2] for k, _ in edges], dtype=int))
-                      if self.params.closure_votes else np.ones(len(edges)))
+        c = ~odo
+        votes = np.ones(c.sum() + len(edges))
+        if self.params.closure_votes:
+            votes = correlated_votes(np.full(len(votes), self.robot), np.r_[i[c], own],
+                                     np.r_[np.full(c.sum(), self.robot), peer],
+                                     np.r_[j[c], np.array([k[2] for k, _ in edges], dtype=int)])
+        intra_vote = np.ones(len(i))
+        intra_vote[c] = votes[:c.sum()]
+        inter_vote = votes[c.sum():]
         return LocalGraph(
             robot=self.robot,
             keys=np.array([robot_key(self.robot, k) for k in range(self.num_keyframes)], dtype=np.int64),
             poses=np.array(self.poses),
             intra_i=i, intra_j=j, intra_meas=Z, intra_info=info * intra_vote[:, None, None], intra_odometry=odo,
             intra_edge=np.arange(len(i)),
-            inter_own=np.array([k[0] for k, _ in edges], dtype=int),
+            inter_own=own,
             inter_own_is_i=~lower,
-            inter_peer=np.array([k[1] for k, _ in edges], dtype=int),
+            inter_peer=peer,
             inter_peer_key=np.array([robot_key(k[1], k[2]) for k, _ in edges], dtype=np.int64),
             inter_meas=np.where(lower[:, None, None], inverse(meas), meas),
             inter_info=np.tile(cinfo, (len(edges), 1, 1)) * inter_vote[:, None, None],

@@ -58,7 +58,6 @@ class Server:
         self.closure_info = np.diag(np.repeat(1.0 / np.square(closure_sigmas), 3))
         self.odom_info = np.diag(np.repeat(1.0 / np.square(odom_sigmas), 3))
         self.closure_votes = closure_votes  # as the agents' AgentParams.closure_votes
-        self.votes = np.ones(0)
         self.stats = ServerStats()
         self.round = 0
 
@@ -107,18 +106,24 @@ class Server:
                 info.append(self.closure_info)
                 tags.append((ra, ia, rb, ib))
         info_arr = np.array(info).reshape(-1, 6, 6)
-        self.votes = np.ones(len(info_arr))
-        if self.closure_votes and tags:
-            t = np.array(tags, dtype=int)
-            self.votes[len(info_arr) - len(tags):] = correlated_votes(t[:, 0], t[:, 1], t[:, 2], t[:, 3])
+        votes = self.votes(len(info_arr), tags)
         g = PoseGraph(
             poses=np.array(poses).reshape(-1, 4, 4), robot=np.array(robot, dtype=int), local=np.array(local, dtype=int),
             ids=np.array([robot_key(r, k) for r, k in zip(robot, local, strict=True)], dtype=np.int64),
             edge_i=np.array(ei, dtype=int), edge_j=np.array(ej, dtype=int),
-            measurement=np.array(Z).reshape(-1, 4, 4), information=info_arr * self.votes[:, None, None],
+            measurement=np.array(Z).reshape(-1, 4, 4), information=info_arr * votes[:, None, None],
             source="server",
         )
         return g, tags
+
+    def votes(self, num_edges: int, tags: list[tuple[int, int, int, int]]) -> np.ndarray:
+        """Each edge's robust vote: 1 for odometry, the closures' correlated votes after it
+        (``tags`` are the closures, the last edges of the joint graph)."""
+        votes = np.ones(num_edges)
+        if self.closure_votes and tags:
+            t = np.array(tags, dtype=int)
+            votes[num_edges - len(tags):] = correlated_votes(t[:, 0], t[:, 1], t[:, 2], t[:, 3])
+        return votes
 
     def optimise(self) -> list[Message]:
         """Solve the joint graph with GNC; return each robot's corrected poses."""
@@ -126,7 +131,7 @@ class Server:
         if g.num_poses == 0:
             return []
         t0 = time.perf_counter()
-        res = solve_centralized(g, robust=True, votes=self.votes)
+        res = solve_centralized(g, robust=True, votes=self.votes(g.num_edges, tags))
         self.stats.wall_s += time.perf_counter() - t0
         self.stats.solves += 1
         self.stats.poses, self.stats.edges, self.stats.inter_edges = g.num_poses, g.num_edges, len(tags)

@@ -9,13 +9,12 @@ import asyncio
 
 import numpy as np
 
-from kimera_multi_py.comms.loopback import LoopbackNetwork
-from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, split_local
+from kimera_multi_py.consensus.pgo import PgoParams
 from kimera_multi_py.consensus.robust import correlated_votes
-from kimera_multi_py.consensus.runner import run_team
 from kimera_multi_py.consensus.server import solve_centralized
 from kimera_multi_py.geometry import inverse, make_pose, so3_exp
 from kimera_multi_py.io.pose_graph import PoseGraph
+from tests.consensus.test_pgo_aliased import distributed
 
 N, SLID = 60, 5  # poses per robot; slid closures from robot 0's keyframe 2
 
@@ -99,21 +98,6 @@ def test_a_correlated_slid_group_outvotes_the_odometry_without_votes_and_not_wit
 def test_distributed_gnc_with_votes_rejects_the_slid_group_as_the_centralised_does() -> None:
     g, votes, closures = _slid_graph()
     params = PgoParams(robust=True, max_rounds=400)
-
-    async def run() -> np.ndarray:
-        agents = [PgoAgent(local, params) for local in split_local(_voted(g, votes), frames="given", votes=votes)]
-        net = LoopbackNetwork(team="votes", seed=0, robots=[a.robot for a in agents])
-        buses = [net.bus(a.robot) for a in agents]
-        try:
-            await run_team(agents, buses, params.max_rounds, round_timeout=0.2)
-        finally:
-            for b in buses:
-                await b.close()
-        w = np.ones(g.num_edges)
-        owner = agents[0]  # the lower id owns every inter-robot edge
-        w[owner.local.inter_edge] = owner.inter_weights
-        return w
-
-    w = asyncio.run(run())
+    _, w = asyncio.run(distributed(_voted(g, votes), params, votes))
     assert np.all(w[-SLID:] < 0.5)
     assert np.all(w[g.num_edges - closures: g.num_edges - SLID] > 0.5)

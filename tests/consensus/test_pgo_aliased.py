@@ -116,8 +116,10 @@ def previous_solve_aliased(graph: PoseGraph, robot: int = 1) -> PoseGraph:
     return graph
 
 
-async def _distributed(graph: PoseGraph, params: PgoParams) -> tuple[np.ndarray, np.ndarray]:
-    agents = [PgoAgent(local, params) for local in split_local(graph, frames="given")]
+async def distributed(graph: PoseGraph, params: PgoParams,
+                      votes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The distributed robust solve over loopback: every robot's poses and each edge's weight."""
+    agents = [PgoAgent(local, params) for local in split_local(graph, frames="given", votes=votes)]
     net = LoopbackNetwork(team="aliased", seed=0, robots=[a.robot for a in agents])
     buses = [net.bus(a.robot) for a in agents]
     try:
@@ -144,7 +146,7 @@ def test_distributed_gnc_rejects_aliased_closure_groups() -> None:
     assert central.weights is not None
     assert not np.any(central.weights[graph.outlier] > 0.5)  # the reference resolves the aliasing
     # the sim's budget: 300 rounds
-    poses, weights = asyncio.run(_distributed(graph, PgoParams(robust=True, max_rounds=300)))
+    poses, weights = asyncio.run(distributed(graph, PgoParams(robust=True, max_rounds=300)))
     assert not np.any(weights[graph.outlier] > 0.5), "an aliased closure survived"
     assert np.all(weights[~graph.outlier] > 0.5)
     cost = graph_cost(graph, poses, ~graph.outlier)
