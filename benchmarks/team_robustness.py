@@ -53,8 +53,8 @@ def measure(scenario: str, robots: int, seed: int, mode: str) -> dict[str, Any]:
 
     cfg = load_scenario(scenario, robots=robots)
     with tempfile.TemporaryDirectory() as d:
-        # map consensus off: it changes no trajectory and doubles the run time
-        runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=d, map_consensus="off")
+        # map consensus off and no map or scene-graph scores: they change no trajectory or closure
+        runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=d, map_consensus="off", quality=False)
         res = runner.run()
     truth = [np.array(tr.true) for tr in runner.tracks]
     odom = [np.array(tr.est) for tr in runner.tracks]
@@ -91,6 +91,19 @@ def measure(scenario: str, robots: int, seed: int, mode: str) -> dict[str, Any]:
             "team_ate_m": ate, "odometry_ate_m": odo, "ratio": ate / odo if odo > 0 else float("inf"),
             "results_team_ate_m": float(res.team["ate_rmse_m"]), "robot_ate_m": robot_ate,
             "frames": frames, "alignment": report, "closures": closures, "wall_s": float(res.wall_s)}
+
+
+def code_version() -> str:
+    """The git trees of the package and the scenarios: runs measured on other code are not reused.
+    ``+dirty`` when either has uncommitted changes; ``unknown`` outside a git checkout."""
+    try:
+        trees = subprocess.run(["git", "rev-parse", "HEAD:kimera_multi_py", "HEAD:sims"], cwd=REPO, check=True,
+                               capture_output=True, text=True).stdout.split()
+        dirty = subprocess.run(["git", "status", "--porcelain", "kimera_multi_py", "sims"], cwd=REPO, check=True,
+                               capture_output=True, text=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return "-".join(t[:12] for t in trees) + ("+dirty" if dirty else "")
 
 
 def run_one(scenario: str, robots: int, seed: int, mode: str, timeout: float) -> dict[str, Any]:
@@ -158,14 +171,15 @@ def table(runs: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def _done_runs(path: Path) -> dict[tuple[str, int, int, str], dict[str, Any]]:
-    """Runs already recorded in a ``--jsonl`` file, by (scenario, robots, seed, mode)."""
+def _done_runs(path: Path, code: str) -> dict[tuple[str, int, int, str], dict[str, Any]]:
+    """Runs already recorded in a ``--jsonl`` file on this ``code``, by (scenario, robots, seed, mode)."""
     out: dict[tuple[str, int, int, str], dict[str, Any]] = {}
-    if path.exists():
+    if path.exists() and not code.endswith(("+dirty", "unknown")):
         for line in path.read_text().splitlines():
             if line.strip():
                 r = json.loads(line)
-                out[(r["scenario"], r["robots"], r["seed"], r["mode"])] = r
+                if r.get("code") == code:
+                    out[(r["scenario"], r["robots"], r["seed"], r["mode"])] = r
     return out
 
 
@@ -178,20 +192,21 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="2 seeds x 3 robots on office (for the test)")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per run")
     ap.add_argument("--json", action="store_true", help="print the JSON only")
-    ap.add_argument("--jsonl", type=Path, help="append each run to this file as it ends; runs already in it are "
-                    "not run again (a long sweep survives being stopped)")
+    ap.add_argument("--jsonl", type=Path, help="append each run to this file as it ends; runs already in it, "
+                    "measured on the same committed code, are not run again (a long sweep survives being stopped)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="runs at once (default: one per core)")
     args = ap.parse_args()
     if args.quick:
         args.scenarios, args.seeds, args.robots = SCENARIOS[:1], [0, 1], [3]
     jobs = [(s, n, seed, m) for s in args.scenarios for n in args.robots for seed in args.seeds for m in args.modes]
-    done = _done_runs(args.jsonl) if args.jsonl else {}
+    code = code_version()
+    done = _done_runs(args.jsonl, code) if args.jsonl else {}
 
     def one(job: tuple[str, int, int, str]) -> dict[str, Any]:
         key = (Path(job[0]).stem, job[1], job[2], job[3])
         if key in done:
             return done[key]
-        run = run_one(*job, args.timeout)
+        run = {**run_one(*job, args.timeout), "code": code}
         if args.jsonl and "error" not in run:
             with lock, args.jsonl.open("a") as f:
                 f.write(json.dumps(run) + "\n")
@@ -201,7 +216,7 @@ def main() -> None:
     # each run is its own process: run as many at once as there are cores (--jobs)
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         runs = list(pool.map(one, jobs))
-    out = {"runs": runs, "summary": summary(runs)}
+    out = {"code": code, "runs": runs, "summary": summary(runs)}
     if args.json:
         print(json.dumps(out, indent=1))
         return
