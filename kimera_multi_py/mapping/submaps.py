@@ -173,10 +173,10 @@ class SubmapMap:
             return False
         s.T = new_pose.copy()
         new_world = self._map_codes(s.codes, s.correction)
-        if len(s.codes):
+        if len(s.codes):  # old contribution out and new one in, in one pass over the octree
             ones = np.ones(len(s.codes), dtype=np.int32)
-            self._apply(s.world_codes, -s.rows, -ones)
-            self._apply(new_world, s.rows, ones)
+            self._apply(np.concatenate([s.world_codes, new_world]), np.concatenate([-s.rows, s.rows]),
+                        np.concatenate([-ones, ones]))
         s.world_codes = new_world
         log.debug("re-anchored submap %d (max cell motion %.3f m)", submap_id, moved)
         return True
@@ -222,6 +222,11 @@ class SubmapMap:
         uniq, summed, _ = _group_sum(codes, rows.astype(np.int32))
         sup = np.zeros(len(uniq), dtype=np.int32)
         np.add.at(sup, np.searchsorted(uniq, codes), support)
+        changed = (sup != 0) | summed.any(axis=1)  # cells a move leaves as they were are not touched
+        if not changed.all():
+            uniq, summed, sup = uniq[changed], summed[changed], sup[changed]
+            if len(uniq) == 0:
+                return
         live, live_rows, dead = self._fused.add(uniq, summed, sup)
         self.octree.remove_cells(dead)
         if len(live):
