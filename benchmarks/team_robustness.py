@@ -44,29 +44,23 @@ print(json.dumps(measure({scenario!r}, {robots}, {seed}, {mode!r})))
 
 
 def same_graph_central_ate(agents: list[Any], truth: list[Any]) -> float:
-    """Team ATE of the centralised robust solve (gtsam GNC, the server's votes) of the joint
-    graph the distributed agents ended with: the back ends compared on the same evidence. The
-    centralised *mode* differs from the distributed one by more than its back end: the agents'
-    estimates feed their front ends (descriptor windows, object positions, revisits), so the two
-    modes verify a few different closures (office, 3 robots, seed 0: 17 of 912 edges)."""
+    """Team ATE of the centralised robust solve (gtsam GNC, with the agents' closure votes) of
+    the joint graph the distributed agents ended with: the back ends compared on the same
+    evidence. The centralised *mode* differs from the distributed one by more than its back end:
+    the agents' estimates feed their front ends (descriptor windows, object positions, revisits),
+    so the two modes verify a few different closures (office, 3 robots, seed 0: 17 of 912 edges)."""
     import numpy as np
 
     from kimera_multi_py.agent.team_graph import joint_graph
-    from kimera_multi_py.consensus.robust import correlated_votes
     from kimera_multi_py.consensus.server import solve_centralized
     from kimera_multi_py.eval.team import trajectory_results
 
-    graph, inter = joint_graph(agents)
-    ends = []  # (robot, kf, robot, kf) of every closure, in the graph's edge order
-    for a in agents:
-        i, j, _, _, odo = a.intra_edges()
-        ends += [(a.robot, x, a.robot, y) if not o else None for x, y, o in zip(i, j, odo, strict=True)]
-    ends += list(inter)
-    votes = np.ones(graph.num_edges)
-    closure = np.array([e is not None for e in ends])
-    t = np.array([e for e in ends if e is not None], dtype=int).reshape(-1, 4)
-    if len(t):
-        votes[closure] = correlated_votes(t[:, 0], t[:, 1], t[:, 2], t[:, 3])
+    graph, _ = joint_graph(agents)
+    # the votes the agents' own solve used, in joint_graph's edge order: every robot's intra
+    # edges, then each robot's inter edges towards higher ids (the verifier's copy)
+    local = [a.local_graph() for a in agents]
+    votes = np.concatenate([lg.intra_vote for lg in local]
+                           + [lg.inter_vote[lg.inter_peer > lg.robot] for lg in local])
     graph.information = graph.information * votes[:, None, None]
     sol = solve_centralized(graph, robust=True, votes=votes)
     est = [sol.poses[graph.robot_indices(a.robot)] for a in agents]

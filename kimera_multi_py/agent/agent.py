@@ -574,14 +574,15 @@ class Agent:
         own = np.array([k[0] for k, _ in edges], dtype=int)
         peer = np.array([k[1] for k, _ in edges], dtype=int)
         c = ~odo
-        votes = np.ones(c.sum() + len(edges))
+        nc = int(c.sum())
+        votes = np.ones(nc + len(edges))
         if self.params.closure_votes:
             votes = correlated_votes(np.full(len(votes), self.robot), np.r_[i[c], own],
-                                     np.r_[np.full(c.sum(), self.robot), peer],
+                                     np.r_[np.full(nc, self.robot), peer],
                                      np.r_[j[c], np.array([k[2] for k, _ in edges], dtype=int)])
         intra_vote = np.ones(len(i))
-        intra_vote[c] = votes[:c.sum()]
-        inter_vote = votes[c.sum():]
+        intra_vote[c] = votes[:nc]
+        inter_vote = votes[nc:]
         return LocalGraph(
             robot=self.robot,
             keys=np.array([robot_key(self.robot, k) for k in range(self.num_keyframes)], dtype=np.int64),

@@ -53,8 +53,9 @@ def correlated_votes(robot_i: np.ndarray, kf_i: np.ndarray, robot_j: np.ndarray,
     The closure enters the least squares with ``ω·Ω``, and the TLS decision uses the residual
     with ``Ω`` (callers divide the squared residual by ``ω``): an edge is an inlier by the same
     test as before, it only pulls with its share. Both robots of an inter-robot pair hold the
-    same closures between them, so both compute the same votes; the centralised server applies
-    the same rule to the joint graph. Arrays ``(m,)`` of the closures' two ends."""
+    same closures between them, so both compute the same votes. The centralised server can apply
+    the rule to the joint graph (``Server(closure_votes=True)``), but does not by default: see
+    ``server_node.Server``. Arrays ``(m,)`` of the closures' two ends."""
     ends = np.concatenate([np.column_stack([robot_i, kf_i, robot_j]), np.column_stack([robot_j, kf_j, robot_i])])
     m = len(robot_i)
     if m == 0:
