@@ -48,6 +48,7 @@ from kimera_multi_py.comms.messages import (
 from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
 from kimera_multi_py.consensus.object_exchange import OBJECT_MESSAGES, ObjectExchange
 from kimera_multi_py.consensus.pgo import PgoParams
+from kimera_multi_py.consensus.pgo_params import team_params
 from kimera_multi_py.consensus.team_pgo import ScheduleParams, TeamPgo
 from kimera_multi_py.errors import KimeraMultiError
 
@@ -90,7 +91,7 @@ class AgentNode:
         self.complete = False  # the team's final optimisation reached us
         self.pgo: TeamPgo | None = None
         if self.params.server is None:
-            self.pgo = TeamPgo(agent.robot, pgo_params or PgoParams(robust=True, max_rounds=600),
+            self.pgo = TeamPgo(agent.robot, pgo_params or team_params(),
                                self.schedule, agent.local_graph, agent.apply_poses,
                                lambda: agent.robot_graph, self._accepted_inter)
         if self.params.map_consensus not in MAP_MODES:

@@ -10,9 +10,11 @@ Robust frame alignment (``align_hypotheses``, issue 11): the known inter-robot e
 clustered into frame hypotheses (:func:`.alignment.frame_hypotheses`), each supported by the
 number of distinct places its closures come from, over every neighbour at once. A robot adopts
 the hypothesis that leads the runner-up by ``align_min_margin`` places and rests on at least
-``align_min_places``; a lone single-place group with no competitor is adopted only once no
-more edges can arrive, and reported as such. Otherwise the robot stays out of the team frame for
-the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
+``align_min_places``. A lone single-place group with no competitor is one room seen by both
+robots, which an alias looks exactly like: the robot stays out of the team frame until a second
+place agrees (``align_lone_place`` adopts it once no more edges can arrive). Otherwise the
+robot stays out of the team frame for the epoch (own frame, inter-robot weights 0, ready so
+nobody waits) and says so in
 :attr:`PgoAgent.alignment` and the log. Every epoch builds a fresh agent, so the decision is
 revisited as closures accumulate: a robot aligned into an alias frame switches once the true
 hypothesis leads. Edges outside the adopted hypothesis start at weight 0. At the end of an
@@ -163,7 +165,7 @@ class FrameDecision:
             self._align_consensus(known)
             return
         sole = bool(hyps) and margin == hyps[0].places and hyps[0].size >= 3
-        if best is None and final and sole:
+        if best is None and final and sole and p.align_lone_place:
             # one group and no competitor: nothing to tell an alias from here; adopted, and
             # reported as resting on one place (the drift check and later epochs revisit it)
             best = hyps[0]
@@ -184,7 +186,12 @@ class FrameDecision:
             self.alignment.update(reason="no frame hypothesis leads: consensus of every edge", margin=int(margin),
                                   competitors=_competitors(hyps))
             return
-        if best is None or (not final and margin < p.align_early_margin):
+        # a robot already in the team frame switches frames only on every neighbour's evidence:
+        # at the start of an epoch only the root has published, and two of its places that look
+        # like the robot's own outvote the one true place they share (office, 5 robots, seed 5:
+        # an early 2-vs-1 lead moved a robot aligned on 11 places into the twin office, 2.5 m)
+        switch = best is not None and self.in_team_frame and not _near_identity(best.T)
+        if best is None or (not final and (margin < p.align_early_margin or switch)):
             if final:
                 self._exclude("no frame hypothesis leads", hyps[0] if hyps else None, margin, hyps)
             return
@@ -200,8 +207,8 @@ class FrameDecision:
         self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
         self.screened = bool(known.all())
         self.alignment = self._report("aligned", best, margin, len(hyps))
-        log.info("robot %d aligned: %d edges from %d places (margin %d over %d other hypotheses)", self.robot,
-                 best.size, best.places, margin, len(hyps) - 1)
+        log.info("robot %d aligned: %d edges from %d places (margin %d over %d other hypotheses), origin moved %s",
+                 self.robot, best.size, best.places, margin, len(hyps) - 1, np.round(best.T[:3, 3], 2).tolist())
 
     def _report(self, status: str, h: FrameHypothesis | None, margin: int, hypotheses: int,
                 reason: str = "") -> dict[str, object]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 
@@ -86,6 +87,11 @@ class PgoParams:
     # more edges are no evidence at all; the robot stays out of the team frame (issue 11's safety
     # property: a frame resting on a single aliased group is not merged)
     align_tie_min_places: int = 2
+    # one group from a single place and no competitor: True adopts it once no more edges can
+    # arrive (a pose graph without perceptual aliasing, such as the g2o benchmarks with random
+    # outliers); False keeps the robot out of the team frame until a second place agrees, as a
+    # SLAM team does (:func:`team_params`)
+    align_lone_place: bool = True
     place_radius: float = 2.0  # m: own closure poses closer than this are one place
     # safety: an estimate that bends away from the robot's own odometry beyond its drift model
     # (odometry_disagreement > 1) is not adopted; the robot falls back to its own frame
@@ -98,3 +104,11 @@ class PgoParams:
     init_rel_tol: float = 1e-3  # an initialising robot is ready below this relative change
     init_max_rounds: int = 40  # the leader starts the BCD after this many rounds at most
     start_resend: int = 5  # the leader repeats ``start`` this many rounds (message loss)
+
+
+def team_params(**overrides: object) -> PgoParams:
+    """The PGO of a SLAM team's agents: robust, 600 rounds per epoch, and a frame resting on one
+    place kept out of the team frame. One room seen by two robots is what an alias looks like
+    (office, 5 robots, seed 5: a robot aligned on one room sat in the twin office 6 m off, and a
+    second robot joined it there; kept out, every robot ended in the true frame)."""
+    return dataclasses.replace(PgoParams(robust=True, max_rounds=600, align_lone_place=False), **overrides)

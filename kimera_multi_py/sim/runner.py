@@ -48,6 +48,7 @@ from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES
 from kimera_multi_py.consensus.map_fusion import centralised_team_map, octree_cells
 from kimera_multi_py.consensus.map_metrics import TeamMapReport, phi, team_map_report
 from kimera_multi_py.consensus.pgo import PgoParams
+from kimera_multi_py.consensus.pgo_params import team_params
 from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.consensus.workflow import open_buses
@@ -129,7 +130,7 @@ class SimRunner:
         self.viz: Viz = viz or NullViz()
         self.on_progress = on_progress
         self.params = params or agent_params(cfg)
-        self.pgo_params = pgo_params or PgoParams(robust=True, max_rounds=600)
+        self.pgo_params = pgo_params or team_params()
         # over Zenoh a round waits on the wall clock; over loopback until the network is quiet
         self.schedule = ScheduleParams(period=pgo_period, round_timeout=0.5 if transport == "zenoh" else None)
         self.clock = _SimClock()

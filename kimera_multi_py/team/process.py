@@ -29,7 +29,7 @@ from kimera_multi_py.agent.outputs import outcome_of, own_graph, write_outcome
 from kimera_multi_py.agent.sources import KeyframeSource, SimSource, source_from_spec
 from kimera_multi_py.comms import runtime
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
-from kimera_multi_py.consensus.pgo import PgoParams
+from kimera_multi_py.consensus.pgo_params import team_params
 from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.errors import ConfigError
@@ -103,7 +103,7 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     source = source_from_spec(job.source, job.robot, start, resume)
     schedule = ScheduleParams(period=job.pgo_period, round_timeout=0.5, final_grace=2.0)
     bus = job.connection.bus(job.robot)
-    node = AgentNode(agent, bus, PgoParams(robust=True, max_rounds=600), schedule,
+    node = AgentNode(agent, bus, team_params(), schedule,
                      NodeParams(server=params.server, state_period=1.0, map_consensus=job.map_consensus))
     if node.pgo is not None:
         node.pgo.epoch = node.pgo.completed = int(extra.get("epoch", 0))

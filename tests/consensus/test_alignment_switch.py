@@ -2,10 +2,12 @@
 
 Two robots loop a corridor with two identical rooms (A and B, 6 m apart; see
 :mod:`tests.consensus.test_pgo_aliased`). In the first epoch the only closures between them
-match robot 0's room A to robot 1's room B: one consistent group, nothing to tell it from the
-truth, so robot 1 ends up 6 m off. In the next epoch (warm-started from that estimate, as
-``TeamPgo`` does) true closures arrive in room A and in a corner no other place resembles: the
-true hypothesis now rests on two places against the alias's one, and robot 1 must switch.
+match robot 0's room A to robot 1's room B, and a place on the far side of the corridor loop to
+robot 1's 6 m along it: one consistent group from two places, nothing to tell it from the truth, so
+robot 1 ends up 6 m off. In the next epoch (warm-started from that estimate, as ``TeamPgo``
+does) true closures arrive in room A, in a corner no other place resembles and in the far
+corridor: the true hypothesis now rests on three places against the alias's two, and robot 1
+must switch.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ import asyncio
 import numpy as np
 
 from kimera_multi_py.comms.loopback import LoopbackNetwork
-from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, split_local
+from kimera_multi_py.consensus.pgo import PgoAgent, split_local
+from kimera_multi_py.consensus.pgo_params import team_params
 from kimera_multi_py.consensus.runner import run_team
 from kimera_multi_py.geometry import inverse, make_pose
 from kimera_multi_py.io.pose_graph import PoseGraph, robot_key
@@ -78,7 +81,7 @@ def _odometry_start(trajs: list[np.ndarray], odo: list) -> np.ndarray:
 
 
 async def _epoch(graph: PoseGraph) -> tuple[list[PgoAgent], np.ndarray]:
-    agents = [PgoAgent(local, PgoParams(robust=True, max_rounds=300)) for local in split_local(graph, frames="given")]
+    agents = [PgoAgent(local, team_params(max_rounds=300)) for local in split_local(graph, frames="given")]
     net = LoopbackNetwork(team="switch", seed=0, robots=[a.robot for a in agents])
     buses = [net.bus(a.robot) for a in agents]
     try:
@@ -104,14 +107,15 @@ def test_aliased_robot_switches_to_the_true_frame() -> None:
     trajs, odo, first = _team()
     rng = np.random.default_rng(1)
     a, b = np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0])
-    alias = _closures(trajs, first, [(a, b, True)], rng)
-    # epoch 1: only the aliased group (robot 0 in room A, robot 1 in room B)
+    alias = _closures(trajs, first, [(a, b, True), (np.array([8.0, 8.0]), np.array([14.0, 8.0]), True)], rng)
+    # epoch 1: only the aliased group (robot 0 in room A, robot 1 in room B; and across the ring)
     g1 = _graph(trajs, odo + alias, _odometry_start(trajs, odo))
     agents, poses = asyncio.run(_epoch(g1))
-    assert agents[1].aligned and agents[1].alignment["support"] == 1  # the report says: one place
+    assert agents[1].aligned and agents[1].alignment["support"] == 2
     assert abs(_frame_error(trajs, poses, first) - OFFSET) < 1.5  # merged into the alias frame
-    # epoch 2: true closures in room A and at the corner, warm-started from epoch 1
-    true = _closures(trajs, first, [(a, a, False), (CORNER, CORNER, False)], rng)
+    # epoch 2: true closures in room A, at the corner and in the far corridor, warm-started from epoch 1
+    true = _closures(trajs, first, [(a, a, False), (CORNER, CORNER, False),
+                                    (np.array([4.0, 8.0]), np.array([4.0, 8.0]), False)], rng)
     g2 = _graph(trajs, odo + alias + true, poses)
     agents, poses = asyncio.run(_epoch(g2))
     assert agents[1].alignment["status"] == "aligned" and agents[1].alignment["support"] >= 2
@@ -119,6 +123,20 @@ def test_aliased_robot_switches_to_the_true_frame() -> None:
     w = agents[0].inter_weights  # robot 0 owns (decides) the 0-1 edges
     outlier = g2.outlier[agents[0].local.inter_edge]
     assert outlier.sum() == len(alias) and np.all(w[outlier] < 0.5) and np.all(w[~outlier] > 0.5)
+
+
+def test_a_lone_group_from_one_place_keeps_the_robot_out_of_the_team_frame() -> None:
+    """Robot 0's room A against robot 1's room B, and nothing else: one group from one place, which
+    an alias looks exactly like. Robot 1 is kept out of the team frame (its own frame), and says
+    why, instead of being merged 6 m off."""
+    trajs, odo, first = _team()
+    rng = np.random.default_rng(4)
+    edges = _closures(trajs, first, [(np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0]), True)], rng)
+    agents, poses = asyncio.run(_epoch(_graph(trajs, odo + edges, _odometry_start(trajs, odo))))
+    report = agents[1].alignment
+    assert report["status"] == "excluded" and report["support"] == 1, report
+    assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)
+    assert np.all(agents[0].inter_weights == 0.0)  # the owner of the edges drops them too
 
 
 def test_a_tie_between_single_place_groups_keeps_the_robot_out_of_the_team_frame() -> None:
@@ -134,3 +152,58 @@ def test_a_tie_between_single_place_groups_keeps_the_robot_out_of_the_team_frame
     assert report["status"] == "excluded", report
     assert [c[0] for c in report["competitors"]] == [1, 1]  # two hypotheses, one place each
     assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)  # returned in its own frame
+
+
+def test_a_robot_in_the_team_frame_switches_only_on_every_neighbours_evidence() -> None:
+    """At an epoch's start only the root has published. Robot 1 sits in the team frame (an earlier
+    epoch aligned it); its closures with the root rest on one true place and on two places that
+    look like two of its own 6 m on (an alias group of two places). Its closures with robot 2,
+    which has not published yet, rest on three true places. Robot 1 must not jump into the alias
+    on the root's 2-vs-1 lead; once robot 2's poses arrive it keeps the true frame."""
+    rng = np.random.default_rng(3)
+    trajs = [np.stack([_ring_pose(s0 + k, lat) for k in range(48)]) for s0, lat in ((0.5, 0.0), (20.5, 0.3),
+                                                                                      (34.5, -0.3))]
+    first = np.cumsum([0] + [len(T) for T in trajs])
+    odo = []
+    for r, T in enumerate(trajs):
+        for k in range(len(T) - 1):
+            odo.append((first[r] + k, first[r] + k + 1, _noisy(inverse(T[k]) @ T[k + 1], ODO_SIGMA, rng),
+                        np.diag(1.0 / ODO_SIGMA**2), False))
+    shift = make_pose(np.eye(3), np.array([-OFFSET, 0.0, 0.0]))
+    near = [lambda c, T=T: [k for k in range(len(T)) if np.linalg.norm(T[k, :2, 3] - c) <= 1.6] for T in trajs]
+    edges = []
+    # robot 0 - robot 1: one true place (room A), two aliased ones (robot 1's x = 10 and 14.5 seen 6 m back)
+    for c0, c1, alias, b in ((ROOM_A, ROOM_A, False, 1), (ROOM_A, ROOM_B, True, 1), (8.5, 14.5, True, 1)):
+        for ka, kb in list(zip(near[0](np.array([c0, 0.0])), near[b](np.array([c1, 0.0])), strict=False))[:3]:
+            Tb = shift @ trajs[b][kb] if alias else trajs[b][kb]
+            edges.append((first[0] + ka, first[b] + kb, _noisy(inverse(trajs[0][ka]) @ Tb, CLOSURE_SIGMA, rng),
+                          np.diag(1.0 / CLOSURE_SIGMA**2), alias))
+    # robot 1 - robot 2: three true places along the far side of the ring
+    for c in (CORNER, np.array([8.0, 8.0]), np.array([0.0, 8.0])):
+        for ka, kb in list(zip(near[1](c), near[2](c), strict=False))[:3]:
+            edges.append((first[1] + ka, first[2] + kb, _noisy(inverse(trajs[1][ka]) @ trajs[2][kb], CLOSURE_SIGMA,
+                                                               rng), np.diag(1.0 / CLOSURE_SIGMA**2), False))
+    assert sum(e[0] >= first[1] for e in edges) >= 6  # the 1-2 closures exist
+    truth = np.concatenate(trajs)
+    graph = _graph(trajs, odo + edges, inverse(truth[0]) @ truth)  # everyone in the team frame
+    local = split_local(graph, frames="given")[1]
+    pgo = PgoAgent(local, team_params())
+    pgo.in_team_frame = True
+    team = graph.poses
+
+    def publish(robot: int) -> None:
+        for k in graph.robot_indices(robot):
+            pgo.neighbour_poses[int(graph.ids[k])] = team[k]
+
+    publish(0)  # the root only
+    hyps = pgo._hypotheses(np.isin(local.inter_peer, [0]))
+    assert [h.places for h in hyps][:2] == [2, 1]  # the alias leads the root's evidence by one place
+    pgo._try_align()
+    assert not pgo.aligned and not pgo.excluded  # waits instead of switching frames
+    publish(2)
+    pgo._try_align()
+    assert pgo.aligned and pgo.alignment["status"] == "aligned", pgo.alignment
+    T = np.array(pgo.alignment["hypothesis"])
+    assert np.linalg.norm(T[:3, 3]) < 0.5  # kept the true frame
+    alias = graph.outlier[local.inter_edge]
+    assert alias.sum() == 6 and np.all(pgo.inter_weights[alias] == 0.0) and np.all(pgo.inter_weights[~alias] == 1.0)
