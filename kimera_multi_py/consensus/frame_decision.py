@@ -10,9 +10,11 @@ Robust frame alignment (``align_hypotheses``, issue 11): the known inter-robot e
 clustered into frame hypotheses (:func:`.alignment.frame_hypotheses`), each supported by the
 number of distinct places its closures come from, over every neighbour at once. A robot adopts
 the hypothesis that leads the runner-up by ``align_min_margin`` places and rests on at least
-``align_min_places``. A lone single-place group with no competitor is one room seen by both
-robots, which an alias looks exactly like: the robot stays out of the team frame until a second
-place agrees (``align_lone_place`` adopts it once no more edges can arrive). Otherwise the
+``align_min_places``. A lone single-place group with no competitor (one room seen by both
+robots, which an alias looks exactly like) is adopted once no more edges can arrive, and
+reported as such; ``align_lone_place=False`` keeps the robot out until a second place agrees.
+A robot already in the team frame switches frames only once every neighbour's poses are known
+(or patience ran out): at an epoch's start only the root has published. Otherwise the
 robot stays out of the team frame for the epoch (own frame, inter-robot weights 0, ready so
 nobody waits) and says so in
 :attr:`PgoAgent.alignment` and the log. Every epoch builds a fresh agent, so the decision is

@@ -80,8 +80,8 @@ def _odometry_start(trajs: list[np.ndarray], odo: list) -> np.ndarray:
     return np.stack(poses)
 
 
-async def _epoch(graph: PoseGraph) -> tuple[list[PgoAgent], np.ndarray]:
-    agents = [PgoAgent(local, team_params(max_rounds=300)) for local in split_local(graph, frames="given")]
+async def _epoch(graph: PoseGraph, **params: object) -> tuple[list[PgoAgent], np.ndarray]:
+    agents = [PgoAgent(local, team_params(max_rounds=300, **params)) for local in split_local(graph, frames="given")]
     net = LoopbackNetwork(team="switch", seed=0, robots=[a.robot for a in agents])
     buses = [net.bus(a.robot) for a in agents]
     try:
@@ -125,14 +125,18 @@ def test_aliased_robot_switches_to_the_true_frame() -> None:
     assert outlier.sum() == len(alias) and np.all(w[outlier] < 0.5) and np.all(w[~outlier] > 0.5)
 
 
-def test_a_lone_group_from_one_place_keeps_the_robot_out_of_the_team_frame() -> None:
+def test_a_lone_group_from_one_place() -> None:
     """Robot 0's room A against robot 1's room B, and nothing else: one group from one place, which
-    an alias looks exactly like. Robot 1 is kept out of the team frame (its own frame), and says
-    why, instead of being merged 6 m off."""
+    an alias looks exactly like. By default robot 1 adopts it and its report says it rests on one
+    place; with ``align_lone_place=False`` it is kept out of the team frame (its own frame)."""
     trajs, odo, first = _team()
     rng = np.random.default_rng(4)
     edges = _closures(trajs, first, [(np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0]), True)], rng)
-    agents, poses = asyncio.run(_epoch(_graph(trajs, odo + edges, _odometry_start(trajs, odo))))
+    graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
+    agents, poses = asyncio.run(_epoch(graph))
+    assert agents[1].alignment["status"] == "aligned" and agents[1].alignment["support"] == 1
+    assert abs(_frame_error(trajs, poses, first) - OFFSET) < 1.5  # merged into the alias frame
+    agents, poses = asyncio.run(_epoch(graph, align_lone_place=False))
     report = agents[1].alignment
     assert report["status"] == "excluded" and report["support"] == 1, report
     assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)
