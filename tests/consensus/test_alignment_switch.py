@@ -30,10 +30,13 @@ ODO_SIGMA = np.array([0.0026, 0.0026, 0.0026, 0.02, 0.02, 0.02])
 CORNER = np.array([16.0, 8.0])  # a place unlike any other
 
 
-def _team(seed: int = 0) -> tuple[list[np.ndarray], list[tuple[int, int, np.ndarray, np.ndarray, bool]], np.ndarray]:
-    rng = np.random.default_rng(seed)
-    trajs = [np.stack([_ring_pose(s0 + k, lat) for k in range(48)]) for s0, lat in ((0.5, 0.0), (20.5, 0.3))]
-    first = np.array([0, len(trajs[0])])
+def _team(seed: int = 0, starts: tuple[tuple[float, float], ...] = ((0.5, 0.0), (20.5, 0.3)),
+          rng: np.random.Generator | None = None
+          ) -> tuple[list[np.ndarray], list[tuple[int, int, np.ndarray, np.ndarray, bool]], np.ndarray]:
+    """Robots looping the corridor from ``starts`` (arc length, lateral offset), and their odometry."""
+    rng = np.random.default_rng(seed) if rng is None else rng
+    trajs = [np.stack([_ring_pose(s0 + k, lat) for k in range(48)]) for s0, lat in starts]
+    first = np.cumsum([0] + [len(T) for T in trajs])[:-1]
     odo = []
     for r, T in enumerate(trajs):
         for k in range(len(T) - 1):
@@ -47,13 +50,17 @@ def _near(T: np.ndarray, centre: np.ndarray) -> list[int]:
 
 
 def _closures(trajs: list[np.ndarray], first: np.ndarray, places: list[tuple[np.ndarray, np.ndarray, bool]],
-              rng: np.random.Generator) -> list[tuple[int, int, np.ndarray, np.ndarray, bool]]:
+              rng: np.random.Generator, pair: tuple[int, int] = (0, 1), per_place: int = 4
+              ) -> list[tuple[int, int, np.ndarray, np.ndarray, bool]]:
+    """Closures between robots ``pair`` at each place (centre on the first, centre on the second,
+    aliased: the second robot's pose seen 6 m back)."""
     shift = make_pose(np.eye(3), np.array([-OFFSET, 0.0, 0.0]))  # room B seen as room A
+    a, b = pair
     out = []
     for c0, c1, alias in places:
-        for ka, kb in list(zip(_near(trajs[0], c0), _near(trajs[1], c1), strict=False))[:4]:
-            Tb = shift @ trajs[1][kb] if alias else trajs[1][kb]
-            out.append((first[0] + ka, first[1] + kb, _noisy(inverse(trajs[0][ka]) @ Tb, CLOSURE_SIGMA, rng),
+        for ka, kb in list(zip(_near(trajs[a], c0), _near(trajs[b], c1), strict=False))[:per_place]:
+            Tb = shift @ trajs[b][kb] if alias else trajs[b][kb]
+            out.append((first[a] + ka, first[b] + kb, _noisy(inverse(trajs[a][ka]) @ Tb, CLOSURE_SIGMA, rng),
                         np.diag(1.0 / CLOSURE_SIGMA**2), alias))
     return out
 
@@ -165,28 +172,13 @@ def test_a_robot_in_the_team_frame_switches_only_on_every_neighbours_evidence() 
     which has not published yet, rest on three true places. Robot 1 must not jump into the alias
     on the root's 2-vs-1 lead; once robot 2's poses arrive it keeps the true frame."""
     rng = np.random.default_rng(3)
-    trajs = [np.stack([_ring_pose(s0 + k, lat) for k in range(48)]) for s0, lat in ((0.5, 0.0), (20.5, 0.3),
-                                                                                      (34.5, -0.3))]
-    first = np.cumsum([0] + [len(T) for T in trajs])
-    odo = []
-    for r, T in enumerate(trajs):
-        for k in range(len(T) - 1):
-            odo.append((first[r] + k, first[r] + k + 1, _noisy(inverse(T[k]) @ T[k + 1], ODO_SIGMA, rng),
-                        np.diag(1.0 / ODO_SIGMA**2), False))
-    shift = make_pose(np.eye(3), np.array([-OFFSET, 0.0, 0.0]))
-    near = [lambda c, T=T: [k for k in range(len(T)) if np.linalg.norm(T[k, :2, 3] - c) <= 1.6] for T in trajs]
-    edges = []
+    trajs, odo, first = _team(starts=((0.5, 0.0), (20.5, 0.3), (34.5, -0.3)), rng=rng)
+    x = [np.array([v, 0.0]) for v in (ROOM_A, ROOM_B, 8.5, 14.5)]
     # robot 0 - robot 1: one true place (room A), two aliased ones (robot 1's x = 10 and 14.5 seen 6 m back)
-    for c0, c1, alias, b in ((ROOM_A, ROOM_A, False, 1), (ROOM_A, ROOM_B, True, 1), (8.5, 14.5, True, 1)):
-        for ka, kb in list(zip(near[0](np.array([c0, 0.0])), near[b](np.array([c1, 0.0])), strict=False))[:3]:
-            Tb = shift @ trajs[b][kb] if alias else trajs[b][kb]
-            edges.append((first[0] + ka, first[b] + kb, _noisy(inverse(trajs[0][ka]) @ Tb, CLOSURE_SIGMA, rng),
-                          np.diag(1.0 / CLOSURE_SIGMA**2), alias))
+    edges = _closures(trajs, first, [(x[0], x[0], False), (x[0], x[1], True), (x[2], x[3], True)], rng, per_place=3)
     # robot 1 - robot 2: three true places along the far side of the ring
-    for c in (CORNER, np.array([8.0, 8.0]), np.array([0.0, 8.0])):
-        for ka, kb in list(zip(near[1](c), near[2](c), strict=False))[:3]:
-            edges.append((first[1] + ka, first[2] + kb, _noisy(inverse(trajs[1][ka]) @ trajs[2][kb], CLOSURE_SIGMA,
-                                                               rng), np.diag(1.0 / CLOSURE_SIGMA**2), False))
+    edges += _closures(trajs, first, [(c, c, False) for c in (CORNER, np.array([8.0, 8.0]), np.array([0.0, 8.0]))],
+                       rng, pair=(1, 2), per_place=3)
     assert sum(e[0] >= first[1] for e in edges) >= 6  # the 1-2 closures exist
     truth = np.concatenate(trajs)
     graph = _graph(trajs, odo + edges, inverse(truth[0]) @ truth)  # everyone in the team frame
