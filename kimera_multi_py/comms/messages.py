@@ -490,12 +490,19 @@ PGO_COMMANDS = ("start", "round", "update_weights", "stop")
 
 @message("PublicPoses", keys.PUBLIC_POSES)
 class PublicPoses(Message):
-    """A robot's public poses (those touching inter-robot edges) after a PGO round."""
+    """A robot's public poses (those touching inter-robot edges) after a PGO round.
+
+    ``settled``: the sender's frame is the team frame's root, or rests on a frame hypothesis of
+    at least two places decided on settled peers' poses. A frame adopted on one place (or on a
+    consensus of a few edges) is not settled: an alias looks exactly like it, and its receivers
+    do not align through it while settled evidence exists (issue 11).
+    """
 
     robot: int = robot_id()
     round: int = count()
     keys: np.ndarray = arr("int64", "n")
     poses: np.ndarray = arr("float64", "n", 4, 4)
+    settled: bool = _f(Bool(), default=True)
 
 
 @message("PgoStatus", keys.PGO_STATUS)

@@ -67,6 +67,8 @@ class FrameDecision:
     aligned: bool
     excluded: bool
     in_team_frame: bool
+    settled: bool
+    peer_settled: dict[int, bool]
     screened: bool
     alignment: dict[str, object]
     alignment_inliers: np.ndarray | None
@@ -100,6 +102,7 @@ class FrameDecision:
         if not res.ok and not everything and self.wait_rounds < self.params.align_patience:
             return
         self._adopt_consensus(known, res)
+        self.settled = True  # without frame hypotheses every aligned frame counts
 
     def _align_consensus(self, known: np.ndarray) -> None:
         """Align by the robust consensus of every known edge (:func:`.alignment.align_frames`)."""
@@ -107,7 +110,9 @@ class FrameDecision:
         nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
         res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known], lg.inter_own_is_i[known])
         self._adopt_consensus(known, res)
-        self.alignment = {"status": "aligned", "support": int(res.inliers.sum()), "edges": int(res.inliers.sum()),
+        self.settled = False
+        self.alignment = {"status": "aligned", "settled": False, "support": int(res.inliers.sum()),
+                          "edges": int(res.inliers.sum()),
                           "margin": 0, "hypotheses": 0, "peers": sorted(set(lg.inter_peer[known].tolist())),
                           "hypothesis": np.round(res.T, 4).tolist(), "reason": "consensus of all edges"}
 
@@ -149,17 +154,39 @@ class FrameDecision:
             h.edges = idx[h.edges]
         return hyps
 
+    def _settled_edges(self) -> np.ndarray:
+        """The inter-robot edges to peers whose frames are settled (:class:`.messages.PublicPoses`)."""
+        return np.array([self.peer_settled.get(int(r), True) for r in self.local.inter_peer], dtype=bool)
+
+    def _evidence(self, known: np.ndarray) -> tuple[list[FrameHypothesis], FrameHypothesis | None, int, bool]:
+        """The frame hypotheses to decide on, the one that clearly leads (or None) and its margin,
+        and whether the lead rests on settled peers' poses alone.
+
+        Edges to a peer whose own frame is not settled (adopted on one place) decide only when
+        the settled peers' edges do not: a robot that joined an alias on one room would otherwise
+        carry every robot that meets it into the alias (office, 5 robots, seed 5).
+        """
+        p = self.params
+        firm = known & self._settled_edges()
+        if firm.any() and not firm[known].all():
+            hyps = self._hypotheses(firm)
+            best, margin = decide(hyps, p.align_min_places, p.align_min_margin)
+            if best is not None:
+                return hyps, best, margin, True
+        hyps = self._hypotheses(known)
+        best, margin = decide(hyps, p.align_min_places, p.align_min_margin)
+        return hyps, best, margin, best is not None and bool(firm[known].all())
+
     def _align_hypothesis(self, known: np.ndarray) -> None:
         """Robust alignment: adopt the frame hypothesis that clearly leads (module docstring)."""
         p = self.params
         lg = self.local
         self.wait_rounds += 1
-        signature = known.tobytes()
+        signature = known.tobytes() + self._settled_edges().tobytes()
         if self.excluded and signature == self._tried:
             return  # nothing new to decide on
         self._tried = signature
-        hyps = self._hypotheses(known)
-        best, margin = decide(hyps, p.align_min_places, p.align_min_margin)
+        hyps, best, margin, settles = self._evidence(known)
         final = bool(known.all()) or self.wait_rounds >= p.align_patience
         if best is None and final and (not hyps or hyps[0].size < 3):
             # no group of mutually consistent edges at all (sparse or noisy edges, not
@@ -173,15 +200,15 @@ class FrameDecision:
             best = hyps[0]
         # a tie between groups of single places is aliasing itself (twin rooms): neither staying
         # nor the consensus of the edges is evidence, so the robot is kept out of the team frame
-        settled = bool(hyps) and hyps[0].places >= p.align_tie_min_places
-        if best is None and final and self.in_team_frame and settled:
+        placed = bool(hyps) and hyps[0].places >= p.align_tie_min_places
+        if best is None and final and self.in_team_frame and placed:
             # a tie, and the robot already sits in the team frame (an earlier epoch aligned it):
             # it keeps that frame while the hypothesis at the identity is among the leaders;
             # switching frames takes a clear lead
             stay = [h for h in hyps if h.places == hyps[0].places and _near_identity(h.T)]
             if stay:
-                best = stay[0]
-        if best is None and final and p.align_tie == "consensus" and settled:
+                best, settles = stay[0], True  # the frame an earlier epoch settled
+        if best is None and final and p.align_tie == "consensus" and placed:
             # competing hypotheses and none leads: the robust consensus of every edge aligns the
             # robot and the team's GNC decides between the groups; the report says it was a tie
             self._align_consensus(known)
@@ -208,13 +235,16 @@ class FrameDecision:
         # edges outside the hypothesis start as outliers; GNC and its rechecks revisit them
         self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
         self.screened = bool(known.all())
+        self.settled = settles
         self.alignment = self._report("aligned", best, margin, len(hyps))
-        log.info("robot %d aligned: %d edges from %d places (margin %d over %d other hypotheses), origin moved %s",
-                 self.robot, best.size, best.places, margin, len(hyps) - 1, np.round(best.T[:3, 3], 2).tolist())
+        log.info("robot %d aligned%s: %d edges from %d places (margin %d over %d other hypotheses), origin moved %s",
+                 self.robot, "" if settles else " (not settled)", best.size, best.places, margin, len(hyps) - 1,
+                 np.round(best.T[:3, 3], 2).tolist())
 
     def _report(self, status: str, h: FrameHypothesis | None, margin: int, hypotheses: int,
                 reason: str = "") -> dict[str, object]:
-        out: dict[str, object] = {"status": status, "support": h.places if h is not None else 0,
+        out: dict[str, object] = {"status": status, "settled": bool(self.settled and status != "excluded"),
+                                  "support": h.places if h is not None else 0,
                                   "edges": h.size if h is not None else 0, "margin": int(margin),
                                   "hypotheses": int(hypotheses),
                                   "peers": list(h.peers) if h is not None else [],

@@ -195,6 +195,10 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
         self.prev_poses = self.poses.copy()  # previous iterate (momentum)
         self.published = self.poses.copy()  # what neighbours see (extrapolated)
         self.aligned = self.root
+        # the frame rests on the root or on >= align_min_places places of settled peers' poses
+        # (see :class:`.messages.PublicPoses`); peers' flags, by robot, as last heard
+        self.settled = self.root
+        self.peer_settled: dict[int, bool] = {}
         self.neighbour_poses: dict[int, np.ndarray] = {}
         self.inter_weights = np.ones(len(local.inter_edge))
         self.intra_weights = np.ones(len(local.intra_edge))
@@ -246,6 +250,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
                 return
             for k, T in zip(msg.keys.tolist(), msg.poses, strict=False):
                 self.neighbour_poses[int(k)] = np.array(T)
+            self.peer_settled[msg.robot] = bool(msg.settled)
         elif isinstance(msg, PgoStatus):
             old = self.statuses.get(msg.robot)
             if old is None or msg.round >= old.round:
@@ -325,7 +330,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
         self.last_sent_round = rnd
         pub = self.local.public
         return PublicPoses(robot=self.robot, round=rnd, keys=self.local.keys[pub],
-                           poses=poses[pub])
+                           poses=poses[pub], settled=bool(self.settled and not self.excluded))
 
     # ---------------------------------------------------------------- local solve
     def _base_graph(self) -> gtsam.NonlinearFactorGraph:

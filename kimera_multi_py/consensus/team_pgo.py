@@ -104,6 +104,7 @@ class TeamPgo:
         self.stats = TeamPgoStats()
         self.states: dict[int, AgentState] = {}
         self.last_public: dict[int, np.ndarray] = {}  # pose key -> latest public pose heard
+        self.last_settled: dict[int, bool] = {}  # robot -> its latest PublicPoses.settled
         self._future: list[Message] = []  # PGO messages (all carry a round) of an epoch not opened yet
         self._opened_at = 0.0  # team time of the last epoch's opening
         self._closures_at_open = 0
@@ -133,6 +134,7 @@ class TeamPgo:
         if isinstance(msg, PublicPoses):
             for k, T in zip(msg.keys.tolist(), msg.poses, strict=True):
                 self.last_public[int(k)] = np.array(T)
+            self.last_settled[msg.robot] = bool(msg.settled)
         epoch, rnd = divmod(msg.round, EPOCH_ROUNDS)
         s = self.session
         if s is not None and epoch == s.epoch:
@@ -162,8 +164,11 @@ class TeamPgo:
         local, seeded = self._restrict(local, members, pairs)
         pgo = PgoAgent(local, self.params)
         pgo.neighbour_poses.update(seeded)
+        pgo.peer_settled.update(self.last_settled)
         last = self.last_pgo
-        pgo.in_team_frame = last is not None and (last.root or (last.aligned and not last.excluded))
+        # a frame an earlier epoch settled is kept against a tie or an early lead; an unsettled
+        # one (adopted on one place) is decided afresh
+        pgo.in_team_frame = last is not None and (last.root or (last.aligned and not last.excluded and last.settled))
         leader = min(members)
         # the epoch's leader waits for everyone; the others for their neighbours and the leader
         # (which paces a robot without neighbours yet, instead of it racing to the round cap)
