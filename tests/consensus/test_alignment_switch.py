@@ -135,13 +135,14 @@ def test_aliased_robot_switches_to_the_true_frame() -> None:
 def test_a_lone_group_from_one_place() -> None:
     """Robot 0's room A against robot 1's room B, and nothing else: one group from one place, which
     an alias looks exactly like. By default robot 1 adopts it and its report says it rests on one
-    place; with ``align_lone_place=False`` it is kept out of the team frame (its own frame)."""
+    place, not settled (peers do not align through it); with ``align_lone_place=False`` it is kept out of the team frame (its own frame)."""
     trajs, odo, first = _team()
     rng = np.random.default_rng(4)
     edges = _closures(trajs, first, [(np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0]), True)], rng)
     graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
     agents, poses = asyncio.run(_epoch(graph))
     assert agents[1].alignment["status"] == "aligned" and agents[1].alignment["support"] == 1
+    assert not agents[1].settled and not agents[1].alignment["settled"]  # one place settles nothing
     assert abs(_frame_error(trajs, poses, first) - OFFSET) < 1.5  # merged into the alias frame
     agents, poses = asyncio.run(_epoch(graph, align_lone_place=False))
     report = agents[1].alignment
@@ -203,3 +204,42 @@ def test_a_robot_in_the_team_frame_switches_only_on_every_neighbours_evidence() 
     assert np.linalg.norm(T[:3, 3]) < 0.5  # kept the true frame
     alias = graph.outlier[local.inter_edge]
     assert alias.sum() == 6 and np.all(pgo.inter_weights[alias] == 0.0) and np.all(pgo.inter_weights[~alias] == 1.0)
+
+
+def test_a_robot_does_not_align_through_a_peer_whose_frame_is_not_settled() -> None:
+    """Robot 2 joined the alias on one room (6 m off, its frame not settled). Robot 1's closures
+    with it are true, so through robot 2's published poses they propose the alias frame, from
+    three places; robot 1's closures with the root rest on two true places. Counting every edge,
+    the alias wins 3 to 2 (robot 2 flagged settled shows it). With robot 2's frame flagged as not
+    settled, robot 1 decides on the root's edges alone: the true frame, settled in its turn."""
+    rng = np.random.default_rng(5)
+    trajs, odo, first = _team(starts=((0.5, 0.0), (20.5, 0.3), (34.5, -0.3)), rng=rng)
+    edges = _closures(trajs, first, [(c, c, False) for c in (np.array([ROOM_A, 0.0]), CORNER)], rng, per_place=3)
+    edges += _closures(trajs, first, [(c, c, False) for c in (np.array([0.0, 8.0]), np.array([4.5, 8.0]),
+                                                               np.array([9.0, 8.0]))], rng, pair=(1, 2), per_place=3)
+    truth = np.concatenate(trajs)
+    graph = _graph(trajs, odo + edges, inverse(truth[0]) @ truth)
+    local = split_local(graph, frames="given")[1]
+    team = graph.poses.copy()
+    alias = make_pose(np.eye(3), np.array([OFFSET, 0.0, 0.0]))
+    team[first[2]:] = alias @ team[first[2]:]  # robot 2 sits 6 m off
+
+    def decided(robot2_settled: bool) -> PgoAgent:
+        pgo = PgoAgent(local, team_params())
+        for k in np.concatenate([graph.robot_indices(0), graph.robot_indices(2)]):
+            pgo.neighbour_poses[int(graph.ids[k])] = team[k]
+        pgo.peer_settled.update({0: True, 2: robot2_settled})
+        pgo._try_align()
+        assert pgo.aligned, pgo.alignment
+        return pgo
+
+    naive = decided(True)
+    assert np.linalg.norm(np.array(naive.alignment["hypothesis"])[:3, 3] - alias[:3, 3]) < 1.0
+    assert naive.alignment["support"] == 3 and naive.settled
+    pgo = decided(False)
+    T = np.array(pgo.alignment["hypothesis"])
+    assert np.linalg.norm(T[:3, 3]) < 0.5, pgo.alignment  # the true frame
+    assert pgo.settled and pgo.alignment["settled"] and pgo.alignment["peers"] == [0]
+    assert pgo._public(0, pgo.poses).settled
+    to_robot2 = local.inter_peer == 2
+    assert np.all(pgo.inter_weights[to_robot2] == 0.0) and np.all(pgo.inter_weights[~to_robot2] == 1.0)
