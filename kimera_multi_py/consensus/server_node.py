@@ -10,6 +10,7 @@ robot's raw sensor data, and a robot that never connects simply keeps its odomet
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -24,6 +25,7 @@ from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES, MapConsensus, 
 from kimera_multi_py.consensus.object_exchange import OBJECT_MESSAGES, ObjectExchange
 from kimera_multi_py.consensus.robust import correlated_votes
 from kimera_multi_py.consensus.server import solve_centralized
+from kimera_multi_py.consensus.server_frames import FrameScreen, screen_frames
 from kimera_multi_py.consensus.team_pgo import ScheduleParams
 from kimera_multi_py.errors import KimeraMultiError
 from kimera_multi_py.io.pose_graph import PoseGraph, robot_key, split_key
@@ -50,7 +52,7 @@ class Server:
     """Joint-graph GNC over what the agents stream (see the module docstring)."""
 
     def __init__(self, server_id: int, team: tuple[int, ...] | None, closure_sigmas: tuple[float, float],
-                 odom_sigmas: tuple[float, float], closure_votes: bool = False) -> None:
+                 odom_sigmas: tuple[float, float], closure_votes: bool = False, frame_screen: bool = True) -> None:
         self.id = server_id
         self.team = tuple(team) if team is not None else None  # None: whoever streams to it
         self.odometry: dict[int, list[np.ndarray]] = {r: [] for r in self.team or ()}
@@ -64,6 +66,9 @@ class Server:
         # graph): with votes GNC keeps 14 false closures (team ATE 2.81 m), and the alias's voted
         # TLS cost is below the truth's (267.5 against 280.6); without votes 0 false (0.077 m)
         self.closure_votes = closure_votes
+        # the agents' frame decision before GNC (:mod:`.server_frames`); off: GNC on every closure
+        self.frame_screen = frame_screen
+        self.frames: FrameScreen | None = None  # the last solve's frame decisions
         self.stats = ServerStats()
         self.round = 0
 
@@ -137,20 +142,34 @@ class Server:
         if g.num_poses == 0:
             return []
         t0 = time.perf_counter()
-        res = solve_centralized(g, robust=True, votes=self.votes(g.num_edges, tags))
+        votes = self.votes(g.num_edges, tags)
+        keep = np.ones(g.num_edges, dtype=bool)
+        if self.frame_screen:
+            self.frames = screen_frames(g)
+            keep = self.frames.keep
+            for r in self.frames.excluded():
+                why = self.frames.report[r]["reason"]
+                (log.warning if why == "no frame hypothesis leads" else log.info)(
+                    "server: robot %d kept out of the team frame (%s)", r, why)
+        solved = dataclasses.replace(g.subset_edges(keep), poses=self.frames.poses if self.frames else g.poses)
+        res = solve_centralized(solved, robust=True, votes=votes[keep])
         self.stats.wall_s += time.perf_counter() - t0
         self.stats.solves += 1
         self.stats.poses, self.stats.edges, self.stats.inter_edges = g.num_poses, g.num_edges, len(tags)
-        loop_w = np.ones(len(tags)) if res.weights is None else np.asarray(res.weights)[g.num_edges - len(tags):]
+        weights = np.zeros(g.num_edges)
+        weights[keep] = 1.0 if res.weights is None else res.weights
+        loop_w = weights[g.num_edges - len(tags):]
         self.stats.weights = {t: float(w) for t, w in zip(tags, loop_w, strict=True)}
         self.stats.rejected_by_gnc = int(np.sum(loop_w < 0.5))
         self.round += 1
         out: list[Message] = []
+        # a robot kept out of the team frame gets its poses in its own frame, flagged not settled
+        excluded = set(self.frames.excluded()) if self.frames else set()
         for r in sorted(set(g.robot.tolist())):
             idx = g.robot_indices(r)
             out.append(PublicPoses(robot=self.id, round=self.round,
                                    keys=np.array([robot_key(r, k) for k in range(len(idx))], dtype=np.int64),
-                                   poses=res.poses[idx]))
+                                   poses=res.poses[idx], settled=r not in excluded))
         return out
 
 

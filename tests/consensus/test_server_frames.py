@@ -1,0 +1,90 @@
+"""The centralised server decides every robot's frame before GNC, as the agents do.
+
+Robots loop the corridor with the twin rooms of :mod:`tests.consensus.test_pgo_aliased` (see
+:mod:`tests.consensus.test_alignment_switch` for the helpers); each robot's odometry starts at
+the identity, as the server receives it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kimera_multi_py.comms.messages import KeyframeOdometry, LoopClosures
+from kimera_multi_py.consensus.server_frames import screen_frames
+from kimera_multi_py.consensus.server_node import Server
+from kimera_multi_py.geometry import inverse
+from kimera_multi_py.io.pose_graph import robot_key
+from tests.consensus.test_alignment_switch import CORNER, _closures, _graph, _odometry_start, _team
+from tests.consensus.test_pgo_aliased import ROOM_A, ROOM_B
+
+A, B = np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0])
+FAR = [np.array([0.0, 8.0]), np.array([4.5, 8.0]), np.array([9.0, 8.0])]
+
+
+def _team_error(trajs: list[np.ndarray], poses: np.ndarray, first: np.ndarray, robot: int) -> float:
+    """Mean position error of ``robot`` in robot 0's frame."""
+    end = first[robot] + len(trajs[robot])
+    true = (inverse(trajs[0][0]) @ trajs[robot])[:, :3, 3]
+    return float(np.linalg.norm(poses[first[robot]:end, :3, 3] - true, axis=1).mean())
+
+
+def test_the_alias_group_is_left_out_and_the_robot_joins_on_the_truth() -> None:
+    """Robot 0's room A against robot 1's room B and a far place 6 m on (an alias of two places)
+    against three true places: robot 1 joins on the truth, settled, and exactly the aliased
+    closures leave the graph GNC sees."""
+    rng = np.random.default_rng(0)
+    trajs, odo, first = _team(rng=rng)
+    alias = _closures(trajs, first, [(A, B, True), (np.array([8.0, 8.0]), np.array([14.0, 8.0]), True)], rng)
+    true = _closures(trajs, first, [(A, A, False), (CORNER, CORNER, False), (FAR[0], FAR[0], False)], rng)
+    graph = _graph(trajs, odo + alias + true, _odometry_start(trajs, odo))
+    screen = screen_frames(graph)
+    assert screen.report[1]["status"] == "aligned" and screen.report[1]["settled"]
+    assert screen.report[1]["support"] == 3
+    assert np.array_equal(screen.keep, ~graph.outlier)  # odometry and the true closures
+    assert _team_error(trajs, screen.poses, first, 1) < 0.5
+
+
+def test_a_robot_joins_through_a_settled_robot_before_an_unsettled_one() -> None:
+    """Robot 2's only closures with the root are a lone alias group (room A against room B);
+    with robot 1, which shares two true places with the root, it shares three true places.
+    Robot 1 joins first (a clear lead), then robot 2 on the truth through robot 1; its closures
+    with the root are left out."""
+    rng = np.random.default_rng(5)
+    trajs, odo, first = _team(starts=((0.5, 0.0), (20.5, 0.3), (34.5, -0.3)), rng=rng)
+    edges = _closures(trajs, first, [(A, A, False), (CORNER, CORNER, False)], rng, per_place=3)
+    edges += _closures(trajs, first, [(A, B, True)], rng, pair=(0, 2), per_place=4)
+    edges += _closures(trajs, first, [(c, c, False) for c in FAR], rng, pair=(1, 2), per_place=3)
+    graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
+    screen = screen_frames(graph)
+    assert [screen.report[r]["status"] for r in (0, 1, 2)] == ["root", "aligned", "aligned"]
+    assert screen.report[2]["peers"] == [1] and screen.report[2]["settled"]
+    assert np.array_equal(screen.keep, ~graph.outlier)
+    assert _team_error(trajs, screen.poses, first, 2) < 0.5
+    # the lone alias decides nothing once robot 1 is not there to settle robot 2's frame
+    alone = _graph(trajs, [e for e in odo + edges if not (first[1] <= e[0] < first[2] and e[1] >= first[2])],
+                   _odometry_start(trajs, odo))
+    lone = screen_frames(alone).report[2]
+    assert lone["status"] == "aligned" and not lone["settled"] and lone["support"] == 1
+
+
+def test_a_tie_keeps_the_robot_out_and_the_server_says_so() -> None:
+    """Twin rooms only: the alias and the truth each rest on one place. The server keeps robot 1
+    out of the team frame: no closure of it reaches GNC, its poses come back in its own frame
+    and the message says they are not settled."""
+    rng = np.random.default_rng(2)
+    trajs, odo, first = _team(rng=rng)
+    edges = _closures(trajs, first, [(A, B, True), (A, A, False)], rng)
+    graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
+    assert screen_frames(graph).report[1]["status"] == "excluded"
+    server = Server(999, (0, 1), closure_sigmas=(0.05, 0.15), odom_sigmas=(0.0026, 0.02))
+    for r, T in enumerate(trajs):
+        steps = [np.eye(4)] + [inverse(T[k - 1]) @ T[k] for k in range(1, len(T))]
+        server.handle(KeyframeOdometry(robot=r, keyframes=np.arange(len(T)), odometry=np.array(steps)))
+    i, j, Z = (np.array(v) for v in zip(*[(e[0], e[1], e[2]) for e in edges], strict=True))
+    server.handle(LoopClosures(robot=0, peer=1, batch=0, keys_a=[robot_key(0, int(k)) for k in i],
+                               keys_b=[robot_key(1, int(k - first[1])) for k in j], poses=Z,
+                               sigmas=np.tile([0.05] * 3 + [0.15] * 3, (len(i), 1)), inliers=np.ones(len(i), int)))
+    out = server.optimise()  # one message per robot, by id
+    assert not out[1].settled and out[0].settled
+    assert np.allclose(out[1].poses[0], np.eye(4), atol=1e-6)  # its own frame
+    assert server.stats.weights and all(w == 0.0 for w in server.stats.weights.values())
