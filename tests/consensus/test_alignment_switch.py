@@ -135,7 +135,8 @@ def test_aliased_robot_switches_to_the_true_frame() -> None:
 def test_a_lone_group_from_one_place() -> None:
     """Robot 0's room A against robot 1's room B, and nothing else: one group from one place, which
     an alias looks exactly like. By default robot 1 adopts it and its report says it rests on one
-    place, not settled (peers do not align through it); with ``align_lone_place=False`` it is kept out of the team frame (its own frame)."""
+    place, not settled (peers do not align through it); with ``align_lone_place=False`` it is
+    kept out of the team frame (its own frame)."""
     trajs, odo, first = _team()
     rng = np.random.default_rng(4)
     edges = _closures(trajs, first, [(np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0]), True)], rng)
