@@ -289,6 +289,31 @@ def decide(hypotheses: list[FrameHypothesis], min_places: int = 2, min_margin: i
     return None, margin
 
 
+def settled_decision(firm: list[FrameHypothesis] | None, every: list[FrameHypothesis], min_places: int = 2,
+                     min_margin: int = 1) -> tuple[FrameHypothesis | None, int, str]:
+    """Decide a frame on settled peers' edges (``firm``; None when every edge is one) and on
+    every known edge (``every``). Returns the hypothesis (or None), its margin and a verdict:
+
+    * ``"settled"``: settled peers' evidence decides, and every edge does not decide another
+      frame (the larger hypothesis when both agree);
+    * ``"contested"``: the two decide different frames, and nothing is decided. A robot in an
+      alias carries the robots that met it into the alias, and the settled peers alone can be
+      outvoted by twin rooms only they happened to see; neither is evidence against the other;
+    * ``"unsettled"``: only every edge decides (or nothing does).
+    """
+    best, margin = decide(every, min_places, min_margin)
+    if firm is None:
+        return best, margin, "settled" if best is not None else "unsettled"
+    lead, lead_margin = decide(firm, min_places, min_margin)
+    if lead is None:
+        return best, margin, "unsettled"
+    if best is None:
+        return lead, lead_margin, "settled"
+    if len(np.intersect1d(lead.edges, best.edges)) * 2 >= len(lead.edges):
+        return best, margin, "settled"
+    return None, 0, "contested"
+
+
 def drift_sigmas(odometry_xyz: np.ndarray, sigma_rot: float, sigma_trans: float) -> np.ndarray:
     """Per-keyframe position standard deviation of dead reckoning ``(n,)`` (m).
 

@@ -36,9 +36,9 @@ from kimera_multi_py.consensus.alignment import (
     Alignment,
     FrameHypothesis,
     align_frames,
-    decide,
     frame_hypotheses,
     odometry_disagreement,
+    settled_decision,
     supported_edges,
 )
 from kimera_multi_py.consensus.factors import to_values
@@ -158,24 +158,19 @@ class FrameDecision:
         """The inter-robot edges to peers whose frames are settled (:class:`.messages.PublicPoses`)."""
         return np.array([self.peer_settled.get(int(r), True) for r in self.local.inter_peer], dtype=bool)
 
-    def _evidence(self, known: np.ndarray) -> tuple[list[FrameHypothesis], FrameHypothesis | None, int, bool]:
-        """The frame hypotheses to decide on, the one that clearly leads (or None) and its margin,
-        and whether the lead rests on settled peers' poses alone.
-
-        Edges to a peer whose own frame is not settled (adopted on one place) decide only when
-        the settled peers' edges do not: a robot that joined an alias on one room would otherwise
-        carry every robot that meets it into the alias (office, 5 robots, seed 5).
-        """
+    def _evidence(self, known: np.ndarray) -> tuple[list[FrameHypothesis], FrameHypothesis | None, int, str]:
+        """The frame hypotheses over every known edge, the one that clearly leads (or None), its
+        margin, and the verdict of :func:`.alignment.settled_decision` (edges to peers whose own
+        frames are not settled decide only what settled peers' edges do not)."""
         p = self.params
         firm = known & self._settled_edges()
-        if firm.any() and not firm[known].all():
-            hyps = self._hypotheses(firm)
-            best, margin = decide(hyps, p.align_min_places, p.align_min_margin)
-            if best is not None:
-                return hyps, best, margin, True
         hyps = self._hypotheses(known)
-        best, margin = decide(hyps, p.align_min_places, p.align_min_margin)
-        return hyps, best, margin, best is not None and bool(firm[known].all())
+        partial = firm.any() and not firm[known].all()
+        best, margin, verdict = settled_decision(self._hypotheses(firm) if partial else None, hyps,
+                                                 p.align_min_places, p.align_min_margin)
+        if verdict == "settled" and not firm.any():
+            verdict = "unsettled"  # every known edge is to an unsettled peer
+        return hyps, best, margin, verdict
 
     def _align_hypothesis(self, known: np.ndarray) -> None:
         """Robust alignment: adopt the frame hypothesis that clearly leads (module docstring)."""
@@ -186,7 +181,9 @@ class FrameDecision:
         if self.excluded and signature == self._tried:
             return  # nothing new to decide on
         self._tried = signature
-        hyps, best, margin, settles = self._evidence(known)
+        hyps, best, margin, verdict = self._evidence(known)
+        settles = verdict == "settled"
+        contested = verdict == "contested"
         final = bool(known.all()) or self.wait_rounds >= p.align_patience
         if best is None and final and (not hyps or hyps[0].size < 3):
             # no group of mutually consistent edges at all (sparse or noisy edges, not
@@ -208,7 +205,7 @@ class FrameDecision:
             stay = [h for h in hyps if h.places == hyps[0].places and _near_identity(h.T)]
             if stay:
                 best, settles = stay[0], True  # the frame an earlier epoch settled
-        if best is None and final and p.align_tie == "consensus" and placed:
+        if best is None and final and p.align_tie == "consensus" and placed and not contested:
             # competing hypotheses and none leads: the robust consensus of every edge aligns the
             # robot and the team's GNC decides between the groups; the report says it was a tie
             self._align_consensus(known)
@@ -222,7 +219,9 @@ class FrameDecision:
         switch = best is not None and self.in_team_frame and not _near_identity(best.T)
         if best is None or (not final and (margin < p.align_early_margin or switch)):
             if final:
-                self._exclude("no frame hypothesis leads", hyps[0] if hyps else None, margin, hyps)
+                why = "settled and unsettled peers' closures lead to different frames" if contested \
+                    else "no frame hypothesis leads"
+                self._exclude(why, hyps[0] if hyps else None, margin, hyps)
             return
         inliers = np.zeros(len(lg.inter_edge), dtype=bool)
         inliers[best.edges] = True

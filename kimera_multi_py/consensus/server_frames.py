@@ -10,8 +10,9 @@ agents do (:mod:`.frame_decision`, issue 11):
 * for a robot not yet aligned, its closures with the aligned robots are clustered into frame
   hypotheses (:func:`.alignment.frame_hypotheses`), each supported by the distinct places its
   closures come from; :func:`.alignment.decide` says whether one clearly leads;
-* of all robots with a clear lead, the one with the largest margin joins first, on *settled*
-  robots' closures when those decide (the root, and robots that joined on a clear lead);
+* of all robots with a clear lead, the one with the largest margin joins first; closures with
+  robots that are not *settled* (the root, and robots that joined on a clear lead are) decide
+  only what the settled robots' closures do not (:func:`.alignment.settled_decision`);
 * only when no robot has a clear lead does a lone single-place group (one group, no competitor)
   join its robot, unsettled (``lone``); ties and robots without closures stay out (own frame);
 * each inter-robot closure is judged once, when the later of its two robots joins: it is kept
@@ -28,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kimera_multi_py.consensus.alignment import FrameHypothesis, decide, frame_hypotheses
+from kimera_multi_py.consensus.alignment import FrameHypothesis, frame_hypotheses, settled_decision
 from kimera_multi_py.geometry import so3_log
 from kimera_multi_py.io.pose_graph import PoseGraph
 
@@ -77,17 +78,15 @@ class _Screen:
 
     def lead(self, robot: int, settled: set[int], aligned: set[int]
              ) -> tuple[FrameHypothesis | None, int, bool, list[FrameHypothesis]]:
-        """The hypothesis that clearly leads for ``robot`` (on settled robots' closures first),
-        its margin, whether that lead is settled, and the hypotheses over every aligned robot."""
+        """The hypothesis that clearly leads for ``robot`` (:func:`.alignment.settled_decision`),
+        its margin, whether it is settled, and the hypotheses over every aligned robot."""
         firm = self.edges(robot, settled)
         every = self.edges(robot, aligned)
-        if len(firm) and len(firm) < len(every):
-            best, margin = decide(self.hypotheses(robot, firm), self.min_places, self.min_margin)
-            if best is not None:
-                return best, margin, True, self.hypotheses(robot, every)
         hyps = self.hypotheses(robot, every)
-        best, margin = decide(hyps, self.min_places, self.min_margin)
-        return best, margin, best is not None and len(firm) == len(every), hyps
+        partial = len(firm) and len(firm) < len(every)
+        best, margin, verdict = settled_decision(self.hypotheses(robot, firm) if partial else None, hyps,
+                                                 self.min_places, self.min_margin)
+        return best, margin, verdict == "settled" and bool(len(firm)), hyps
 
 
 def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, place_radius: float = 2.0,
