@@ -9,6 +9,7 @@ translation. At least ``min_inliers`` consistent measurements are needed.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -272,46 +273,60 @@ def _merge_close(hyps: list[FrameHypothesis], own: np.ndarray, peers: np.ndarray
 
 
 def decide(hypotheses: list[FrameHypothesis], min_places: int = 2, min_margin: int = 1,
-           min_edges: int = 3) -> tuple[FrameHypothesis | None, int]:
+           min_edges: int = 3, lead_ratio: float = 2.0) -> tuple[FrameHypothesis | None, int]:
     """The hypothesis that clearly leads, or None; and its margin in places over the runner-up.
 
     A frame resting on a single place (one group, which an alias would look like) or tied with
     another hypothesis is not decided: the robot waits for more evidence (or stays out of the
-    team frame).
+    team frame). A runner-up resting on several places is a twin room with several distinct
+    spots (office: a twin office's desks, three places): then the leader needs ``lead_ratio``
+    times its places (office, 5 robots, seed 3: a 3-to-2 lead put a robot in the twin office).
     """
     if not hypotheses:
         return None, 0
     best = hypotheses[0]
     second = hypotheses[1].places if len(hypotheses) > 1 else 0
     margin = best.places - second
-    if best.places >= min_places and margin >= min_margin and best.size >= min_edges:
+    need = min_margin if second < 2 else max(min_margin, int(np.ceil((lead_ratio - 1.0) * second)))
+    if best.places >= min_places and margin >= need and best.size >= min_edges:
         return best, margin
     return None, margin
 
 
-def settled_decision(firm: list[FrameHypothesis] | None, every: list[FrameHypothesis], min_places: int = 2,
+def settled_decision(firm: list[FrameHypothesis] | None, every: list[FrameHypothesis],
+                     per_peer: Sequence[list[FrameHypothesis]] = (), min_places: int = 2,
                      min_margin: int = 1) -> tuple[FrameHypothesis | None, int, str]:
     """Decide a frame on settled peers' edges (``firm``; None when every edge is one) and on
-    every known edge (``every``). Returns the hypothesis (or None), its margin and a verdict:
+    every known edge (``every``); ``per_peer``: each settled peer's hypotheses on its own edges.
+    Returns the hypothesis (or None), its margin and a verdict:
 
-    * ``"settled"``: settled peers' evidence decides, and every edge does not decide another
-      frame (the larger hypothesis when both agree);
-    * ``"contested"``: the two decide different frames, and nothing is decided. A robot in an
-      alias carries the robots that met it into the alias, and the settled peers alone can be
-      outvoted by twin rooms only they happened to see; neither is evidence against the other;
+    * ``"settled"``: settled peers' evidence decides, every edge does not decide another frame
+      (the larger hypothesis when both agree), and no settled peer's own edges clearly lead to
+      another frame (frames through different peers must agree: A–B ∘ B–C ≈ A–C);
+    * ``"contested"``: two of these decide different frames, and nothing is decided. A robot in
+      an alias carries the robots that met it into the alias, and one peer's twin rooms can
+      outvote another peer's true places; neither is evidence against the other;
     * ``"unsettled"``: only every edge decides (or nothing does).
     """
+    def same(a: FrameHypothesis, b: FrameHypothesis) -> bool:
+        return len(np.intersect1d(a.edges, b.edges)) * 2 >= min(len(a.edges), len(b.edges))
+
     best, margin = decide(every, min_places, min_margin)
-    if firm is None:
-        return best, margin, "settled" if best is not None else "unsettled"
-    lead, lead_margin = decide(firm, min_places, min_margin)
-    if lead is None:
-        return best, margin, "unsettled"
-    if best is None:
-        return lead, lead_margin, "settled"
-    if len(np.intersect1d(lead.edges, best.edges)) * 2 >= len(lead.edges):
-        return best, margin, "settled"
-    return None, 0, "contested"
+    verdict = "settled" if best is not None else "unsettled"
+    if firm is not None:
+        lead, lead_margin = decide(firm, min_places, min_margin)
+        if lead is None:
+            verdict = "unsettled"
+        elif best is None:
+            best, margin = lead, lead_margin
+        elif not same(lead, best):
+            return None, 0, "contested"
+    if best is not None:
+        for hyps in per_peer:
+            lead, _ = decide(hyps, min_places, min_margin)
+            if lead is not None and not same(lead, best):
+                return None, 0, "contested"
+    return best, margin, verdict
 
 
 def drift_sigmas(odometry_xyz: np.ndarray, sigma_rot: float, sigma_trans: float) -> np.ndarray:

@@ -163,10 +163,13 @@ class FrameDecision:
         margin, and the verdict of :func:`.alignment.settled_decision` (edges to peers whose own
         frames are not settled decide only what settled peers' edges do not)."""
         p = self.params
+        lg = self.local
         firm = known & self._settled_edges()
         hyps = self._hypotheses(known)
         partial = firm.any() and not firm[known].all()
-        best, margin, verdict = settled_decision(self._hypotheses(firm) if partial else None, hyps,
+        peers = np.unique(lg.inter_peer[firm])
+        per_peer = [self._hypotheses(firm & (lg.inter_peer == r)) for r in peers] if len(peers) > 1 else []
+        best, margin, verdict = settled_decision(self._hypotheses(firm) if partial else None, hyps, per_peer,
                                                  p.align_min_places, p.align_min_margin)
         if verdict == "settled" and not firm.any():
             verdict = "unsettled"  # every known edge is to an unsettled peer

@@ -84,8 +84,10 @@ class _Screen:
         every = self.edges(robot, aligned)
         hyps = self.hypotheses(robot, every)
         partial = len(firm) and len(firm) < len(every)
+        peers = [p for p in settled if len(self.edges(robot, {p}))]
+        per_peer = [self.hypotheses(robot, self.edges(robot, {p})) for p in peers] if len(peers) > 1 else []
         best, margin, verdict = settled_decision(self.hypotheses(robot, firm) if partial else None, hyps,
-                                                 self.min_places, self.min_margin)
+                                                 per_peer, self.min_places, self.min_margin)
         return best, margin, verdict == "settled" and bool(len(firm)), hyps
 
 
