@@ -318,14 +318,13 @@ def settled_decision(firm: list[FrameHypothesis] | None, every: list[FrameHypoth
         if lead is None:
             verdict = "unsettled"
         elif best is None:
-            best, margin = lead, lead_margin
+            best, margin, verdict = lead, lead_margin, "settled"
         elif not same(lead, best):
             return None, 0, "contested"
-    if best is not None:
-        for hyps in per_peer:
-            lead, _ = decide(hyps, min_places, min_margin)
-            if lead is not None and not same(lead, best):
-                return None, 0, "contested"
+    leads = [h for h in (decide(hyps, min_places, min_margin)[0] for hyps in per_peer) if h is not None]
+    ref = best if best is not None else (leads[0] if leads else None)
+    if ref is not None and any(not same(h, ref) for h in leads):
+        return None, 0, "contested"
     return best, margin, verdict
 
 

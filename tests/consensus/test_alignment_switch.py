@@ -5,9 +5,9 @@ Two robots loop a corridor with two identical rooms (A and B, 6 m apart; see
 match robot 0's room A to robot 1's room B, and a place on the far side of the corridor loop to
 robot 1's 6 m along it: one consistent group from two places, nothing to tell it from the truth, so
 robot 1 ends up 6 m off. In the next epoch (warm-started from that estimate, as ``TeamPgo``
-does) true closures arrive in room A, in a corner no other place resembles and in the far
-corridor: the true hypothesis now rests on three places against the alias's two, and robot 1
-must switch.
+does) true closures arrive in room A, in a corner no other place resembles and at two places of
+the far corridor: the true hypothesis now rests on four places against the alias's two (a lead
+over a multi-place runner-up takes twice its places), and robot 1 must switch.
 """
 
 from __future__ import annotations
@@ -121,8 +121,8 @@ def test_aliased_robot_switches_to_the_true_frame() -> None:
     assert agents[1].aligned and agents[1].alignment["support"] == 2
     assert abs(_frame_error(trajs, poses, first) - OFFSET) < 1.5  # merged into the alias frame
     # epoch 2: true closures in room A, at the corner and in the far corridor, warm-started from epoch 1
-    true = _closures(trajs, first, [(a, a, False), (CORNER, CORNER, False),
-                                    (np.array([4.0, 8.0]), np.array([4.0, 8.0]), False)], rng)
+    true = _closures(trajs, first, [(a, a, False), (CORNER, CORNER, False), (np.array([4.0, 8.0]),) * 2 + (False,),
+                                    (np.array([0.0, 8.0]),) * 2 + (False,)], rng, per_place=2)
     g2 = _graph(trajs, odo + alias + true, poses)
     agents, poses = asyncio.run(_epoch(g2))
     assert agents[1].alignment["status"] == "aligned" and agents[1].alignment["support"] >= 2
@@ -212,9 +212,10 @@ def test_a_robot_does_not_align_through_a_peer_whose_frame_is_not_settled() -> N
     through robot 2's published poses they propose the alias frame, from three places; robot 1's
     closures with the root rest on two true places. Counting every edge, the alias wins 3 to 2.
     But the frame through the root and the frame through robot 2 disagree: contested, so robot 1
-    stays out of the team frame, whether robot 2 says its frame is settled (the peers' frames
-    must agree) or not (settled peers against the rest). Once robot 2 has switched to the true
-    frame, robot 1 joins it, settled."""
+    stays out of the team frame while robot 2 says its frame is settled (the frames through two
+    settled peers must agree). With robot 2's frame not settled, the root's closures decide (the
+    rest lead nowhere clearly: 3 places against 2 is no lead), settled. Once robot 2 has switched
+    to the true frame, robot 1 joins it, settled."""
     rng = np.random.default_rng(5)
     trajs, odo, first = _team(starts=((0.5, 0.0), (20.5, 0.3), (34.5, -0.3)), rng=rng)
     edges = _closures(trajs, first, [(c, c, False) for c in (np.array([ROOM_A, 0.0]), CORNER)], rng, per_place=3)
@@ -236,14 +237,19 @@ def test_a_robot_does_not_align_through_a_peer_whose_frame_is_not_settled() -> N
         pgo._try_align()
         return pgo
 
-    for robot2_settled in (True, False):
-        pgo = decided(robot2_settled)
-        every = pgo._hypotheses(np.ones(len(local.inter_edge), dtype=bool))
-        assert [h.places for h in every][:2] == [3, 2]  # the alias leads every edge's count
-        assert np.linalg.norm(every[0].T[:3, 3] - alias[:3, 3]) < 1.0
-        assert pgo.excluded and not pgo.settled and not pgo._public(0, pgo.poses).settled
-        assert "different frames" in str(pgo.alignment["reason"]), pgo.alignment
-        assert np.all(pgo.inter_weights == 0.0)
+    pgo = decided(True)
+    every = pgo._hypotheses(np.ones(len(local.inter_edge), dtype=bool))
+    assert [h.places for h in every][:2] == [3, 2]  # the alias leads every edge's count
+    assert np.linalg.norm(every[0].T[:3, 3] - alias[:3, 3]) < 1.0
+    assert pgo.excluded and not pgo.settled and not pgo._public(0, pgo.poses).settled
+    assert "different frames" in str(pgo.alignment["reason"]), pgo.alignment
+    assert np.all(pgo.inter_weights == 0.0)
+    pgo = decided(False)
+    T = np.array(pgo.alignment["hypothesis"])
+    assert pgo.aligned and pgo.settled and np.linalg.norm(T[:3, 3]) < 0.5, pgo.alignment
+    assert pgo.alignment["peers"] == [0]
+    to_robot2 = local.inter_peer == 2
+    assert np.all(pgo.inter_weights[to_robot2] == 0.0) and np.all(pgo.inter_weights[~to_robot2] == 1.0)
     fixed = decided(True, robot2_off=False)
     T = np.array(fixed.alignment["hypothesis"])
     assert fixed.aligned and fixed.settled and np.linalg.norm(T[:3, 3]) < 0.5, fixed.alignment

@@ -30,16 +30,17 @@ def _team_error(trajs: list[np.ndarray], poses: np.ndarray, first: np.ndarray, r
 
 def test_the_alias_group_is_left_out_and_the_robot_joins_on_the_truth() -> None:
     """Robot 0's room A against robot 1's room B and a far place 6 m on (an alias of two places)
-    against three true places: robot 1 joins on the truth, settled, and exactly the aliased
+    against four true places: robot 1 joins on the truth, settled, and exactly the aliased
     closures leave the graph GNC sees."""
     rng = np.random.default_rng(0)
     trajs, odo, first = _team(rng=rng)
     alias = _closures(trajs, first, [(A, B, True), (np.array([8.0, 8.0]), np.array([14.0, 8.0]), True)], rng)
-    true = _closures(trajs, first, [(A, A, False), (CORNER, CORNER, False), (FAR[0], FAR[0], False)], rng)
+    true = _closures(trajs, first, [(A, A, False), (CORNER, CORNER, False), (FAR[0], FAR[0], False),
+                                    (FAR[2], FAR[2], False)], rng, per_place=2)
     graph = _graph(trajs, odo + alias + true, _odometry_start(trajs, odo))
     screen = screen_frames(graph)
     assert screen.report[1]["status"] == "aligned" and screen.report[1]["settled"]
-    assert screen.report[1]["support"] == 3
+    assert screen.report[1]["support"] == 4
     assert np.array_equal(screen.keep, ~graph.outlier)  # odometry and the true closures
     assert _team_error(trajs, screen.poses, first, 1) < 0.5
 
