@@ -9,19 +9,23 @@ to an aligned neighbour by GNC rotation + translation averaging over the inter-r
 Robust frame alignment (``align_hypotheses``, issue 11): the known inter-robot edges are
 clustered into frame hypotheses (:func:`.alignment.frame_hypotheses`), each supported by the
 number of distinct places its closures come from, over every neighbour at once. A robot adopts
-the hypothesis that leads the runner-up by ``align_min_margin`` places and rests on at least
-``align_min_places``. A lone single-place group with no competitor (one room seen by both
-robots, which an alias looks exactly like) is adopted once no more edges can arrive, and
-reported as such; ``align_lone_place=False`` keeps the robot out until a second place agrees.
-Without such a hypothesis the robot stays out of the team frame for the epoch (own frame,
-inter-robot weights 0, ready so nobody waits) and says so in :attr:`PgoAgent.alignment` and the
-log. A robot already in the team frame switches frames only once every neighbour's poses are
-known (or patience ran out): at an epoch's start only the root has published. Every epoch
-builds a fresh agent, so the decision is revisited as closures accumulate: a robot aligned into
-an alias frame switches once the true hypothesis leads. Edges outside the adopted hypothesis
-start at weight 0. At the end of an epoch (:meth:`PgoAgent.final_poses`) an estimate that bends
-away from the robot's own odometry beyond its drift model
-(:func:`.alignment.odometry_disagreement`) is not adopted either.
+the hypothesis that leads the runner-up by ``align_min_margin`` places (twice the runner-up's
+places when it rests on several: :func:`.alignment.decide`) and rests on at least
+``align_min_places``. Settled frames (:class:`.messages.PublicPoses`): the robot decides on
+settled peers' edges first; the rest decide only what those leave open, and evidence that leads
+to two frames (settled peers against the rest, or two settled peers against each other) is
+contested, no decision (:func:`.alignment.settled_decision`). A lone single-place group with no
+competitor (one room seen by both robots, which an alias looks exactly like) is adopted once no
+more edges can arrive, and reported as such (not settled); ``align_lone_place=False`` keeps the
+robot out until a second place agrees. Without such a hypothesis the robot stays out of the team
+frame for the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
+:attr:`PgoAgent.alignment` and the log. A robot already in a settled team frame switches frames
+only once every neighbour's poses are known (or patience ran out): at an epoch's start only the
+root has published. Every epoch builds a fresh agent, so the decision is revisited as closures
+accumulate: a robot aligned into an alias frame switches once the true hypothesis leads. Edges
+outside the adopted hypothesis start at weight 0. At the end of an epoch
+(:meth:`PgoAgent.final_poses`) an estimate that bends away from the robot's own odometry beyond
+its drift model (:func:`.alignment.odometry_disagreement`) is not adopted either.
 """
 
 from __future__ import annotations
