@@ -51,7 +51,6 @@ from kimera_multi_py.consensus.pgo import PgoParams
 from kimera_multi_py.consensus.pgo_params import team_params
 from kimera_multi_py.consensus.team_pgo import ScheduleParams, TeamPgo
 from kimera_multi_py.errors import KimeraMultiError
-from kimera_multi_py.io.pose_graph import split_key
 
 log = logging.getLogger(__name__)
 
@@ -240,9 +239,8 @@ class AgentNode:
                     self._refuse(type(msg).__name__, exc)
             return
         if self.params.server is not None and msg.robot == self.params.server:
-            if isinstance(msg, PublicPoses) and any(split_key(int(k))[0] == self.robot for k in msg.keys[:1]):
-                # the server's poses for this robot: in the team frame, or (not settled) kept out in its own
-                self.frame = self._component_root(self.agent.robot_graph) if msg.settled else self.robot
+            if isinstance(msg, PublicPoses) and self.agent.robot_graph:
+                self.frame = self._component_root(self.agent.robot_graph)
             await self.send(self._handle_agent(msg))
             if isinstance(msg, PgoEpoch) and msg.final and self.finished and not self.complete:
                 self.complete = True

@@ -226,7 +226,7 @@ class FrameDecision:
         switch = best is not None and self.in_team_frame and not _near_identity(best.T)
         if best is None or (not final and (margin < p.align_early_margin or switch)):
             if final:
-                why = "settled and unsettled peers' closures lead to different frames" if contested \
+                why = "closures through different peers lead to different frames" if contested \
                     else "no frame hypothesis leads"
                 self._exclude(why, hyps[0] if hyps else None, margin, hyps)
             return
