@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kimera_multi_py.consensus.robust import MU_STEP, GncSchedule, initial_mu, tls_weights
-from kimera_multi_py.geometry import inverse, make_pose
+from kimera_multi_py.geometry import inverse, make_pose, so3_log
 
 log = logging.getLogger(__name__)
 
@@ -293,10 +293,16 @@ def decide(hypotheses: list[FrameHypothesis], min_places: int = 2, min_margin: i
     return None, margin
 
 
+def near_identity(T: np.ndarray, max_trans: float = 1.0, max_rot: float = 0.2) -> bool:
+    """A frame hypothesis that is (within alignment tolerance) no change of frame."""
+    return bool(np.linalg.norm(T[:3, 3]) <= max_trans and np.linalg.norm(so3_log(T[None, :3, :3])[0]) <= max_rot)
+
+
 def settled_decision(firm: list[FrameHypothesis] | None, every: list[FrameHypothesis],
                      per_peer: Sequence[list[FrameHypothesis]] = (), min_places: int = 2,
                      min_margin: int = 1) -> tuple[FrameHypothesis | None, int, str]:
-    """Decide a frame on settled peers' edges (``firm``; None when every edge is one) and on
+    """Decide a frame on settled peers' edges (``firm``; None when every edge is one, empty when
+    none is) and on
     every known edge (``every``); ``per_peer``: each settled peer's hypotheses on its own edges.
     Returns the hypothesis (or None), its margin and a verdict:
 

@@ -41,12 +41,13 @@ from kimera_multi_py.consensus.alignment import (
     FrameHypothesis,
     align_frames,
     frame_hypotheses,
+    near_identity,
     odometry_disagreement,
     settled_decision,
     supported_edges,
 )
 from kimera_multi_py.consensus.factors import to_values
-from kimera_multi_py.geometry import inverse, so3_log
+from kimera_multi_py.geometry import inverse
 
 if TYPE_CHECKING:
     from kimera_multi_py.consensus.pgo import LocalGraph, PgoParams
@@ -170,14 +171,10 @@ class FrameDecision:
         lg = self.local
         firm = known & self._settled_edges()
         hyps = self._hypotheses(known)
-        partial = firm.any() and not firm[known].all()
+        firm_hyps = None if firm[known].all() else (self._hypotheses(firm) if firm.any() else [])
         peers = np.unique(lg.inter_peer[firm])
         per_peer = [self._hypotheses(firm & (lg.inter_peer == r)) for r in peers] if len(peers) > 1 else []
-        best, margin, verdict = settled_decision(self._hypotheses(firm) if partial else None, hyps, per_peer,
-                                                 p.align_min_places, p.align_min_margin)
-        if verdict == "settled" and not firm.any():
-            verdict = "unsettled"  # every known edge is to an unsettled peer
-        return hyps, best, margin, verdict
+        return (hyps, *settled_decision(firm_hyps, hyps, per_peer, p.align_min_places, p.align_min_margin))
 
     def _align_hypothesis(self, known: np.ndarray) -> None:
         """Robust alignment: adopt the frame hypothesis that clearly leads (module docstring)."""
@@ -209,7 +206,7 @@ class FrameDecision:
             # a tie, and the robot already sits in the team frame (an earlier epoch aligned it):
             # it keeps that frame while the hypothesis at the identity is among the leaders;
             # switching frames takes a clear lead
-            stay = [h for h in hyps if h.places == hyps[0].places and _near_identity(h.T)]
+            stay = [h for h in hyps if h.places == hyps[0].places and near_identity(h.T)]
             if stay:
                 best, settles = stay[0], True  # the frame an earlier epoch settled
         if best is None and final and p.align_tie == "consensus" and placed and not contested:
@@ -223,7 +220,7 @@ class FrameDecision:
         # at the start of an epoch only the root has published, and two of its places that look
         # like the robot's own outvote the one true place they share (office, 5 robots, seed 5:
         # an early 2-vs-1 lead moved a robot aligned on 11 places into the twin office, 2.5 m)
-        switch = best is not None and self.in_team_frame and not _near_identity(best.T)
+        switch = best is not None and self.in_team_frame and not near_identity(best.T)
         if best is None or (not final and (margin < p.align_early_margin or switch)):
             if final:
                 why = "closures through different peers lead to different frames" if contested \
@@ -236,7 +233,7 @@ class FrameDecision:
         # in the new frame, every group at the identity agrees with the chosen hypothesis
         # (a true group split by drift over long lever arms is re-joined)
         for h in self._hypotheses(known):
-            if _near_identity(h.T):
+            if near_identity(h.T):
                 inliers[h.edges] = True
         # edges outside the hypothesis start as outliers; GNC and its rechecks revisit them
         self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
@@ -284,7 +281,7 @@ class FrameDecision:
         if not known.any() or (not known.all() and self.wait_rounds < self.params.align_patience):
             return
         hyps = self._hypotheses(known) if self.params.align_hypotheses else []
-        here = [h for h in hyps if _near_identity(h.T)]
+        here = [h for h in hyps if near_identity(h.T)]
         if here:
             # already in the team frame: keep the hypothesis at the identity, the rest start at 0
             keep = np.zeros(len(lg.inter_edge), dtype=bool)
@@ -293,7 +290,7 @@ class FrameDecision:
             self.inter_weights = np.where(known & ~keep, 0.0, 1.0)
             self.screened = True
             if self.root and here:
-                others = [h.places for h in hyps if not _near_identity(h.T)]
+                others = [h.places for h in hyps if not near_identity(h.T)]
                 self.alignment = self._report("root", here[0], here[0].places - max(others, default=0), len(hyps))
             return
         if self.params.screen == "support":
@@ -384,8 +381,3 @@ class FrameDecision:
 def _competitors(hyps: list[FrameHypothesis]) -> list[list[object]]:
     """JSON-ready summary of frame hypotheses: ``[places, edges, peers, translation]`` each."""
     return [[h.places, h.size, list(h.peers), np.round(h.T[:3, 3], 2).tolist()] for h in hyps]
-
-
-def _near_identity(T: np.ndarray, max_trans: float = 1.0, max_rot: float = 0.2) -> bool:
-    """A frame hypothesis that is (within alignment tolerance) no change of frame."""
-    return bool(np.linalg.norm(T[:3, 3]) <= max_trans and np.linalg.norm(so3_log(T[None, :3, :3])[0]) <= max_rot)

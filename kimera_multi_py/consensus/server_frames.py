@@ -29,8 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kimera_multi_py.consensus.alignment import FrameHypothesis, frame_hypotheses, settled_decision
-from kimera_multi_py.geometry import so3_log
+from kimera_multi_py.consensus.alignment import FrameHypothesis, frame_hypotheses, near_identity, settled_decision
 from kimera_multi_py.io.pose_graph import PoseGraph
 
 
@@ -45,10 +44,6 @@ class FrameScreen:
 
     def excluded(self) -> list[int]:
         return sorted(r for r, rep in self.report.items() if rep["status"] == "excluded")
-
-
-def _near_identity(T: np.ndarray, max_trans: float = 1.0, max_rot: float = 0.2) -> bool:
-    return bool(np.linalg.norm(T[:3, 3]) <= max_trans and np.linalg.norm(so3_log(T[None, :3, :3])[0]) <= max_rot)
 
 
 class _Screen:
@@ -83,12 +78,11 @@ class _Screen:
         firm = self.edges(robot, settled)
         every = self.edges(robot, aligned)
         hyps = self.hypotheses(robot, every)
-        partial = len(firm) and len(firm) < len(every)
-        peers = [p for p in settled if len(self.edges(robot, {p}))]
-        per_peer = [self.hypotheses(robot, self.edges(robot, {p})) for p in peers] if len(peers) > 1 else []
-        best, margin, verdict = settled_decision(self.hypotheses(robot, firm) if partial else None, hyps,
-                                                 per_peer, self.min_places, self.min_margin)
-        return best, margin, verdict == "settled" and bool(len(firm)), hyps
+        firm_hyps = None if len(firm) == len(every) else (self.hypotheses(robot, firm) if len(firm) else [])
+        by_peer = [E for E in (self.edges(robot, {p}) for p in settled) if len(E)]
+        per_peer = [self.hypotheses(robot, E) for E in by_peer] if len(by_peer) > 1 else []
+        best, margin, verdict = settled_decision(firm_hyps, hyps, per_peer, self.min_places, self.min_margin)
+        return best, margin, verdict == "settled", hyps
 
 
 def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, place_radius: float = 2.0,
@@ -124,7 +118,7 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
         s.poses[idx] = best.T @ s.poses[idx]
         kept = set(best.edges.tolist())
         for h in s.hypotheses(r, s.edges(r, aligned)):  # in the new frame
-            if _near_identity(h.T):
+            if near_identity(h.T):
                 kept.update(h.edges.tolist())
         keep[list(kept)] = True
         aligned.add(r)
