@@ -113,9 +113,11 @@ class RobustWeights:
         return r2, trusted, loop, inter
 
     def _initial_mu(self, r2: np.ndarray, trusted: np.ndarray) -> float:
-        """This robot's ``μ₀``: from its largest (trusted) residual, at most ``gnc_mu0_max``."""
+        """This robot's ``μ₀``: from its largest (trusted) residual, within
+        [``gnc_mu0_min``, ``gnc_mu0_max``]."""
         p = self.params
-        return min(self.gnc.initial_mu(r2, trusted if p.gnc_mu0_trusted else None), p.gnc_mu0_max)
+        mu0 = self.gnc.initial_mu(r2, trusted if p.gnc_mu0_trusted else None)
+        return min(max(mu0, p.gnc_mu0_min), p.gnc_mu0_max)
 
     def _propose_mu(self, rnd: int) -> list[Message]:
         """First GNC step, team-wide ``μ₀``: publish this robot's ``μ₀`` (from its largest

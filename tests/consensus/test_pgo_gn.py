@@ -204,3 +204,18 @@ def test_robust_gn_pcg_weights_agree_across_robots(datasets_dir: Path) -> None:
     kept = np.array([weight[e] > 0.5 for e in sorted(weight)])
     outlier = graph.outlier[sorted(weight)]
     assert np.array_equal(kept, ~outlier)  # the injected outliers, and only they, are off
+
+
+@pytest.mark.parametrize(("floor", "expected"), [(0.0, None), (1e-4, 1e-4), (1.0, 1e-3)])
+def test_robust_mu0_proposal_is_clamped(datasets_dir: Path, floor: float, expected: float | None) -> None:
+    """A gross outlier among the trusted edges makes ``μ₀`` tiny; ``gnc_mu0_min`` floors the
+    proposal (0: none), and ``gnc_mu0_max`` still caps it."""
+    graph = inject_outliers(load_graph([pgo(datasets_dir, "tinyGrid3D")], robots=2), 0.3, seed=1)
+    agent = GnPcgAgent(split_local(graph)[0], PgoParams(method="gn_pcg", robust=True, gnc_mu0_min=floor,
+                                                             gnc_mu0_trusted=False))
+    worst = 1e8  # one closure with a huge residual
+    agent._robust_r2_all = lambda: (np.array([worst]), np.zeros(0))  # type: ignore[method-assign]
+    mu0, _ = agent._start_scalars()
+    raw = agent.gnc.initial_mu(np.array([worst]))
+    assert raw < 1e-6
+    assert mu0 == pytest.approx(raw if expected is None else expected)
