@@ -96,8 +96,8 @@ class GnRobust:
         trusted = np.concatenate([self.intra_weights[~self.local.intra_odometry] > 0.5,
                                   self.inter_weights > 0.5])
         p = self.params
-        mu0 = self.gnc.initial_mu(r2, trusted if p.gnc_mu0_trusted else None)
-        self.mu0_proposal = min(max(mu0, p.gnc_mu0_min), p.gnc_mu0_max)
+        self.mu0_proposal = self.gnc.initial_mu(r2, trusted if p.gnc_mu0_trusted else None,
+                                                p.gnc_mu0_min, p.gnc_mu0_max)
         return [self.mu0_proposal, float(self.excluded)]
 
     def _start_weight_messages(self, rnd: int) -> list[GncWeights]:

@@ -116,8 +116,7 @@ class RobustWeights:
         """This robot's ``μ₀``: from its largest (trusted) residual, within
         [``gnc_mu0_min``, ``gnc_mu0_max``]."""
         p = self.params
-        mu0 = self.gnc.initial_mu(r2, trusted if p.gnc_mu0_trusted else None)
-        return min(max(mu0, p.gnc_mu0_min), p.gnc_mu0_max)
+        return self.gnc.initial_mu(r2, trusted if p.gnc_mu0_trusted else None, p.gnc_mu0_min, p.gnc_mu0_max)
 
     def _propose_mu(self, rnd: int) -> list[Message]:
         """First GNC step, team-wide ``μ₀``: publish this robot's ``μ₀`` (from its largest

@@ -93,11 +93,14 @@ class GncSchedule:
         self.steps += 1
         return w
 
-    def initial_mu(self, r2: np.ndarray, trusted: np.ndarray | None = None) -> float:
-        """``μ₀`` from the largest of ``r2`` (over the ``trusted`` edges when any is)."""
+    def initial_mu(self, r2: np.ndarray, trusted: np.ndarray | None = None,
+                   lo: float = 0.0, hi: float = np.inf) -> float:
+        """``μ₀`` from the largest of ``r2`` (over the ``trusted`` edges when any is), clamped
+        to ``[lo, hi]``."""
         r2 = np.asarray(r2, dtype=float)
         pool = r2 if trusted is None or not np.any(trusted) else r2[np.asarray(trusted, bool)]
-        return initial_mu(float(pool.max()) if len(pool) else 0.0, self.barc2)
+        mu0 = initial_mu(float(pool.max()) if len(pool) else 0.0, self.barc2)
+        return float(min(max(mu0, lo), hi))
 
     @staticmethod
     def binary(weights: np.ndarray, tol: float = 1e-4) -> bool:

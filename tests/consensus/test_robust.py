@@ -52,3 +52,13 @@ def test_schedule_starts_convex_and_grows_mu() -> None:
 def test_precision_recall() -> None:
     p, r = precision_recall(np.array([1, 1, 0, 0], bool), np.array([1, 0, 1, 0], bool))
     assert (p, r) == (0.5, 0.5)
+
+
+def test_initial_mu_is_clamped_to_its_bounds():
+    """Both distributed GNCs take ``μ₀`` through this one clamp (``gnc_mu0_min``, ``gnc_mu0_max``)."""
+    s = GncSchedule(22.5)
+    raw = s.initial_mu(np.array([1e8]))
+    assert raw < 1e-6
+    assert s.initial_mu(np.array([1e8]), lo=1e-4, hi=1e-3) == pytest.approx(1e-4)
+    assert s.initial_mu(np.array([1.0]), lo=1e-4, hi=1e-3) == pytest.approx(1e-3)  # nothing exceeds c̄²: 1e6
+    assert s.initial_mu(np.array([1e8]), hi=1e-3) == pytest.approx(raw)
