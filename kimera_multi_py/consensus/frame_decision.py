@@ -225,7 +225,10 @@ class FrameDecision:
             if final:
                 why = "closures through different peers lead to different frames" if contested \
                     else "no frame hypothesis leads"
-                self._exclude(why, hyps[0] if hyps else None, margin, hyps)
+                # out of patience before every neighbour's poses arrived: out for now, and
+                # decided again as they come (only then is the exclusion news for the log)
+                self._exclude(why, hyps[0] if hyps else None, margin, hyps,
+                              level=logging.WARNING if bool(known.all()) else logging.INFO)
             return
         inliers = np.zeros(len(lg.inter_edge), dtype=bool)
         inliers[best.edges] = True
@@ -257,7 +260,7 @@ class FrameDecision:
         return out
 
     def _exclude(self, reason: str, h: FrameHypothesis | None, margin: int,
-                 hyps: list[FrameHypothesis] | None = None) -> None:
+                 hyps: list[FrameHypothesis] | None = None, level: int = logging.WARNING) -> None:
         """Stay out of the team frame this epoch: no alignment, inter-robot edges off."""
         if self.excluded:
             return
@@ -266,8 +269,8 @@ class FrameDecision:
         self.alignment = self._report("excluded", h, margin, len(hyps or []), reason)
         # every competing hypothesis: distinct places, edges, peers, and where it moves the robot's origin
         self.alignment["competitors"] = _competitors(hyps or [])
-        log.warning("robot %d: kept out of the team frame (%s; best support %d places, margin %d)", self.robot,
-                    reason, h.places if h is not None else 0, margin)
+        log.log(level, "robot %d: kept out of the team frame (%s; best support %d places, margin %d)", self.robot,
+                reason, h.places if h is not None else 0, margin)
 
     def _screen(self) -> None:
         """Robust mode, aligned robot: start inconsistent inter-robot edges at weight 0.

@@ -193,7 +193,9 @@ class GnRobust:
                 return False
             else:
                 return False
-        if not converged:
+        # a re-check needs the solve at the current weights settled, not converged to the
+        # last digit: its χ² decisions move with the residuals, not with a 1e-6 of the cost
+        if not (converged or (accepted and decrease < p.gn_recheck_tol)):
             return False
         # re-checks until the decisions are stable (at most gnc_max_rechecks): a closure dropped
         # at the last one may fit the re-converged solution, and TLS keeps what fits
@@ -205,6 +207,8 @@ class GnRobust:
             r2 = np.concatenate(self._robust_r2_all())
             self._set_weights((r2 <= factor * self.gnc.barc2).astype(float), outer)
             self.rechecks += 1
+            return False
+        if not converged:
             return False
         self.phase = "final"
         return True

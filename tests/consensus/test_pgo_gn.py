@@ -14,7 +14,13 @@ from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, split_local
 from kimera_multi_py.consensus.pgo_coarse import RECYCLE, CoarseSolver
 from kimera_multi_py.consensus.pgo_gn import GnPcgAgent, make_agent
 from kimera_multi_py.consensus.pgo_linear import LocalSystem, linearise_edges, se3_expmap
-from kimera_multi_py.consensus.workflow import _distributed, inject_outliers, load_graph, run_pgo
+from kimera_multi_py.consensus.workflow import (
+    _distributed,
+    distributed_weights,
+    inject_outliers,
+    load_graph,
+    run_pgo,
+)
 from kimera_multi_py.errors import ConfigError
 
 
@@ -219,3 +225,18 @@ def test_robust_mu0_proposal_is_clamped(datasets_dir: Path, floor: float, expect
     raw = agent.gnc.initial_mu(np.array([worst]))
     assert raw < 1e-6
     assert mu0 == pytest.approx(raw if expected is None else expected)
+
+
+def test_rechecks_wait_for_a_settled_solve_not_a_converged_one(datasets_dir: Path) -> None:
+    """A re-check fires once a step lowers the team cost by less than ``gn_recheck_tol``: the
+    same inlier set as waiting for full convergence before each re-check, in fewer rounds."""
+    graph = inject_outliers(load_graph([pgo(datasets_dir, "smallGrid3D")], robots=4), 0.3, seed=1)
+    runs = {}
+    for tol in (0.0, 1e-4):
+        params = PgoParams(method="gn_pcg", robust=True, max_rounds=800, gn_recheck_tol=tol)
+        _, stats, _, agents = asyncio.run(_distributed(graph, params, "loopback", 0.0, 0, 0.2, None))
+        assert all(a.phase == "final" for a in agents)
+        runs[tol] = (stats.rounds, distributed_weights(graph, agents) > 0.5)
+    assert runs[1e-4][0] < runs[0.0][0]
+    assert np.array_equal(runs[1e-4][1], runs[0.0][1])
+    assert np.array_equal(runs[1e-4][1], ~graph.outlier)
