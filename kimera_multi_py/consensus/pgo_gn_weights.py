@@ -2,9 +2,10 @@
 loop (a mixin of :class:`.pgo_gn.GnPcgAgent`, whose state it reads and writes; DESIGN §4.4).
 
 The robust schedule is the block-SOR solver's (:mod:`.pgo_weights`): one team ``μ`` (the
-smallest ``μ₀`` any robot proposes), ``μ ← 1.4 μ`` per weight update, then re-checks of every
-closure at the converged solution (first with ``recheck_factor`` slack, then the plain
-threshold). What differs is the timing and the bookkeeping, which ride on the lock-step:
+smallest ``μ₀`` any robot proposes, floored at ``gnc_mu0_min``), ``μ ← 1.4 μ`` per weight
+update, then re-checks of every closure at the settled solution (first with
+``recheck_factor`` slack, then the plain threshold). What differs is the timing and the
+bookkeeping, which ride on the lock-step:
 
 - **Start.** The frame decision and the screen are the block-SOR robot's. The lower-id robot
   of each inter-robot edge owns its screened weight and sends it (:class:`GncWeights`) with the
@@ -18,7 +19,8 @@ threshold). What differs is the timing and the bookkeeping, which ride on the lo
   float32 steps), so both compute the same weight and no weight message is needed.
 - **End of GNC**: when every weight of the team is binary after an update (the count of
   non-binary weights travels with the linearisation) or after ``gnc_max_steps``; then the
-  ``gnc_rechecks`` re-checks, each at a converged solution, and more (plain threshold, up to
+  ``gnc_rechecks`` re-checks, each once a step lowered the team cost by less than
+  ``gn_recheck_tol`` (or at convergence), and more (plain threshold, up to
   ``gnc_max_rechecks``) while the last one flipped a decision anywhere in the team (that count
   travels with the linearisation too), as the centralised reference does; then the solve stops
   when converged.
