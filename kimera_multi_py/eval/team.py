@@ -167,7 +167,9 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
     the simulator's rooms; writes ``robotI/dsg.json`` and ``dsg.json``.
 
     The top-level figures are the team graph's (or robot 0's without a team map); ``robots`` holds
-    each robot's and ``agree`` whether the robots' graphs match."""
+    each robot's and ``agree`` whether the robots' graphs match. The team graph leaves out the
+    objects and trajectories of the robots kept out of the team frame (:func:`excluded_robots`):
+    they are in their own frames."""
     from kimera_multi_py.mapping.object_fusion import fuse_team
     from kimera_multi_py.scene_graph import graphs_agree, scene_graph_and_outputs
 
@@ -183,8 +185,10 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
         per_robot[str(o.robot)] = fig
     out: dict[str, Any] = dict(per_robot[str(outcomes[0].robot)])
     if team_map is not None:
-        objects = fuse_team({o.robot: o.objects for o in outcomes})
-        trajectories = {o.robot: (o.stamps, o.poses) for o in outcomes}
+        out_of_frame = set(excluded_robots(outcomes))
+        team = [o for o in outcomes if o.robot not in out_of_frame]
+        objects = fuse_team({o.robot: o.objects for o in team})
+        trajectories = {o.robot: (o.stamps, o.poses) for o in team}
         _, out = scene_graph_and_outputs(team_map, T_world_team, objects, trajectories, world,
                                          out_dir / "dsg.json" if out_dir is not None else None)
         out = dict(out)

@@ -431,11 +431,15 @@ class SimRunner:
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
 
     def _reference_map(self) -> Any:
-        """The centralised fusion of every robot's evidence (the reference team map)."""
+        """The reference team map: the centralised fusion of the evidence of every robot in the
+        team frame (a robot kept out of it, :func:`~kimera_multi_py.eval.team.excluded_robots`,
+        has its poses in its own frame: its evidence has no place in the team's map)."""
         if not self.nodes:
             return None
         if self._reference is None:
-            self._reference = centralised_team_map({n.robot: n.agent.map for n in self.nodes})
+            out = set(excluded_robots(self.outcomes))
+            self._reference = centralised_team_map({n.robot: n.agent.map for n in self.nodes},
+                                                   [n.robot for n in self.nodes if n.robot not in out])
         return self._reference
 
     def _map_results(self, T_world_team: np.ndarray) -> tuple[dict[str, Any], dict[int, Any]]:
