@@ -240,3 +240,30 @@ def test_server_refuses_out_of_order_odometry():
     with pytest.raises(ValueError, match="expected 3"):
         server.handle(KeyframeOdometry(robot=0, keyframes=np.array([7]), odometry=np.eye(4)[None]))
     assert len(server.odometry[0]) == 3  # nothing lost
+
+
+def test_the_server_team_map_is_in_its_joint_graph_roots_frame():
+    """The server fuses the evidence in its team frame, its joint graph's root's: robot 1's while
+    robot 0 has not streamed (a late joiner), robot 0's from when it has."""
+    import asyncio
+
+    from kimera_multi_py.comms import LoopbackNetwork
+    from kimera_multi_py.consensus.server_node import SERVER_ID, ServerNode
+    from kimera_multi_py.consensus.team_pgo import ScheduleParams
+    from kimera_multi_py.mapping.config import get_submap_map
+    from kimera_multi_py.sim.runner import agent_params
+
+    async def main() -> list[tuple[int | None, int, int]]:
+        net = LoopbackNetwork(team="t0", seed=0)
+        node = ServerNode(Server(SERVER_ID, None, closure_sigmas=(0.02, 0.05), odom_sigmas=(0.01, 0.02)),
+                          net.bus(SERVER_ID), ScheduleParams(period=1e9), clock=lambda: 0.0)
+        node.fuse_maps(get_submap_map(agent_params(load_scenario(TINY)).mapping))
+        await node.start()
+        frames = []
+        for robot in (2, 1, 0):
+            node.server.handle(odometry_msgs(robot, 3))
+            await node.tick(wall=0.0)
+            frames.append((node.server.root, node.maps.frame, node.objects.frame))
+        return frames
+
+    assert asyncio.run(main()) == [(2, 2, 2), (1, 1, 1), (0, 0, 0)]
