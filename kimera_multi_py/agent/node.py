@@ -51,6 +51,7 @@ from kimera_multi_py.consensus.pgo import PgoParams
 from kimera_multi_py.consensus.pgo_params import team_params
 from kimera_multi_py.consensus.team_pgo import ScheduleParams, TeamPgo
 from kimera_multi_py.errors import KimeraMultiError
+from kimera_multi_py.io.pose_graph import split_key
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +111,8 @@ class AgentNode:
         # one-hop map neighbours (None: whoever is alive; the simulation can apply a radio range)
         self.map_neighbours: Callable[[], Iterable[int]] | None = None
         self.frame = agent.robot  # root robot of the frame our poses are in
+        # centralised mode: the server's latest ``settled`` flag on our poses (None: none yet)
+        self.server_settled: bool | None = None
         self._sub: Subscription | None = None
         self._serve: Closeable | None = None
         self._presence: Stream[PresenceEvent] | None = None
@@ -239,8 +242,10 @@ class AgentNode:
                     self._refuse(type(msg).__name__, exc)
             return
         if self.params.server is not None and msg.robot == self.params.server:
-            if isinstance(msg, PublicPoses) and self.agent.robot_graph:
-                self.frame = self._component_root(self.agent.robot_graph)
+            if isinstance(msg, PublicPoses) and any(split_key(int(k))[0] == self.robot for k in msg.keys[:1]):
+                # the server's poses for us: in the team frame, or (not settled) kept out, in our own
+                self.server_settled = bool(msg.settled)
+                self.frame = self._component_root(self.agent.robot_graph) if msg.settled else self.robot
             await self.send(self._handle_agent(msg))
             if isinstance(msg, PgoEpoch) and msg.final and self.finished and not self.complete:
                 self.complete = True
@@ -307,7 +312,9 @@ class AgentNode:
             if self.pgo.completed != before:
                 self.epochs_seen += 1
                 last = self.pgo.last_pgo
-                if last is not None and last.aligned and last.local.robot_graph:
+                if last is not None and last.excluded:  # kept out: its poses are in its own frame
+                    self.frame = self.robot
+                elif last is not None and last.aligned:
                     self.frame = self._component_root(last.local.robot_graph)
                 out.append(self._state())
                 if self.pgo.final_done and self.finished:
@@ -334,6 +341,23 @@ class AgentNode:
             self.objects.set_neighbours(neighbours)
             self.objects.set_frame(self.frame)
             out += self.objects.step(now)
+        return out
+
+    @property
+    def alignment(self) -> dict[str, object]:
+        """What the frame our poses are in rests on (``alignment`` in the outputs), with ``frame``:
+        the last PGO epoch's frame decision, or in centralised mode the server's (``status`` root /
+        aligned from a settled flag, excluded from one not settled: kept out, in our own frame)."""
+        out: dict[str, object] = {}
+        if self.pgo is not None:
+            last = self.pgo.last_pgo
+            out = dict(last.alignment) if last is not None else {}
+        elif self.server_settled is not None:
+            status = "excluded" if not self.server_settled else "root" if self.frame == self.robot else "aligned"
+            out = {"status": status, "settled": self.server_settled, "source": "server"}
+            if status == "excluded":
+                out["reason"] = "the server kept it out of the team frame"
+        out["frame"] = int(self.frame)
         return out
 
     def _component_root(self, pairs: Iterable[tuple[int, int]]) -> int:

@@ -57,8 +57,9 @@ class RobotOutcome:
     front_end: dict[str, int]
     traffic: dict[str, Any] = field(default_factory=dict)
     pgo_epochs: int = 0
-    # the frame decision of the last PGO epoch (consensus.pgo.PgoAgent.alignment): status
-    # (root / aligned / excluded / unaligned), hypothesis, support (places), margin, reason
+    # the frame decision of the last PGO epoch (consensus.pgo.PgoAgent.alignment; in centralised
+    # mode the server's, from its settled flag): status (root / aligned / excluded / unaligned),
+    # hypothesis, support (places), margin, reason; and frame (the root robot of the poses' frame)
     alignment: dict[str, Any] = field(default_factory=dict)
     # the robot's team object map (object sharing, exact map consensus): fused objects with team
     # ids (source << 24 | landmark id) and ``members``; None without object sharing
@@ -102,10 +103,9 @@ def outcome_of(node: Any, server_weights: dict[tuple[int, int, int, int], float]
     s = agent.stats
     traffic = {"counters": node.bus.counters.snapshot(), "refused": dict(node.errors)}
     epochs = node.pgo.stats.epochs if getattr(node, "pgo", None) is not None else 0
-    last = getattr(getattr(node, "pgo", None), "last_pgo", None)
-    alignment = dict(getattr(last, "alignment", {}) or {})
-    if hasattr(node, "frame"):  # the root robot of the frame the poses are in (own id: its own frame)
-        alignment["frame"] = int(node.frame)
+    # the frame decision (the last PGO epoch's, or the server's) and ``frame``: the root robot of
+    # the frame the poses are in (own id: its own frame)
+    alignment = dict(getattr(node, "alignment", {}) or {})
     sharing = getattr(node, "objects", None)
     return RobotOutcome(agent.robot, np.array(agent.stamps), np.array(agent.poses).reshape(-1, 4, 4),
                         agent.map.octree, objects, rows,

@@ -83,6 +83,11 @@ class Server:
         elif isinstance(msg, LoopClosures):
             self.closures[(msg.robot, msg.peer)] = (np.array(msg.keys_a), np.array(msg.keys_b), np.array(msg.poses))
 
+    @property
+    def root(self) -> int | None:
+        """The root of the team frame: the lowest robot in the joint graph (None while it is empty)."""
+        return min((r for r in (self.team or self.odometry) if self.odometry.get(r)), default=None)
+
     # ---- the joint graph ------------------------------------------------------------------
     def graph(self) -> tuple[PoseGraph, list[tuple[int, int, int, int]]]:
         robots = [r for r in (self.team or sorted(self.odometry)) if self.odometry.get(r)]
@@ -200,7 +205,10 @@ class ServerNode:
         """Also fuse every robot's map evidence (a star: the agents' only map neighbour) and serve
         the team map back. ``local`` is an empty map with the agents' map parameters."""
         self.maps = get_map_consensus(self.robot, local, mode)
-        self.maps.set_frame(0)  # the joint graph's frame: the lowest robot's
+        # the joint graph's frame: the lowest robot's (it follows the graph, see tick). Evidence is
+        # applied only from robots whose pose tables are in it: a robot the frame screen keeps out
+        # has its poses, and so its submaps and objects, in its own frame and stays out of the team map
+        self.maps.set_frame(0)
         if self.maps.mode == "exact":
             maps = self.maps
             self.objects = ObjectExchange(self.robot, list,
@@ -251,6 +259,11 @@ class ServerNode:
         wall = time.monotonic() if wall is None else wall
         sent = 0
         if self.maps is not None:
+            root = self.server.root
+            if root is not None:
+                self.maps.set_frame(root)
+                if self.objects is not None:
+                    self.objects.set_frame(root)
             self.maps.set_neighbours({r for r in self.bus.peers() if r != self.robot})
             self.maps.set_team_size(max(1, len(self.states)))
             out = self.maps.step(wall)

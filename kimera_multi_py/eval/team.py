@@ -147,6 +147,18 @@ def excluded_robots(outcomes: Sequence[RobotOutcome]) -> list[int]:
             if o.alignment.get("status") == "excluded" or int(o.alignment.get("frame", root)) != root]
 
 
+def team_frame_robots(outcomes: Sequence[RobotOutcome]) -> list[int]:
+    """Robots whose poses, and so whose submaps and objects, are in the team frame: those not in
+    :func:`excluded_robots`, and the root (the lowest id) always, whose own frame is the team frame
+    (kept out by its drift check it falls back to its own solution, first pose at the identity:
+    the team's maps still take its evidence in that frame)."""
+    if not outcomes:
+        return []
+    root = min(o.robot for o in outcomes)
+    out = set(excluded_robots(outcomes))
+    return [o.robot for o in outcomes if o.robot == root or o.robot not in out]
+
+
 def traffic_totals(outcomes: Sequence[RobotOutcome]) -> dict[str, Any]:
     per_robot: dict[str, int] = {}
     per_topic: dict[str, int] = {}
@@ -167,7 +179,9 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
     the simulator's rooms; writes ``robotI/dsg.json`` and ``dsg.json``.
 
     The top-level figures are the team graph's (or robot 0's without a team map); ``robots`` holds
-    each robot's and ``agree`` whether the robots' graphs match."""
+    each robot's and ``agree`` whether the robots' graphs match. The team graph leaves out the
+    objects and trajectories of the robots kept out of the team frame (only those of
+    :func:`team_frame_robots`): they are in their own frames."""
     from kimera_multi_py.mapping.object_fusion import fuse_team
     from kimera_multi_py.scene_graph import graphs_agree, scene_graph_and_outputs
 
@@ -183,8 +197,10 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
         per_robot[str(o.robot)] = fig
     out: dict[str, Any] = dict(per_robot[str(outcomes[0].robot)])
     if team_map is not None:
-        objects = fuse_team({o.robot: o.objects for o in outcomes})
-        trajectories = {o.robot: (o.stamps, o.poses) for o in outcomes}
+        in_frame = set(team_frame_robots(outcomes))
+        team = [o for o in outcomes if o.robot in in_frame]
+        objects = fuse_team({o.robot: o.objects for o in team})
+        trajectories = {o.robot: (o.stamps, o.poses) for o in team}
         _, out = scene_graph_and_outputs(team_map, T_world_team, objects, trajectories, world,
                                          out_dir / "dsg.json" if out_dir is not None else None)
         out = dict(out)

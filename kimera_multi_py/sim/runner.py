@@ -56,7 +56,13 @@ from kimera_multi_py.errors import ConfigError
 from kimera_multi_py.eval.accuracy import ScanRecord, accuracy_results
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import map_quality, score_closures
-from kimera_multi_py.eval.team import excluded_robots, scene_graph_results, team_results, trajectory_results
+from kimera_multi_py.eval.team import (
+    excluded_robots,
+    scene_graph_results,
+    team_frame_robots,
+    team_results,
+    trajectory_results,
+)
 from kimera_multi_py.geometry import transform_points
 from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.tum import write_tum
@@ -431,11 +437,14 @@ class SimRunner:
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
 
     def _reference_map(self) -> Any:
-        """The centralised fusion of every robot's evidence (the reference team map)."""
+        """The reference team map: the centralised fusion of the evidence of every robot in the
+        team frame (:func:`~kimera_multi_py.eval.team.team_frame_robots`; a robot kept out of it
+        has its poses in its own frame: its evidence has no place in the team's map)."""
         if not self.nodes:
             return None
         if self._reference is None:
-            self._reference = centralised_team_map({n.robot: n.agent.map for n in self.nodes})
+            robots = team_frame_robots(self.outcomes) if self.outcomes else [n.robot for n in self.nodes]
+            self._reference = centralised_team_map({n.robot: n.agent.map for n in self.nodes}, robots)
         return self._reference
 
     def _map_results(self, T_world_team: np.ndarray) -> tuple[dict[str, Any], dict[int, Any]]:

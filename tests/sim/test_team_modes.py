@@ -1,5 +1,6 @@
-"""The team modes end to end: the tiny scenario (fast, but fully aliased: its two rooms are twins),
-the small non-aliased one for accuracy (slow), and the server's joint graph."""
+"""The team modes end to end: the tiny scenario (fast, but fully aliased: its two rooms are twins,
+and robot 1 is kept out of the team frame), faults' and small's non-aliased building for a shared
+team map and objects and for accuracy (slow), and the server's joint graph."""
 
 import json
 
@@ -14,7 +15,7 @@ from kimera_multi_py.io.tum import read_tum
 from kimera_multi_py.sim import load_scenario
 from kimera_multi_py.sim.runner import SimRunner
 
-from .helpers import SMALL, TINY
+from .helpers import REPO, SMALL, TINY
 
 
 @pytest.fixture(scope="module")
@@ -45,44 +46,104 @@ def test_team_results_have_the_fields_and_the_pipeline_ran(runs):
     assert "map" not in runs["odometry"]
 
 
-def test_every_robot_ends_with_the_centralised_fusion_of_all_evidence(runs, tmp_path_factory):
-    """Exact map consensus inside the nodes: each robot's team map equals the centralised fusion of
-    every robot's evidence, value for value, for a small fraction of ROAM's bytes."""
-    mc = runs["distributed"]["map_consensus"]
-    assert mc["mode"] == "exact" and mc["rounds"] >= 2
-    for robot in ("0", "1"):
-        assert mc["agreement"][robot]["label"] == 1.0 and mc["agreement"][robot]["identical"] == 1.0
-        assert mc["team_map"][robot] == mc["centralised_fusion"]
-        # the team map knows at least what the robot's own map knows
-        assert mc["team_map"][robot]["observed_cells"] >= runs["distributed"]["map"][robot]["observed_cells"]
-    assert mc["phi"][-1] == 0.0
-    assert 0 < mc["bytes_ratio_vs_roam"] <= 0.1
-    central = runs["centralized"]["map_consensus"]  # the server fuses everyone's evidence and serves it back
-    assert all(central["agreement"][r]["identical"] == 1.0 for r in ("0", "1"))
-    sg = runs["distributed"]["scene_graph"]
-    assert sg["agree"]["places"] and sg["agree"]["rooms"]  # graphs built from one team map match
+def team_objects(folder, robot):
+    """(the robot's team object map, its own objects) as the run wrote them."""
+    team = json.loads((folder / f"robot{robot}" / "team_objects.json").read_text())["objects"]
+    return team, json.loads((folder / f"robot{robot}" / "objects.json").read_text())["objects"]
 
 
 @pytest.mark.parametrize("mode", ["distributed", "centralized"])
-def test_every_robot_holds_the_same_team_objects_from_every_robot(runs, mode):
-    """Object sharing (peer to peer, or through the server): both robots' team object maps are
-    identical, hold landmarks of both robots, and their scene graphs put every object in the same
-    room; a robot's own landmarks are all in its team map."""
+def test_tiny_twin_rooms_keep_robot_1_out_of_the_team_frame_and_out_of_the_team_map(runs, mode):
+    """tiny's rooms are twins: robot 1's closures with robot 0 fit two frames from one place each
+    (the true one and the twin room's), neither leads, and the agents (distributed) or the server
+    (centralised) keep it out of the team frame. It is reported so, in its own frame, and nothing
+    of it is merged: robot 0's team map is the centralised fusion of the team frame's evidence
+    (robot 0's alone), robot 1's holds its own evidence only, and the team objects and the team
+    scene graph leave robot 1 out."""
+    r = runs[mode]
+    assert r["alignment"]["0"]["status"] == "root" and r["alignment"]["0"]["frame"] == 0
+    kept_out = r["alignment"]["1"]
+    assert kept_out["status"] == "excluded" and kept_out["frame"] == 1 and kept_out["settled"] is False
+    mc = r["map_consensus"]
+    assert mc["mode"] == "exact" and mc["rounds"] >= 2
+    assert mc["agreement"]["0"]["label"] == 1.0 and mc["agreement"]["0"]["identical"] == 1.0
+    assert mc["team_map"]["0"] == mc["centralised_fusion"]
+    assert mc["centralised_fusion"]["observed_cells"] == r["map"]["0"]["observed_cells"]  # robot 0's evidence
+    assert mc["team_map"]["1"]["observed_cells"] == r["map"]["1"]["observed_cells"]  # robot 1's own
+    assert mc["agreement"]["1"]["identical"] < 0.5  # in its own frame: not the team's map
     d = runs[f"{mode}/dir"]
-    team = [json.loads((d / f"robot{r}" / "team_objects.json").read_text())["objects"] for r in (0, 1)]
+    for robot in (0, 1):  # each robot's team objects are its own, all of them
+        team, own = team_objects(d, robot)
+        members = {m for ob in team for m in ob["members"]}
+        assert {m >> 24 for m in members} == {robot}
+        assert {(robot << 24) | ob["id"] for ob in own} <= members
+    sg = r["scene_graph"]  # the team graph: the team map, robot 0's trajectory and objects
+    assert sg["nodes_per_layer"]["agents"] == r["robots"][0]["keyframes"] < r["team"]["keyframes"]
+    assert sg["nodes_per_layer"]["objects"] == len(team_objects(d, 0)[0])
+
+
+FAULTS = REPO / "sims" / "faults.toml"  # small's building (no aliasing), 39 s of stream, three robots
+
+
+@pytest.fixture(scope="module")
+def aligned(tmp_path_factory):
+    """sims/faults.toml in both team modes, maps and objects shared: every robot is aligned into
+    the team frame (results.json, run folder)."""
+    out = {}
+    for mode in ("distributed", "centralized"):
+        d = tmp_path_factory.mktemp(f"faults_{mode}")
+        SimRunner(load_scenario(FAULTS), seed=0, mode=mode, out_dir=d).run()
+        out[mode] = (json.loads((d / "results.json").read_text()), d)
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["distributed", "centralized"])
+def test_every_robot_ends_with_the_centralised_fusion_of_all_evidence(aligned, mode):
+    """Exact map consensus inside the nodes (peer to peer, or through the server): with every robot
+    in the team frame, each robot's team map equals the centralised fusion of every robot's
+    evidence, value for value, for a small fraction of ROAM's bytes."""
+    r, _ = aligned[mode]
+    robots = ("0", "1", "2")
+    assert all(r["alignment"][x]["status"] in ("root", "aligned") and r["alignment"][x]["frame"] == 0
+               for x in robots), r["alignment"]
+    mc = r["map_consensus"]
+    assert mc["mode"] == "exact" and mc["rounds"] >= 2
+    for robot in robots:
+        assert mc["agreement"][robot]["label"] == 1.0 and mc["agreement"][robot]["identical"] == 1.0
+        assert mc["team_map"][robot] == mc["centralised_fusion"]
+        # the team map knows more than the robot's own map: the others' evidence is in it
+        assert mc["team_map"][robot]["observed_cells"] > r["map"][robot]["observed_cells"]
+    assert mc["phi"][-1] == 0.0
+    assert 0 < mc["bytes_ratio_vs_roam"] <= 0.1
+    sg = r["scene_graph"]
+    assert sg["agree"]["places"] and sg["agree"]["rooms"]  # graphs built from one team map match
+    assert sg["nodes_per_layer"]["agents"] == r["team"]["keyframes"]  # every trajectory in the team graph
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["distributed", "centralized"])
+def test_every_robot_holds_the_same_team_objects_from_every_robot(aligned, mode):
+    """Object sharing (peer to peer, or through the server): every robot's team object map is
+    identical, holds landmarks of every robot, and their scene graphs put every object in the same
+    room; a robot's own landmarks are all in its team map."""
+    r, d = aligned[mode]
+    team = [team_objects(d, robot)[0] for robot in (0, 1, 2)]
     assert len(team[0]) > 5
-    assert [(o["id"], o["class"], o["members"], o["sightings"]) for o in team[0]] == \
-        [(o["id"], o["class"], o["members"], o["sightings"]) for o in team[1]]
-    for k in ("centroid", "lo", "hi"):  # the same numbers, up to float rounding of the pose tables
-        np.testing.assert_allclose([o[k] for o in team[0]], [o[k] for o in team[1]], atol=1e-9)
+    for other in team[1:]:
+        assert [(o["id"], o["class"], o["members"], o["sightings"]) for o in team[0]] == \
+            [(o["id"], o["class"], o["members"], o["sightings"]) for o in other]
+        for k in ("centroid", "lo", "hi"):  # the same numbers, up to float rounding of the pose tables
+            np.testing.assert_allclose([o[k] for o in team[0]], [o[k] for o in other], atol=1e-9)
     members = [m for ob in team[0] for m in ob["members"]]
-    assert {m >> 24 for m in members} == {0, 1}
-    for r in (0, 1):
-        own = json.loads((d / f"robot{r}" / "objects.json").read_text())["objects"]
-        assert {(r << 24) | ob["id"] for ob in own} <= set(members)
-    assert runs[mode]["scene_graph"]["agree"] == {"places": True, "rooms": True, "object_rooms": True}
-    per_robot = runs[mode]["objects"]["team_per_robot"]
-    assert per_robot["0"]["matches"] == per_robot["1"]["matches"] and per_robot["0"]["objects"] == len(team[0])
+    assert {m >> 24 for m in members} == {0, 1, 2}
+    for robot in (0, 1, 2):
+        own = team_objects(d, robot)[1]
+        assert {(robot << 24) | ob["id"] for ob in own} <= set(members)
+    assert r["scene_graph"]["agree"] == {"places": True, "rooms": True, "object_rooms": True}
+    per_robot = r["objects"]["team_per_robot"]
+    assert per_robot["0"]["matches"] == per_robot["1"]["matches"] == per_robot["2"]["matches"]
+    assert per_robot["0"]["objects"] == len(team[0])
 
 
 def test_same_seed_same_team_metrics(runs, tmp_path):
@@ -179,3 +240,30 @@ def test_server_refuses_out_of_order_odometry():
     with pytest.raises(ValueError, match="expected 3"):
         server.handle(KeyframeOdometry(robot=0, keyframes=np.array([7]), odometry=np.eye(4)[None]))
     assert len(server.odometry[0]) == 3  # nothing lost
+
+
+def test_the_server_team_map_is_in_its_joint_graph_roots_frame():
+    """The server fuses the evidence in its team frame, its joint graph's root's: robot 1's while
+    robot 0 has not streamed (a late joiner), robot 0's from when it has."""
+    import asyncio
+
+    from kimera_multi_py.comms import LoopbackNetwork
+    from kimera_multi_py.consensus.server_node import SERVER_ID, ServerNode
+    from kimera_multi_py.consensus.team_pgo import ScheduleParams
+    from kimera_multi_py.mapping.config import get_submap_map
+    from kimera_multi_py.sim.runner import agent_params
+
+    async def main() -> list[tuple[int | None, int, int]]:
+        net = LoopbackNetwork(team="t0", seed=0)
+        node = ServerNode(Server(SERVER_ID, None, closure_sigmas=(0.02, 0.05), odom_sigmas=(0.01, 0.02)),
+                          net.bus(SERVER_ID), ScheduleParams(period=1e9), clock=lambda: 0.0)
+        node.fuse_maps(get_submap_map(agent_params(load_scenario(TINY)).mapping))
+        await node.start()
+        frames = []
+        for robot in (2, 1, 0):
+            node.server.handle(odometry_msgs(robot, 3))
+            await node.tick(wall=0.0)
+            frames.append((node.server.root, node.maps.frame, node.objects.frame))
+        return frames
+
+    assert asyncio.run(main()) == [(2, 2, 2), (1, 1, 1), (0, 0, 0)]
