@@ -242,7 +242,7 @@ class AgentNode:
                     self._refuse(type(msg).__name__, exc)
             return
         if self.params.server is not None and msg.robot == self.params.server:
-            if isinstance(msg, PublicPoses) and any(split_key(int(k))[0] == self.robot for k in msg.keys[:1]):
+            if isinstance(msg, PublicPoses) and len(msg.keys) and split_key(int(msg.keys[0]))[0] == self.robot:
                 # the server's poses for us: in the team frame, or (not settled) kept out, in our own
                 self.server_settled = bool(msg.settled)
                 self.frame = self._component_root(self.agent.robot_graph) if msg.settled else self.robot

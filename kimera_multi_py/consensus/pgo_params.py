@@ -68,13 +68,14 @@ class PgoParams:
     # the initial values' residuals, usually far larger). Measured on the office graphs.
     gnc_mu0_max: float = 1e-3
     # floor of μ₀ (0: none). One gross outlier among the trusted edges makes μ₀ = c̄²/(2r²max − c̄²)
-    # tiny (cubicle, 5 robots: 7.5e-7, from r² = 6.6e5 c̄²; the 99.9th percentile is ~1e3 c̄²),
-    # and at μ ×1.4 per update GNC then spends its 40 updates below μ = 0.53, where every
-    # closure weighs ~√μ against the odometry. With the floor, an edge whose start residual
-    # exceeds c̄²(1 + 1/μ₀) ≈ 1e4 c̄² (Mahalanobis ≈ 470) starts rejected and the schedule spans
-    # the decades where decisions are made. Measured with gn_pcg (5 robots, cap 500): cubicle
-    # 1.31e-2 above gtsam's TLS cost → 9.4e-3 below it; the other five graphs within 1.4e-5, all
-    # Jaccard ≥ 0.9996. The agents' team PGO (team_params) keeps no floor: not measured there
+    # tiny (cubicle, 5 robots: 7.5e-7, from r² = 6.6e5 c̄²; the 99.9th percentile is 6e2–1e3 c̄²
+    # on four robots, 2e5 on one), and at μ ×1.4 per update GNC then spends its 40 updates below
+    # μ = 0.53, where a closure above the threshold weighs about c̄√μ/r against the odometry.
+    # With the floor, an edge whose start residual exceeds c̄²(1 + 1/μ₀) ≈ 1e4 c̄² (Mahalanobis
+    # ≈ 470) starts rejected and the schedule spans the decades where decisions are made.
+    # Measured with gn_pcg (5 robots, cap 500): cubicle 1.31e-2 above gtsam's TLS cost → 9.4e-3
+    # below it; the other five graphs within 1.4e-5, all Jaccard ≥ 0.9996. The agents' team PGO
+    # (team_params) keeps no floor: not measured there
     gnc_mu0_min: float = 1e-4
     gnc_max_steps: int = 40
     gnc_mu_step: float = 1.4  # μ ← this·μ per weight update (gtsam's GNC: 1.4)
