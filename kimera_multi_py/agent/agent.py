@@ -53,6 +53,7 @@ from kimera_multi_py.consensus.robust import correlated_votes
 from kimera_multi_py.geometry import inverse, so3_log, transform_points
 from kimera_multi_py.io.pose_graph import robot_key, split_key
 from kimera_multi_py.mapping.config import MappingConfig, get_object_map, get_submap_map
+from kimera_multi_py.mapping.floor import FloorReference
 from kimera_multi_py.mapping.registration import ScanRegistration
 from kimera_multi_py.mapping.scan_odometry import ScanOdometry
 from kimera_multi_py.semantics import NUM_CLASSES, OBJECT_CLASSES, class_id
@@ -62,7 +63,8 @@ log = logging.getLogger(__name__)
 _OBJECT_IDS = np.array([class_id(c) for c in OBJECT_CLASSES])
 _CLASS_TO_SLOT = np.full(NUM_CLASSES + 1, -1)
 _CLASS_TO_SLOT[_OBJECT_IDS] = np.arange(len(_OBJECT_IDS))
-_FLOOR_CEILING = (class_id("floor"), class_id("ceiling"))
+_FLOOR = class_id("floor")
+_FLOOR_CEILING = (_FLOOR, class_id("ceiling"))
 MAX_AGENT_ID = 25  # robot i owns gtsam Symbol chr(ord('a') + i)
 
 
@@ -114,6 +116,9 @@ class AgentParams:
     reg_information_scale: float = 1.0  # discount of the GICP Hessian for correlated points
     reg_min_ratio: float = 1.0  # directions with less information than the odometry's are dropped
     reg_gate: float = 25.0  # squared Mahalanobis distance to the odometry beyond which it is not used
+    # the floor seen at each keyframe sets the registration chain's roll, pitch and height
+    # (mapping.floor: a ground robot on one floor; a fit off the predicted floor is not used)
+    floor_reference: bool = True
     team_object_sightings: int = 5  # sightings before a landmark enters the team's object map
     server: int | None = None  # centralised mode: the server's id (odometry streams to it)
     pcm: PcmNoise | None = None  # default: drift from odom_sigmas, closure noise from closure_sigmas
@@ -194,7 +199,8 @@ class Agent:
         self.scan_odometry = (ScanOdometry(ScanRegistration(p.reg_voxel, p.reg_correspondence,
                                                            point_sigma=p.reg_point_sigma,
                                                            information_scale=p.reg_information_scale),
-                                           p.odom_information(), p.reg_window, p.reg_min_ratio, p.reg_gate)
+                                           p.odom_information(), p.reg_window, p.reg_min_ratio, p.reg_gate,
+                                           FloorReference() if p.floor_reference else None)
                               if p.registration else None)
         self.closure_registration = ScanRegistration(p.cloud_voxel, p.closure_correspondence,
                                                      point_sigma=p.reg_point_sigma)
@@ -233,7 +239,8 @@ class Agent:
             raise ValueError(f"robot {self.robot}: non-finite odometry at keyframe {kf.index}")
         hits = np.asarray(kf.hit, dtype=bool)
         static = hits & ~np.isin(kf.labels, self.map.octree.dynamic_classes)
-        step = odom if self.scan_odometry is None else self.scan_odometry.step(kf.index, odom, kf.points[static])
+        step = (odom if self.scan_odometry is None else
+                self.scan_odometry.step(kf.index, odom, kf.points[static], kf.points[hits & (kf.labels == _FLOOR)]))
         dr = odom.copy() if kf.index == 0 else self.dead_reckoning[-1] @ odom
         pose = odom.copy() if kf.index == 0 else self.poses[-1] @ step
         self.stamps.append(kf.stamp)

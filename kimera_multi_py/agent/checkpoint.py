@@ -65,7 +65,7 @@ from kimera_multi_py.errors import CheckpointError
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 _HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
 
@@ -84,6 +84,9 @@ ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.mapping.config.MappingConfig",
     "kimera_multi_py.mapping.config.ObjectMapConfig",
     "kimera_multi_py.mapping.config.OctreeConfig",
+    "kimera_multi_py.mapping.floor.FloorReference",
+    "kimera_multi_py.mapping.floor.FloorStats",
+    "kimera_multi_py.mapping.floor.Plane",
     "kimera_multi_py.mapping.objects.Landmark",
     "kimera_multi_py.mapping.objects.ObjectMap",
     "kimera_multi_py.mapping.registration.ScanRegistration",

@@ -9,6 +9,10 @@ information of the registration's Hessian restricted to the directions where it 
 disagrees with the odometry beyond ``gate`` (squared Mahalanobis distance under the
 odometry's noise) is not trusted at all. The step the robot chains is the fusion of both.
 
+With a :class:`~kimera_multi_py.mapping.floor.FloorReference`, each fused pose is then moved in
+roll, pitch and height onto the floor the keyframe sees (the points labelled floor), so the chain
+does not drift in those three directions; the step returned is the one to that corrected pose.
+
 The state is plain numpy (the window's clouds are rebuilt into library objects at every
 keyframe), so a checkpoint restores it exactly.
 """
@@ -21,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kimera_multi_py.geometry import inverse, se3_exp, se3_log, transform_points
+from kimera_multi_py.mapping.floor import FloorReference
 from kimera_multi_py.mapping.registration import ScanRegistration, constrained_information, fuse
 
 
@@ -37,7 +42,7 @@ class ScanOdometry:
     """One robot's scan-to-map odometry (see the module docstring)."""
 
     def __init__(self, registration: ScanRegistration, odom_information: np.ndarray, window: int = 8,
-                 min_ratio: float = 1.0, gate: float = 25.0) -> None:
+                 min_ratio: float = 1.0, gate: float = 25.0, floor: FloorReference | None = None) -> None:
         if window < 1:
             raise ValueError(f"scan odometry: the local map needs a window of >= 1 keyframes, not {window}")
         self.registration = registration
@@ -45,14 +50,16 @@ class ScanOdometry:
         self.window = int(window)
         self.min_ratio = float(min_ratio)
         self.gate = float(gate)
+        self.floor = floor
         self.poses: list[np.ndarray] = []  # registration-refined chain R_k, own frame
         self.clouds: dict[int, np.ndarray] = {}  # the window's scans, sensor frame, float32
         self.edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # k -> (Z_{k-1,k}, information)
         self.stats = ScanOdometryStats()
 
-    def step(self, k: int, odometry: np.ndarray, points: np.ndarray) -> np.ndarray:
+    def step(self, k: int, odometry: np.ndarray, points: np.ndarray, floor: np.ndarray | None = None) -> np.ndarray:
         """Register keyframe ``k``'s scan ``points`` (sensor frame) and return the fused step
-        ``T_{k-1,k}`` (the odometry itself where the registration cannot tell)."""
+        ``T_{k-1,k}`` (the odometry itself where the registration cannot tell). ``floor``: the
+        scan's points labelled floor, for the floor reference (none: no floor correction)."""
         if k != len(self.poses):
             raise ValueError(f"scan odometry: keyframe {k} out of order (expected {len(self.poses)})")
         odometry = np.asarray(odometry, dtype=np.float64)
@@ -65,6 +72,10 @@ class ScanOdometry:
             step = self._register(k, odometry, pts)
             self.stats.seconds += time.perf_counter() - t0
             self.poses.append(self.poses[-1] @ step)
+        if self.floor is not None and floor is not None:
+            self.poses[-1] = self.floor.correct(self.poses[-1], floor)
+            if k:
+                step = inverse(self.poses[-2]) @ self.poses[-1]
         self.clouds[k] = pts
         self.clouds.pop(k - self.window, None)
         return step
