@@ -79,6 +79,17 @@ def test_registration_refined_odometry_drifts_less_than_dead_reckoning(small_rob
     assert ate_rmse(reg[:, :3, 3], true[:, :3, 3]) < ate_rmse(dead[:, :3, 3], true[:, :3, 3])
 
 
+def test_the_floor_keeps_the_agents_chain_at_its_height(small_robot):
+    _, kfs = small_robot
+    true = np.array([kf.true_pose for kf in kfs])
+    height = {}
+    for floor in (True, False):
+        agent = _run(kfs, floor_reference=floor)
+        reg = true[0] @ np.array(agent.scan_odometry.poses)
+        height[floor] = float(np.sqrt(np.mean((reg[:, 2, 3] - true[:, 2, 3]) ** 2)))
+    assert height[True] < 0.02 and height[True] < 0.5 * height[False]
+
+
 @pytest.mark.slow
 def test_tiny_end_to_end_reports_accuracy_by_cause():
     d = SimRunner(load_scenario(TINY), 0, "distributed").run().to_dict()
@@ -91,3 +102,5 @@ def test_tiny_end_to_end_reports_accuracy_by_cause():
     assert d["closure_error"]["inter"]["count"] == d["loop_closures"]["accepted_inter"]
     assert d["front_end_ms_per_keyframe"]["total"] > d["front_end_ms_per_keyframe"]["registration"] > 0
     assert d["scan_odometry"]["registered"] > 0
+    so = d["scan_odometry"]  # the floor set most keyframes' roll, pitch and height
+    assert so["floor_corrected"] > so["floor_missing"] + so["floor_gated"]
