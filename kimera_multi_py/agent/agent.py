@@ -200,7 +200,7 @@ class Agent:
                                                            point_sigma=p.reg_point_sigma,
                                                            information_scale=p.reg_information_scale),
                                            p.odom_information(), p.reg_window, p.reg_min_ratio, p.reg_gate,
-                                           FloorReference(step_sigmas=p.odom_sigmas) if p.floor_reference else None)
+                                           FloorReference() if p.floor_reference else None)
                               if p.registration else None)
         self.closure_registration = ScanRegistration(p.cloud_voxel, p.closure_correspondence,
                                                      point_sigma=p.reg_point_sigma)

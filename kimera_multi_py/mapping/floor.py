@@ -10,15 +10,11 @@ floor keep the registration's (the plane says nothing about them).
 
 * :func:`fit_plane`: least squares on the points near a guess of the plane, with the points
   beyond ``3 x RMS`` dropped a few times (mislabelled points, furniture standing on the floor).
-  One SVD per iteration, no loop over points. The fit's standard errors follow from the SVD:
-  tilt ``rms / s₂`` (``s₂`` the smaller in-plane singular value) and offset ``rms / √n`` plus
-  the tilt's lever arm to the sensor.
+  One SVD per iteration, no loop over points.
 * :class:`FloorReference`: the floor plane in the robot's own frame, taken from the first good
   fit (the sensor frame's z axis points up, REP 103, so that fit must be nearly level). Each
-  later fit, gated against the plane the chain predicts, moves the keyframe's pose towards it
-  by the smallest rotation and the shift along the normal, weighted like a Kalman update: the
-  chain's tilt and height variances grow by the per-keyframe step noise and shrink with every
-  fit used, so a dense sensor's fit sets the pose almost exactly and a sparse one's only nudges.
+  later fit, gated against the plane the chain predicts, moves the keyframe's pose by the
+  smallest rotation and the shift along the normal that make the prediction match it.
 
 A keyframe with too little floor in view (facing a wall) keeps its pose. A fit far from the
 prediction (a ramp, another storey, a mislabelled surface) is not used: the robot then drifts
@@ -44,13 +40,11 @@ class Plane:
     offset: float
     inliers: int = 0
     rms: float = 0.0  # of the inliers' distances (m)
-    tilt_sigma: float = 0.0  # standard error of the normal's direction (rad)
-    offset_sigma: float = 0.0  # standard error of the offset (m)
 
     def transformed(self, T: np.ndarray) -> Plane:
         """The same plane in the frame ``A`` when this one is in frame ``B`` and ``T = T_A_B``."""
         n = T[:3, :3] @ self.normal
-        return Plane(n, float(self.offset - n @ T[:3, 3]), self.inliers, self.rms, self.tilt_sigma, self.offset_sigma)
+        return Plane(n, float(self.offset - n @ T[:3, 3]), self.inliers, self.rms)
 
 
 def fit_plane(points: np.ndarray, guess: Plane, band: float = 0.2, min_points: int = 50,
@@ -61,11 +55,11 @@ def fit_plane(points: np.ndarray, guess: Plane, band: float = 0.2, min_points: i
     P = P[np.abs(P @ guess.normal + guess.offset) < band]
     if len(P) < min_points:
         return None
-    n, d, rms, c, sv = guess.normal, guess.offset, float("inf"), P.mean(axis=0), np.ones(3)
+    n, d, rms = guess.normal, guess.offset, float("inf")
     for _ in range(iterations):
         c = P.mean(axis=0)
-        _, sv, Vt = np.linalg.svd(P - c, full_matrices=False)
-        n = Vt[-1] if Vt[-1] @ guess.normal >= 0 else -Vt[-1]
+        n = np.linalg.svd(P - c, full_matrices=False)[2][-1]
+        n = n if n @ guess.normal >= 0 else -n
         d = float(-n @ c)
         r = np.abs(P @ n + d)
         rms = float(np.sqrt(np.mean(r**2)))
@@ -73,9 +67,7 @@ def fit_plane(points: np.ndarray, guess: Plane, band: float = 0.2, min_points: i
         if keep.all() or keep.sum() < min_points:
             break
         P = P[keep]
-    tilt = rms / max(float(sv[1]), 1e-9)
-    lever = float(np.linalg.norm(c - (c @ n) * n))  # the centroid's distance from the foot of the normal
-    return Plane(n, d, len(P), rms, tilt, float(np.hypot(rms / np.sqrt(len(P)), lever * tilt)))
+    return Plane(n, d, len(P), rms)
 
 
 @dataclass
@@ -91,27 +83,21 @@ class FloorReference:
     ``band``: metres around the predicted floor that a point may be to count; ``max_rms``: the
     largest residual of a fit used as the reference; ``max_tilt``: the largest angle (rad)
     between that first fit's normal and the sensor's up axis; ``gate_angle`` (rad) and
-    ``gate_offset`` (m): how far a later fit may be from the predicted floor to be used;
-    ``step_sigmas``: the chain's noise per keyframe (rad, m), by which its tilt and height
-    variances grow.
+    ``gate_offset`` (m): how far a later fit may be from the predicted floor to be used.
     """
 
-    def __init__(self, band: float = 0.2, min_points: int = 10, max_rms: float = 0.03,
+    def __init__(self, band: float = 0.2, min_points: int = 50, max_rms: float = 0.03,
                  max_tilt: float = np.deg2rad(15.0), gate_angle: float = np.deg2rad(3.0),
-                 gate_offset: float = 0.15, step_sigmas: tuple[float, float] = (np.deg2rad(0.15), 0.02)) -> None:
-        if (band <= 0 or min_points < 3 or max_rms <= 0 or gate_angle <= 0 or gate_offset <= 0
-                or min(step_sigmas) <= 0):
-            raise ValueError("floor: band, max_rms, the gates and the step noise must be > 0, and min_points >= 3")
+                 gate_offset: float = 0.15) -> None:
+        if band <= 0 or min_points < 3 or max_rms <= 0 or gate_angle <= 0 or gate_offset <= 0:
+            raise ValueError("floor: band, max_rms and the gates must be > 0, and min_points >= 3")
         self.band = float(band)
         self.min_points = int(min_points)
         self.max_rms = float(max_rms)
         self.max_tilt = float(max_tilt)
         self.gate_angle = float(gate_angle)
         self.gate_offset = float(gate_offset)
-        self.step_var = (float(step_sigmas[0]) ** 2, float(step_sigmas[1]) ** 2)
         self.plane: Plane | None = None  # the floor in the robot's own frame
-        self.tilt_var = 0.0  # the chain's tilt variance against the reference (rad²)
-        self.height_var = 0.0  # and its height variance (m²)
         self.stats = FloorStats()
 
     def correct(self, pose: np.ndarray, floor: np.ndarray) -> np.ndarray:
@@ -123,8 +109,6 @@ class FloorReference:
         if self.plane is None:
             self._adopt(pose, pts)
             return pose
-        self.tilt_var += self.step_var[0]
-        self.height_var += self.step_var[1]
         predicted = self.plane.transformed(inverse(pose))
         fit = fit_plane(pts, predicted, self.band, self.min_points)
         if fit is None:
@@ -136,15 +120,11 @@ class FloorReference:
         if angle > self.gate_angle or abs(shift) > self.gate_offset:
             self.stats.gated += 1
             return pose
-        k_tilt = self.tilt_var / (self.tilt_var + fit.tilt_sigma**2)
-        k_height = self.height_var / (self.height_var + fit.offset_sigma**2)
-        self.tilt_var *= 1.0 - k_tilt
-        self.height_var *= 1.0 - k_height
         out = pose.copy()
         if angle > 0:  # R' = R Exp(-angle * axis) maps the predicted normal onto the fitted one
-            out[:3, :3] = pose[:3, :3] @ so3_exp(-k_tilt * angle * axis / np.linalg.norm(axis))
+            out[:3, :3] = pose[:3, :3] @ so3_exp(-angle * axis / np.linalg.norm(axis))
         # along the reference normal, by the fitted height's difference from the prediction
-        out[:3, 3] = pose[:3, 3] + k_height * shift * self.plane.normal
+        out[:3, 3] = pose[:3, 3] + shift * self.plane.normal
         self.stats.corrected += 1
         return out
 

@@ -60,21 +60,6 @@ def test_the_reference_corrects_roll_pitch_and_height_but_not_yaw_or_position_on
     assert ref.stats.corrected == 1
 
 
-def test_a_sparse_fit_nudges_the_pose_by_its_weight_and_a_dense_one_sets_it():
-    rng = np.random.default_rng(5)
-    true = yaw_pose(2.0, 1.0, 0.0, 0.3)
-    drifted = true @ se3_exp(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.05]))  # 5 cm high
-    floor = _plane_points(np.array([0.0, 0.0, 1.0]), 1.0, rng, count=4000)
-    seen = (inverse(true)[:3, :3] @ floor.T).T + inverse(true)[:3, 3]
-    moved = {}
-    for count in (12, 4000):
-        ref = FloorReference(step_sigmas=(np.deg2rad(0.15), 0.005))
-        ref.correct(np.eye(4), floor)
-        moved[count] = drifted[2, 3] - ref.correct(drifted, seen[:count])[2, 3]
-        assert ref.stats.corrected == 1
-    assert 0.005 < moved[12] < 0.045 and abs(moved[4000] - 0.05) < 0.002
-
-
 def test_a_floor_off_the_prediction_or_out_of_view_leaves_the_pose_alone():
     rng = np.random.default_rng(2)
     ref = FloorReference()
