@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -5,7 +7,7 @@ from kimera_multi_py.agent.agent import Agent, AgentParams
 from kimera_multi_py.agent.sources import keyframe_input
 from kimera_multi_py.eval.metrics import ate_rmse
 from kimera_multi_py.sim import Simulation, load_scenario
-from kimera_multi_py.sim.runner import SimRunner
+from kimera_multi_py.sim.runner import SimRunner, agent_params
 
 from ..sim.helpers import REPO, TINY
 
@@ -92,7 +94,8 @@ def test_the_floor_keeps_the_agents_chain_at_its_height(small_robot):
 
 @pytest.mark.slow
 def test_tiny_end_to_end_reports_accuracy_by_cause():
-    d = SimRunner(load_scenario(TINY), 0, "distributed").run().to_dict()
+    cfg = load_scenario(TINY)
+    d = SimRunner(cfg, 0, "distributed", params=replace(agent_params(cfg), floor_reference=True)).run().to_dict()
     ate = d["ate_rmse_m"]
     assert ate["registration_odometry"] < ate["dead_reckoning"]
     tm = d["team_map"]
