@@ -118,9 +118,9 @@ class AgentParams:
     reg_gate: float = 25.0  # squared Mahalanobis distance to the odometry beyond which it is not used
     # the floor seen at each keyframe sets the registration chain's roll, pitch and height
     # (mapping.floor: a ground robot on one floor; a fit off the predicted floor is not used).
-    # Off by default: it cuts the team ATE on 19 of 20 office / aliased_wing runs (3 robots), but
-    # its different closures let aliased_wing seed 6 align into an alias (2.80 m; 0.043 m
-    # without it), a frame-decision weakness it exposes (issue 11) that must be fixed first
+    # Off by default: with it 19 of 20 office / aliased_wing runs (3 robots, seeds 0-9) meet every
+    # robustness target, but its different closures let aliased_wing seed 6 align into an alias
+    # (2.80 m; 0.043 m without it), a frame-decision weakness (issue 11) to be fixed first
     floor_reference: bool = False
     team_object_sightings: int = 5  # sightings before a landmark enters the team's object map
     server: int | None = None  # centralised mode: the server's id (odometry streams to it)
