@@ -242,8 +242,9 @@ class Agent:
             raise ValueError(f"robot {self.robot}: non-finite odometry at keyframe {kf.index}")
         hits = np.asarray(kf.hit, dtype=bool)
         static = hits & ~np.isin(kf.labels, self.map.octree.dynamic_classes)
-        step = (odom if self.scan_odometry is None else
-                self.scan_odometry.step(kf.index, odom, kf.points[static], kf.points[hits & (kf.labels == _FLOOR)]))
+        so = self.scan_odometry
+        floor = kf.points[hits & (kf.labels == _FLOOR)] if so is not None and so.floor is not None else None
+        step = odom if so is None else so.step(kf.index, odom, kf.points[static], floor)
         dr = odom.copy() if kf.index == 0 else self.dead_reckoning[-1] @ odom
         pose = odom.copy() if kf.index == 0 else self.poses[-1] @ step
         self.stamps.append(kf.stamp)
