@@ -117,11 +117,8 @@ class AgentParams:
     reg_min_ratio: float = 1.0  # directions with less information than the odometry's are dropped
     reg_gate: float = 25.0  # squared Mahalanobis distance to the odometry beyond which it is not used
     # the floor seen at each keyframe sets the registration chain's roll, pitch and height
-    # (mapping.floor: a ground robot on one floor; a fit off the predicted floor is not used).
-    # Off by default: with it 19 of 20 office / aliased_wing runs (3 robots, seeds 0-9) meet every
-    # robustness target, but its different closures let aliased_wing seed 6 align into an alias
-    # (2.80 m; 0.043 m without it), a frame-decision weakness (issue 11) to be fixed first
-    floor_reference: bool = False
+    # (mapping.floor: a ground robot on one floor; a fit off the predicted floor is not used)
+    floor_reference: bool = True
     team_object_sightings: int = 5  # sightings before a landmark enters the team's object map
     server: int | None = None  # centralised mode: the server's id (odometry streams to it)
     pcm: PcmNoise | None = None  # default: drift from odom_sigmas, closure noise from closure_sigmas

@@ -348,14 +348,26 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
     def _inter_graph(self) -> gtsam.NonlinearFactorGraph:
         lg = self.local
         fg = gtsam.NonlinearFactorGraph()
+        follows = self._followers()
         for e in range(len(lg.inter_edge)):
             w = self.inter_weights[e]
             nb = self.neighbour_poses.get(int(lg.inter_peer_key[e]))
-            if w <= 0 or nb is None:
+            if w <= 0 or nb is None or int(lg.inter_peer[e]) in follows:
                 continue
             fg.add(fixed_neighbour(lg.keys[lg.inter_own[e]], bool(lg.inter_own_is_i[e]), nb,
                                    lg.inter_meas[e], lg.inter_info[e], w))
         return fg
+
+    def _followers(self) -> set[int]:
+        """Peers whose edges this robot's solve leaves out: a robot in a settled frame (the root,
+        or one aligned on a clear lead) is not pulled by peers whose frames are not settled (one
+        place, or the consensus of a tie). They align to it and follow it; it does not follow
+        them, so an alias they sit in cannot bend the team frame (aliased_wing, 3 robots, seed 6:
+        two robots adopted on their start office, the twin of the root's, rotated the root by
+        34°). Once a peer settles, its edges count both ways again."""
+        if not (self.params.robust and self.params.align_hypotheses and self.settled and not self.excluded):
+            return set()
+        return {r for r, ok in self.peer_settled.items() if not ok}
 
     def _update(self, rnd: int) -> None:
         lg = self.local
