@@ -80,7 +80,7 @@ class AgentParams:
     descriptor_window: int = 8
     min_objects: int = 5
     min_similarity: float = 0.75
-    budget: int = 8  # verification requests per peer per budget period
+    budget: int = 12  # verification requests per peer per budget period
     matches_per_query: int = 2
     distinct_places: int = 20  # keyframes between two places tried for one query
     budget_period: float = 20.0  # s

@@ -254,3 +254,32 @@ def test_a_robot_does_not_align_through_a_peer_whose_frame_is_not_settled() -> N
     T = np.array(fixed.alignment["hypothesis"])
     assert fixed.aligned and fixed.settled and np.linalg.norm(T[:3, 3]) < 0.5, fixed.alignment
     assert fixed.alignment["support"] == 5 and fixed._public(0, fixed.poses).settled
+
+
+def test_a_settled_robot_is_not_pulled_by_a_peer_whose_frame_is_not_settled() -> None:
+    """Robot 1 sits in a frame it adopted on one room (not settled), rotated 5° off the truth.
+    The root's solve leaves its edges to robot 1 out: robot 1 follows the root, the root does not
+    follow robot 1, so the alias cannot bend the team frame. Once robot 1 says its frame is
+    settled, its edges pull both ways again."""
+    trajs, odo, first = _team()
+    rng = np.random.default_rng(6)
+    edges = _closures(trajs, first, [(c, c, False) for c in (np.array([ROOM_A, 0.0]), CORNER)], rng)
+    truth = np.concatenate(trajs)
+    graph = _graph(trajs, odo + edges, inverse(truth[0]) @ truth)
+    off = make_pose(np.array([[np.cos(0.09), -np.sin(0.09), 0.0], [np.sin(0.09), np.cos(0.09), 0.0],
+                              [0.0, 0.0, 1.0]]), np.zeros(3))
+    robot1 = off @ graph.poses[graph.robot_indices(1)]
+
+    def root_after(settled: bool) -> np.ndarray:
+        pgo = PgoAgent(split_local(graph, frames="given")[0], team_params())
+        assert pgo.root and pgo.settled
+        for k, T in zip(graph.robot_indices(1), robot1, strict=True):
+            pgo.neighbour_poses[int(graph.ids[k])] = T
+        pgo.peer_settled[1] = settled
+        start = pgo.poses.copy()
+        for rnd in range(5):
+            pgo._update(rnd)
+        return np.asarray(np.linalg.norm(pgo.poses[:, :3, 3] - start[:, :3, 3], axis=1).max())
+
+    assert root_after(False) < 1e-6
+    assert root_after(True) > 0.05
