@@ -364,8 +364,12 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
         place, or the consensus of a tie). They align to it and follow it; it does not follow
         them, so an alias they sit in cannot bend the team frame (aliased_wing, 3 robots, seed 6:
         two robots adopted on their start office, the twin of the root's, rotated the root by
-        34°). Once a peer settles, its edges count both ways again."""
-        if not (self.params.robust and self.params.align_hypotheses and self.settled and not self.excluded):
+        34°). Once a peer settles, its edges count both ways again, and so do all edges once
+        the GNC schedule is over: the re-checks and the final solve are the joint ones, so the
+        converged estimate is the team's optimum over the closures GNC kept."""
+        p = self.params
+        if not (p.robust and p.align_hypotheses and self.settled and not self.excluded) \
+                or self.gnc.steps >= p.gnc_max_steps:
             return set()
         return {r for r, ok in self.peer_settled.items() if not ok}
 

@@ -145,8 +145,10 @@ def test_distributed_gnc_rejects_aliased_closure_groups() -> None:
     central = solve_centralized(graph, robust=True)
     assert central.weights is not None
     assert not np.any(central.weights[graph.outlier] > 0.5)  # the reference resolves the aliasing
-    # the sim's budget: 300 rounds
-    poses, weights = asyncio.run(distributed(graph, PgoParams(robust=True, max_rounds=300)))
+    # robot 1 is not settled (one place), so the root does not follow it while GNC decides
+    # (PgoAgent._followers); the joint solve after GNC then moves both, which from this start
+    # (robot 1 off by the room offset) takes more than the sim's 600 rounds per epoch
+    poses, weights = asyncio.run(distributed(graph, PgoParams(robust=True, max_rounds=800)))
     assert not np.any(weights[graph.outlier] > 0.5), "an aliased closure survived"
     assert np.all(weights[~graph.outlier] > 0.5)
     cost = graph_cost(graph, poses, ~graph.outlier)
