@@ -1,6 +1,7 @@
-"""The team modes end to end: the tiny scenario (fast, but fully aliased: its two rooms are twins,
-and robot 1 is kept out of the team frame), faults' and small's non-aliased building for a shared
-team map and objects and for accuracy (slow), and the server's joint graph."""
+"""The team modes end to end: the tiny scenario (fast, but fully aliased: its two rooms are twins;
+with both rooms toured robot 1 aligns into the true frame, with one it is kept out of the team
+frame), faults' and small's non-aliased building for a shared team map and objects and for
+accuracy (slow), and the server's joint graph."""
 
 import json
 
@@ -53,17 +54,51 @@ def team_objects(folder, robot):
 
 
 @pytest.mark.parametrize("mode", ["distributed", "centralized"])
-def test_tiny_twin_rooms_keep_robot_1_out_of_the_team_frame_and_out_of_the_team_map(runs, mode):
-    """tiny's rooms are twins: robot 1's closures with robot 0 fit two frames from one place each
-    (the true one and the twin room's), neither leads, and the agents (distributed) or the server
-    (centralised) keep it out of the team frame. It is reported so, in its own frame, and nothing
-    of it is merged: robot 0's team map is the centralised fusion of the team frame's evidence
-    (robot 0's alone), robot 1's holds its own evidence only, and the team objects and the team
-    scene graph leave robot 1 out."""
+def test_tiny_twin_rooms_toured_both_align_robot_1_into_the_true_frame(runs, mode):
+    """Both robots tour both twin rooms: the true frame is explained by closures in two places,
+    the twin's (one room shifted onto the other) by one, so the true frame leads. Robot 1 is
+    aligned, every accepted inter-robot closure is true, and both robots hold the team map."""
     r = runs[mode]
+    assert r["alignment"]["0"]["status"] == "root"
+    assert r["alignment"]["1"]["status"] == "aligned" and r["alignment"]["1"]["frame"] == 0
+    assert r["alignment"]["1"]["settled"] is True
+    lc = r["loop_closures"]
+    assert lc["false_accepted_inter"] == 0 and lc["false_accepted_intra"] == 0
+    assert lc["true_accepted_inter"] > 0
+    assert r["team"]["ate_rmse_m"] < runs["odometry"]["team"]["ate_rmse_m"]
+    mc = r["map_consensus"]
+    for robot in ("0", "1"):
+        assert mc["team_map"][robot] == mc["centralised_fusion"]
+
+
+@pytest.fixture(scope="module")
+def one_twin(tmp_path_factory):
+    """tiny with robot 1 touring room_b only: its closures with robot 0 fit the true frame and
+    the twin's (room_b onto room_a) from one place each."""
+    out = {}
+    for mode in ("distributed", "centralized"):
+        cfg = load_scenario(TINY)
+        cfg.robots[1].route = ["room_b"]
+        d = tmp_path_factory.mktemp(f"one_twin_{mode}")
+        SimRunner(cfg, seed=0, mode=mode, out_dir=d).run()
+        out[mode] = json.loads((d / "results.json").read_text())
+        out[f"{mode}/dir"] = d
+    return out
+
+
+@pytest.mark.parametrize("mode", ["distributed", "centralized"])
+def test_one_twin_room_keeps_robot_1_out_of_the_team_frame_and_out_of_the_team_map(one_twin, mode):
+    """Robot 1 saw one of the twin rooms: its closures with robot 0 fit two frames from one place
+    each (the true one and the twin room's), neither leads, and the agents (distributed) or the
+    server (centralised) keep it out of the team frame. It is reported so, in its own frame, and
+    nothing of it is merged: robot 0's team map is the centralised fusion of the team frame's
+    evidence (robot 0's alone), robot 1's holds its own evidence only, and the team objects and the
+    team scene graph leave robot 1 out."""
+    r = one_twin[mode]
     assert r["alignment"]["0"]["status"] == "root" and r["alignment"]["0"]["frame"] == 0
     kept_out = r["alignment"]["1"]
     assert kept_out["status"] == "excluded" and kept_out["frame"] == 1 and kept_out["settled"] is False
+    assert r["loop_closures"]["false_accepted_inter"] == 0
     mc = r["map_consensus"]
     assert mc["mode"] == "exact" and mc["rounds"] >= 2
     assert mc["agreement"]["0"]["label"] == 1.0 and mc["agreement"]["0"]["identical"] == 1.0
@@ -71,7 +106,7 @@ def test_tiny_twin_rooms_keep_robot_1_out_of_the_team_frame_and_out_of_the_team_
     assert mc["centralised_fusion"]["observed_cells"] == r["map"]["0"]["observed_cells"]  # robot 0's evidence
     assert mc["team_map"]["1"]["observed_cells"] == r["map"]["1"]["observed_cells"]  # robot 1's own
     assert mc["agreement"]["1"]["identical"] < 0.5  # in its own frame: not the team's map
-    d = runs[f"{mode}/dir"]
+    d = one_twin[f"{mode}/dir"]
     for robot in (0, 1):  # each robot's team objects are its own, all of them
         team, own = team_objects(d, robot)
         members = {m for ob in team for m in ob["members"]}
