@@ -52,6 +52,7 @@ from kimera_multi_py.geometry import inverse, so3_exp, so3_log, to_gtsam
 from kimera_multi_py.io.pose_graph import INTER_ROBOT, ODOMETRY, PoseGraph, robot_key
 
 log = logging.getLogger(__name__)
+OMEGA_WINDOW = 12  # block updates over which a growing step resets over-relaxation (PgoAgent._omega)
 
 
 @dataclass
@@ -219,6 +220,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
         self.omega = 1.0
         self.last_step = 0.0
         self.step_ratios: list[float] = []
+        self.recent_steps: list[float] = []  # block steps since the last weight update (divergence check)
         self.gamma = 1.0
         self.last_team_cost = np.inf
         self.statuses: dict[int, PgoStatus] = {}
@@ -425,7 +427,12 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
         Adaptive (Hageman & Young): the ratio ``λ`` of successive exact block steps estimates
         the iteration's contraction; at ``ω = 1`` it is ``ρ_GS = ρ_J²``, above it
         ``ρ_J² = (λ + ω − 1)² / (λω²)`` while ``λ > ω − 1``; then ``ω ← 2 / (1 + √(1 − ρ_J²))``
-        (only upwards; a rejected relaxed step halves ``ω − 1``).
+        (only upwards; a rejected relaxed step halves ``ω − 1``). A step more than twice the one
+        ``OMEGA_WINDOW`` updates before it means ``ω`` belongs to a problem that has changed
+        (a peer that was held and now moves): ``ω − 1`` halves, and ``ω`` adapts again (faults,
+        20 % loss: robot 2 at ``ω`` 1.93 diverged to a 1 m team error once the root joined in).
+        The window is long because over-relaxed steps oscillate (modulus ``ω − 1``) from one
+        update to the next.
         """
         p = self.params
         if p.acceleration:
@@ -435,6 +442,12 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
         if self.last_step > 0 and self.updates_since_weights > 1:
             self.step_ratios.append(step / self.last_step)
         self.last_step = step
+        self.recent_steps = self.recent_steps[-OMEGA_WINDOW:] + [step] if self.updates_since_weights > 1 else []
+        if len(self.recent_steps) > OMEGA_WINDOW and step > 2.0 * self.recent_steps[0] and self.omega > 1.0:
+            self.omega = 1.0 + 0.5 * (self.omega - 1.0)
+            self.step_ratios.clear()
+            self.recent_steps.clear()
+            return self.omega
         if len(self.step_ratios) >= 3:
             lam = float(np.median(self.step_ratios[-3:]))
             w = self.omega

@@ -158,3 +158,18 @@ def test_over_relaxation_follows_youngs_estimate(datasets_dir: Path) -> None:
     assert omega == pytest.approx(2.0 / (1.0 + np.sqrt(1.0 - 0.9)))
     fixed = PgoAgent(agent.local, PgoParams(over_relaxation=1.0))
     assert fixed._omega(1.0) == 1.0
+
+
+def test_over_relaxation_backs_off_when_the_steps_grow(datasets_dir: Path) -> None:
+    """ω fitted to one problem diverges on a changed one (a held peer that starts to move): a step
+    twice the one a window of updates before halves ω − 1; steps that oscillate do not."""
+    agent = PgoAgent(split_local(load_graph([pgo(datasets_dir, "smallGrid3D")], 3))[0])
+    agent.updates_since_weights = 5
+    for k in range(4):
+        omega = agent._omega(0.9**k)
+    assert omega > 1.5
+    for k in range(30):  # over-relaxed steps: shrinking on the whole, up and down between updates
+        assert agent._omega(0.9**k * (1.5 if k % 2 else 1.0)) >= omega
+    omega = agent.omega
+    omegas = [agent._omega(0.1 * 1.1**k) for k in range(20)]  # growing: diverging
+    assert 1.0 < omegas[-1] <= 1.0 + 0.5 * (omega - 1.0)  # halved, once or more
