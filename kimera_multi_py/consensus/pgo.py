@@ -46,13 +46,13 @@ from kimera_multi_py.consensus.factors import between, fixed_neighbour, to_value
 from kimera_multi_py.consensus.frame_decision import FrameDecision
 from kimera_multi_py.consensus.pgo_init import Initialisation
 from kimera_multi_py.consensus.pgo_params import PgoParams
+from kimera_multi_py.consensus.pgo_relaxation import Relaxation, extrapolate
 from kimera_multi_py.consensus.pgo_weights import RobustWeights
 from kimera_multi_py.consensus.robust import GncSchedule, tls_threshold
-from kimera_multi_py.geometry import inverse, so3_exp, so3_log, to_gtsam
+from kimera_multi_py.geometry import inverse, to_gtsam
 from kimera_multi_py.io.pose_graph import INTER_ROBOT, ODOMETRY, PoseGraph, robot_key
 
 log = logging.getLogger(__name__)
-OMEGA_WINDOW = 12  # block updates over which a growing step resets over-relaxation (PgoAgent._omega)
 
 
 @dataclass
@@ -167,7 +167,7 @@ def frame_root(robot: int, robots: tuple[int, ...], pairs: list[tuple[int, int]]
     return robot == min(nx.node_connected_component(g, robot))
 
 
-class PgoAgent(Initialisation, FrameDecision, RobustWeights):
+class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
     """One robot's distributed-PGO state and its pure round step (its initialisation, frame
     decision and robust weights are the mixins of :mod:`.pgo_init`, :mod:`.frame_decision` and
     :mod:`.pgo_weights`)."""
@@ -396,7 +396,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
         if omega != 1.0 and self.updates_since_weights > 0:
             # block over-relaxation: on a quadratic cost X ⊕ ω(X* ⊖ X) lowers the cost by
             # ω(2−ω) times the exact step's decrease; kept only when it does lower it here
-            relaxed = _extrapolate(new, self.poses, omega - 1.0)
+            relaxed = extrapolate(new, self.poses, omega - 1.0)
             relaxed_values = to_values(lg.keys, relaxed)
             if fg.error(relaxed_values) <= fg.error(self._values):
                 new, values = relaxed, relaxed_values
@@ -414,64 +414,12 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights):
             gamma_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * self.gamma**2))
             beta = (self.gamma - 1.0) / gamma_next
             self.gamma = gamma_next
-            self.published = _extrapolate(new, self.poses, beta)
+            self.published = extrapolate(new, self.poses, beta)
         else:
             self.published = new
         self.prev_poses = self.poses
         self.poses = new
         self._values = values
-
-    def _omega(self, step: float) -> float:
-        """The over-relaxation factor for this update.
-
-        Adaptive (Hageman & Young): the ratio ``λ`` of successive exact block steps estimates
-        the iteration's contraction; at ``ω = 1`` it is ``ρ_GS = ρ_J²``, above it
-        ``ρ_J² = (λ + ω − 1)² / (λω²)`` while ``λ > ω − 1``; then ``ω ← 2 / (1 + √(1 − ρ_J²))``
-        (only upwards; a rejected relaxed step halves ``ω − 1``). A step more than twice the one
-        ``OMEGA_WINDOW`` updates before it means ``ω`` belongs to a problem that has changed
-        (a peer that was held and now moves): ``ω − 1`` halves, and ``ω`` adapts again (faults,
-        20 % loss: robot 2 at ``ω`` 1.93 diverged to a 1 m team error once the root joined in).
-        The window is long because over-relaxed steps oscillate (modulus ``ω − 1``) from one
-        update to the next.
-        """
-        p = self.params
-        if p.acceleration:
-            return 1.0  # momentum on top of over-relaxation diverges (measured on tinyGrid3D)
-        if p.over_relaxation is not None:
-            return p.over_relaxation
-        if self.last_step > 0 and self.updates_since_weights > 1:
-            self.step_ratios.append(step / self.last_step)
-        self.last_step = step
-        self.recent_steps = self.recent_steps[-OMEGA_WINDOW:] + [step] if self.updates_since_weights > 1 else []
-        if len(self.recent_steps) > OMEGA_WINDOW and step > 2.0 * self.recent_steps[0] and self.omega > 1.0:
-            self.omega = 1.0 + 0.5 * (self.omega - 1.0)
-            self.step_ratios.clear()
-            self.recent_steps.clear()
-            return self.omega
-        if len(self.step_ratios) >= 3:
-            lam = float(np.median(self.step_ratios[-3:]))
-            w = self.omega
-            rho_j2 = None
-            if lam < 1.0 and w == 1.0:
-                rho_j2 = lam
-            elif lam < 1.0 and lam > w - 1.0:
-                rho_j2 = (lam + w - 1.0) ** 2 / (lam * w * w)
-            if rho_j2 is not None and rho_j2 < 1.0:
-                new_w = min(2.0 / (1.0 + np.sqrt(1.0 - rho_j2)), p.max_over_relaxation)
-                if new_w > w + 1e-3:
-                    self.omega = new_w
-                    self.step_ratios.clear()
-        return self.omega
-
-    def _should_restart(self) -> bool:
-        if self.updates % self.params.restart_interval == 0:
-            return True
-        if len(self.statuses) < len(self.team) - 1:
-            return False
-        team_cost = self.cost + sum(s.cost for r, s in self.statuses.items() if r != self.robot)
-        rise = team_cost > self.last_team_cost
-        self.last_team_cost = team_cost
-        return bool(rise)
 
     def _solve_alone(self) -> np.ndarray:
         """The robot's own graph alone (odometry and the intra-robot closures GNC kept), its
@@ -513,16 +461,3 @@ def _poses_of(values: gtsam.Values) -> np.ndarray:
     T[:, :3, 3] = flat[:, 9:]
     T[:, 3, 3] = 1.0
     return T
-
-
-def _extrapolate(new: np.ndarray, old: np.ndarray, beta: float) -> np.ndarray:
-    """``new ⊕ β·(new ⊖ old)`` per pose (rotation on the right, translation added):
-    Nesterov extrapolation on SE(3) with the decoupled retraction."""
-    if beta <= 0:
-        return new
-    rot = so3_log(np.swapaxes(old[:, :3, :3], 1, 2) @ new[:, :3, :3])
-    out = new.copy()
-    out[:, :3, :3] = new[:, :3, :3] @ so3_exp(beta * rot)
-    out[:, :3, 3] = new[:, :3, 3] + beta * (new[:, :3, 3] - old[:, :3, 3])
-    return out
-
