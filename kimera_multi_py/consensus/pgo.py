@@ -169,8 +169,8 @@ def frame_root(robot: int, robots: tuple[int, ...], pairs: list[tuple[int, int]]
 
 class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
     """One robot's distributed-PGO state and its pure round step (its initialisation, frame
-    decision and robust weights are the mixins of :mod:`.pgo_init`, :mod:`.frame_decision` and
-    :mod:`.pgo_weights`)."""
+    decision, robust weights and step-size control are the mixins of :mod:`.pgo_init`,
+    :mod:`.frame_decision`, :mod:`.pgo_weights` and :mod:`.pgo_relaxation`)."""
 
     def __init__(self, local: LocalGraph, params: PgoParams | None = None) -> None:
         self.local = local

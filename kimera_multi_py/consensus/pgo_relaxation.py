@@ -97,4 +97,3 @@ def extrapolate(new: np.ndarray, old: np.ndarray, beta: float) -> np.ndarray:
     out[:, :3, :3] = new[:, :3, :3] @ so3_exp(beta * rot)
     out[:, :3, 3] = new[:, :3, 3] + beta * (new[:, :3, 3] - old[:, :3, 3])
     return out
-

@@ -19,15 +19,24 @@ from kimera_multi_py.sim.runner import SimRunner
 from .helpers import REPO, SMALL, TINY
 
 
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def run_modes(tmp_path_factory, modes, route_1=None):
+    """tiny (robot 1 on ``route_1`` when given) in each mode: results.json by mode, the run folder
+    by ``mode/dir``."""
     out = {}
-    for mode in ("odometry", "distributed", "centralized"):
+    for mode in modes:
+        cfg = load_scenario(TINY)
+        if route_1 is not None:
+            cfg.robots[1].route = route_1
         d = tmp_path_factory.mktemp(mode)
-        SimRunner(load_scenario(TINY), seed=0, mode=mode, out_dir=d).run()
+        SimRunner(cfg, seed=0, mode=mode, out_dir=d).run()
         out[mode] = json.loads((d / "results.json").read_text())
         out[f"{mode}/dir"] = d
     return out
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    return run_modes(tmp_path_factory, ("odometry", "distributed", "centralized"))
 
 
 def test_team_results_have_the_fields_and_the_pipeline_ran(runs):
@@ -75,15 +84,7 @@ def test_tiny_twin_rooms_toured_both_align_robot_1_into_the_true_frame(runs, mod
 def one_twin(tmp_path_factory):
     """tiny with robot 1 touring room_b only: its closures with robot 0 fit the true frame and
     the twin's (room_b onto room_a) from one place each."""
-    out = {}
-    for mode in ("distributed", "centralized"):
-        cfg = load_scenario(TINY)
-        cfg.robots[1].route = ["room_b"]
-        d = tmp_path_factory.mktemp(f"one_twin_{mode}")
-        SimRunner(cfg, seed=0, mode=mode, out_dir=d).run()
-        out[mode] = json.loads((d / "results.json").read_text())
-        out[f"{mode}/dir"] = d
-    return out
+    return run_modes(tmp_path_factory, ("distributed", "centralized"), route_1=["room_b"])
 
 
 @pytest.mark.parametrize("mode", ["distributed", "centralized"])
