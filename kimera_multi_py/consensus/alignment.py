@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -18,6 +18,8 @@ from kimera_multi_py.consensus.robust import MU_STEP, GncSchedule, initial_mu, t
 from kimera_multi_py.geometry import inverse, make_pose, so3_log
 
 log = logging.getLogger(__name__)
+
+SAME_FRAME_M = 2.5  # hypotheses moving the closure poses by less are one frame (rooms sit further apart)
 
 
 @dataclass
@@ -183,10 +185,38 @@ class FrameHypothesis:
     edges: np.ndarray
     places: int
     peers: tuple[int, ...]
+    xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # own position of each edge
+    edge_peers: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  # peer of each edge
 
     @property
     def size(self) -> int:
         return len(self.edges)
+
+
+def _hypothesis(T: np.ndarray, edges: np.ndarray, own: np.ndarray, peers: np.ndarray,
+                place_radius: float) -> FrameHypothesis:
+    """The hypothesis of ``edges`` (indices into ``own``/``peers``), its places counted per peer."""
+    xyz, by = own[edges, :3, 3], peers[edges]
+    places = sum(count_places(xyz[by == p], place_radius) for p in np.unique(by))
+    return FrameHypothesis(T, edges, int(places), tuple(int(p) for p in np.unique(by)), xyz, by)
+
+
+def exclusive_places(a: FrameHypothesis, b: FrameHypothesis, radius: float) -> int:
+    """Places of ``a`` that ``b`` does not explain: per peer, ``a``'s closure positions farther
+    than ``radius`` from every closure position ``b`` has with that peer, counted as places.
+
+    Identical rooms make an alias explain closures only where the truth has them too (a row of
+    twin rooms shifted by one: every aliased closure sits in a room the robot really met its peer
+    in), while the true frame alone explains the places that look like no other.
+    """
+    count = 0
+    for p in np.unique(a.edge_peers):
+        pa, pb = a.xyz[a.edge_peers == p], b.xyz[b.edge_peers == p]
+        if len(pb):
+            d = np.linalg.norm(pa[:, None] - pb[None], axis=2).min(1)
+            pa = pa[d > radius]
+        count += count_places(pa, radius)
+    return count
 
 
 def count_places(points: np.ndarray, radius: float) -> int:
@@ -204,7 +234,7 @@ def count_places(points: np.ndarray, radius: float) -> int:
 def frame_hypotheses(own: np.ndarray, neighbour: np.ndarray, measurement: np.ndarray, own_is_i: np.ndarray,
                      peers: np.ndarray, rotation_threshold: float = 0.2, translation_tolerance: float = 1.0,
                      lever_ratio: float = 0.05, place_radius: float = 2.0, min_edges: int = 2,
-                     max_hypotheses: int = 8, merge_distance: float = 2.5) -> list[FrameHypothesis]:
+                     max_hypotheses: int = 8, merge_distance: float = SAME_FRAME_M) -> list[FrameHypothesis]:
     """The distinct frame hypotheses the measurements propose, best supported first.
 
     Greedy clustering of :func:`agreement`: the edge most others agree with seeds a group, the
@@ -235,12 +265,20 @@ def frame_hypotheses(own: np.ndarray, neighbour: np.ndarray, measurement: np.nda
             own[group], neighbour[group], measurement[group], own_is_i[group], min_inliers=1).T
         left[members] = False
         left[seed] = False
-        places = sum(count_places(own[members[peers[members] == p], :3, 3], place_radius)
-                     for p in np.unique(peers[members]))
-        out.append(FrameHypothesis(T, members, int(places), tuple(int(p) for p in np.unique(peers[members]))))
+        out.append(_hypothesis(T, members, own, peers, place_radius))
     out = _merge_close(out, own, peers, merge_distance, place_radius)
     out.sort(key=lambda h: (-h.places, -h.size))
     return out
+
+
+def frames_agree(a: FrameHypothesis, b: FrameHypothesis, distance: float) -> bool:
+    """Whether ``a`` and ``b`` are one frame: ``a.T⁻¹ b.T`` moves every closure position of either
+    by at most ``distance``."""
+    pts = np.concatenate([a.xyz, b.xyz])
+    if not len(pts):
+        return False
+    D = inverse(a.T) @ b.T
+    return bool(np.linalg.norm(pts @ D[:3, :3].T + D[:3, 3] - pts, axis=1).max() <= distance)
 
 
 def _merge_close(hyps: list[FrameHypothesis], own: np.ndarray, peers: np.ndarray, distance: float,
@@ -254,16 +292,10 @@ def _merge_close(hyps: list[FrameHypothesis], own: np.ndarray, peers: np.ndarray
         for a in range(len(hyps)):
             for b in range(a + 1, len(hyps)):
                 ha, hb = hyps[a], hyps[b]
-                pts = own[np.concatenate([ha.edges, hb.edges]), :3, 3]
-                D = inverse(ha.T) @ hb.T
-                move = np.linalg.norm(pts @ D[:3, :3].T + D[:3, 3] - pts, axis=1).max()
-                if move > distance:
+                if not frames_agree(ha, hb, distance):
                     continue
-                edges = np.concatenate([ha.edges, hb.edges])
-                places = sum(count_places(own[edges[peers[edges] == p], :3, 3], place_radius)
-                             for p in np.unique(peers[edges]))
                 big = ha if ha.size >= hb.size else hb
-                hyps[a] = FrameHypothesis(big.T, edges, int(places), tuple(int(p) for p in np.unique(peers[edges])))
+                hyps[a] = _hypothesis(big.T, np.concatenate([ha.edges, hb.edges]), own, peers, place_radius)
                 del hyps[b]
                 merged = True
                 break
@@ -273,25 +305,44 @@ def _merge_close(hyps: list[FrameHypothesis], own: np.ndarray, peers: np.ndarray
 
 
 def decide(hypotheses: list[FrameHypothesis], min_places: int = 2, min_margin: int = 1,
-           min_edges: int = 3, lead_ratio: float = 2.0) -> tuple[FrameHypothesis | None, int]:
+           min_edges: int = 3, lead_ratio: float = 2.0,
+           place_radius: float = 2.0) -> tuple[FrameHypothesis | None, int]:
     """The hypothesis that clearly leads, or None; and its margin in places over the runner-up.
 
     A frame resting on a single place (one group, which an alias would look like) or tied with
     another hypothesis is not decided: the robot waits for more evidence (or stays out of the
-    team frame). A runner-up resting on several places is a twin room with several distinct
-    spots (office: a twin office's desks, three places): then the leader needs ``lead_ratio``
-    times its places (office, 5 robots, seed 3: a 3-to-2 lead put a robot in the twin office).
+    team frame). A hypothesis leads a competitor that rests on fewer than two places by
+    ``min_margin`` places. A competitor resting on several places is a twin room with several
+    distinct spots (office: a twin office's desks, three places): then the leader needs
+    ``lead_ratio`` times its places (office, 5 robots, seed 3: a 3-to-2 lead put a robot in the
+    twin office), or ``lead_ratio`` times the places only the competitor explains
+    (:func:`exclusive_places`), and at least ``min_places`` of its own. The latter tells a row of
+    identical rooms from the truth: the frame shifted by one room explains closures in every room
+    but one (aliased_wing, 8 robots, seed 5: 12 places against the true 20), yet none the true
+    frame does not. The margin of a decided hypothesis is its smallest lead over a competitor, in
+    places or in exclusive places, whichever decided it.
     """
     if not hypotheses:
         return None, 0
-    best = hypotheses[0]
-    second = hypotheses[1].places if len(hypotheses) > 1 else 0
-    margin = best.places - second
-    need = min_margin if second < 2 else max(min_margin, int(np.ceil((lead_ratio - 1.0) * second)))
-    if best.places >= min_places and margin >= need and best.size >= min_edges:
-        return best, margin
-    return None, margin
-
+    places_margin = hypotheses[0].places - (hypotheses[1].places if len(hypotheses) > 1 else 0)
+    for best in hypotheses:
+        if best.places < min_places or best.size < min_edges:
+            continue
+        margin: int | None = None
+        for h in hypotheses:
+            if h is best:
+                continue
+            lead = best.places - h.places
+            need = min_margin if h.places < 2 else max(min_margin, int(np.ceil((lead_ratio - 1.0) * h.places)))
+            if lead < need:
+                own, other = exclusive_places(best, h, place_radius), exclusive_places(h, best, place_radius)
+                if own < max(min_places, other + min_margin, lead_ratio * other):
+                    break
+                lead = own - other
+            margin = lead if margin is None else min(margin, lead)
+        else:
+            return best, best.places if margin is None else margin
+    return None, places_margin
 
 def near_identity(T: np.ndarray, max_trans: float = 1.0, max_rot: float = 0.2) -> bool:
     """A frame hypothesis that is (within alignment tolerance) no change of frame."""
@@ -300,7 +351,7 @@ def near_identity(T: np.ndarray, max_trans: float = 1.0, max_rot: float = 0.2) -
 
 def settled_decision(firm: list[FrameHypothesis] | None, every: list[FrameHypothesis],
                      per_peer: Sequence[list[FrameHypothesis]] = (), min_places: int = 2,
-                     min_margin: int = 1) -> tuple[FrameHypothesis | None, int, str]:
+                     min_margin: int = 1, place_radius: float = 2.0) -> tuple[FrameHypothesis | None, int, str]:
     """Decide a frame on settled peers' edges (``firm``; None when every edge is one, empty when
     none is) and on
     every known edge (``every``); ``per_peer``: each settled peer's hypotheses on its own edges.
@@ -315,19 +366,26 @@ def settled_decision(firm: list[FrameHypothesis] | None, every: list[FrameHypoth
     * ``"unsettled"``: only every edge decides (or nothing does).
     """
     def same(a: FrameHypothesis, b: FrameHypothesis) -> bool:
-        return len(np.intersect1d(a.edges, b.edges)) * 2 >= min(len(a.edges), len(b.edges))
+        # one frame: shared edges, or (two peers' disjoint edges) transforms that move every
+        # closure pose of either by less than a room
+        if len(np.intersect1d(a.edges, b.edges)) * 2 >= min(len(a.edges), len(b.edges)):
+            return True
+        return frames_agree(a, b, SAME_FRAME_M)
 
-    best, margin = decide(every, min_places, min_margin)
+    def decided(hyps: list[FrameHypothesis]) -> tuple[FrameHypothesis | None, int]:
+        return decide(hyps, min_places, min_margin, place_radius=place_radius)
+
+    best, margin = decided(every)
     verdict = "settled" if best is not None else "unsettled"
     if firm is not None:
-        lead, lead_margin = decide(firm, min_places, min_margin)
+        lead, lead_margin = decided(firm)
         if lead is None:
             verdict = "unsettled"
         elif best is None:
             best, margin, verdict = lead, lead_margin, "settled"
         elif not same(lead, best):
             return None, 0, "contested"
-    leads = [h for h in (decide(hyps, min_places, min_margin)[0] for hyps in per_peer) if h is not None]
+    leads = [h for h in (decided(hyps)[0] for hyps in per_peer) if h is not None]
     ref = best if best is not None else (leads[0] if leads else None)
     if ref is not None and any(not same(h, ref) for h in leads):
         return None, 0, "contested"

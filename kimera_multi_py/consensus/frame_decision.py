@@ -174,7 +174,8 @@ class FrameDecision:
         firm_hyps = None if firm[known].all() else (self._hypotheses(firm) if firm.any() else [])
         peers = np.unique(lg.inter_peer[firm])
         per_peer = [self._hypotheses(firm & (lg.inter_peer == r)) for r in peers] if len(peers) > 1 else []
-        return (hyps, *settled_decision(firm_hyps, hyps, per_peer, p.align_min_places, p.align_min_margin))
+        return (hyps, *settled_decision(firm_hyps, hyps, per_peer, p.align_min_places, p.align_min_margin,
+                                                p.place_radius))
 
     def _align_hypothesis(self, known: np.ndarray) -> None:
         """Robust alignment: adopt the frame hypothesis that clearly leads (module docstring)."""

@@ -81,7 +81,8 @@ class _Screen:
         firm_hyps = None if len(firm) == len(every) else (self.hypotheses(robot, firm) if len(firm) else [])
         by_peer = [E for E in (self.edges(robot, {p}) for p in settled) if len(E)]
         per_peer = [self.hypotheses(robot, E) for E in by_peer] if len(by_peer) > 1 else []
-        best, margin, verdict = settled_decision(firm_hyps, hyps, per_peer, self.min_places, self.min_margin)
+        best, margin, verdict = settled_decision(firm_hyps, hyps, per_peer, self.min_places, self.min_margin,
+                                                  self.place_radius)
         return best, margin, verdict == "settled", hyps
 
 
