@@ -10,7 +10,8 @@ Robust frame alignment (``align_hypotheses``, issue 11): the known inter-robot e
 clustered into frame hypotheses (:func:`.alignment.frame_hypotheses`), each supported by the
 number of distinct places its closures come from, over every neighbour at once. A robot adopts
 the hypothesis that leads the runner-up by ``align_min_margin`` places (twice the runner-up's
-places when it rests on several: :func:`.alignment.decide`) and rests on at least
+places, or twice the places only the runner-up explains, when it rests on several:
+:func:`.alignment.decide`) and rests on at least
 ``align_min_places``. Settled frames (:class:`.messages.PublicPoses`): the robot decides on
 settled peers' edges first; the rest decide only what those leave open, and evidence that leads
 to two frames (settled peers against the rest, or two settled peers against each other) is
