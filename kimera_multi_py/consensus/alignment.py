@@ -319,8 +319,9 @@ def decide(hypotheses: list[FrameHypothesis], min_places: int = 2, min_margin: i
     (:func:`exclusive_places`), and at least ``min_places`` of its own. The latter tells a row of
     identical rooms from the truth: the frame shifted by one room explains closures in every room
     but one (aliased_wing, 8 robots, seed 5: 12 places against the true 20), yet few that the
-    true frame does not (6, against the true frame's 16 the alias does not). The margin of a decided hypothesis is its smallest lead over a competitor, in
-    places or in exclusive places, whichever decided it.
+    true frame does not (6, against the true frame's 16 the alias does not). The margin of a
+    decided hypothesis is its smallest lead over a competitor, in places or in exclusive places,
+    whichever decided it.
     """
     if not hypotheses:
         return None, 0
