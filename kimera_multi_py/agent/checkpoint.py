@@ -65,7 +65,7 @@ from kimera_multi_py.errors import CheckpointError
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 _HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
 
@@ -81,6 +81,7 @@ ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.consensus.pcm.PcmNoise",
     "kimera_multi_py.consensus.pgo.LocalGraph",
     "kimera_multi_py.consensus.pgo.PgoParams",
+    "kimera_multi_py.mapping.axes.StructureAxes",
     "kimera_multi_py.mapping.config.MappingConfig",
     "kimera_multi_py.mapping.config.ObjectMapConfig",
     "kimera_multi_py.mapping.config.OctreeConfig",

@@ -41,12 +41,12 @@ def own_table(robot: int, version: int, frame: int, landmarks: Iterable[Landmark
     rows = []
     where = {} if poses is None else {int(s): (poses.T_ref[k], poses.T[k]) for k, s in enumerate(poses.submaps)}
     for lm in landmarks:
-        lo, hi = lm.box_ref()
-        centre, half = (lo + hi) / 2, (hi - lo + lm.resolution) / 2
-        if lm.submap in where:  # world now, then back into the submap's reference frame
+        centre, size, R = lm.box()  # world now
+        M = inverse(lm.T_world_ref)  # back into the landmark's reference frame
+        if lm.submap in where:  # or into the submap's reference frame as the table has it
             T_ref, T = where[lm.submap]
-            M = T_ref @ inverse(T) @ lm.T_world_ref
-            centre, half = transform_points(M, centre[None])[0], np.abs(M[:3, :3]) @ half
+            M = T_ref @ inverse(T)
+        centre, half = transform_points(M, centre[None])[0], np.abs(M[:3, :3] @ R) @ (size / 2)
         counts = lm.class_counts[:num_classes]
         rows.append((lm.id, lm.submap, int(np.argmax(counts[1:])) + 1, counts / counts.sum(), centre, half,
                      lm.num_observations))

@@ -26,8 +26,11 @@ Landmarks
     points fell in with hit counts, and its number of observations. Its box is the extent of
     the voxels hit at least ``min_voxel_hits`` times (one-off mislabelled points do not grow
     it), and its ``position`` is the box centre: surface points are biased toward the sides
-    that were seen, the union of views is not. Geometry is stored in the reference frame of
-    the submap the landmark was created in, so it re-anchors exactly when that submap moves.
+    that were seen, the union of views is not. The box is upright and aligned with the walls'
+    axes (:mod:`.axes`, estimated from the structure points of the same keyframes), or with
+    its submap's reference frame while the map has no clear walls. Geometry is stored in the
+    reference frame of the submap the landmark was created in, so it re-anchors exactly when
+    that submap moves.
 """
 from __future__ import annotations
 
@@ -41,8 +44,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from kimera_multi_py.geometry import inverse, transform_points
+from kimera_multi_py.geometry import inverse, so3_exp, transform_points
 from kimera_multi_py.mapping import morton
+from kimera_multi_py.mapping.axes import StructureAxes
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.semantics import CLASS_NAMES, MAX_OBJECT_EXTENT
 
@@ -185,6 +189,7 @@ class Landmark:
     T_world_ref: np.ndarray = field(default_factory=lambda: np.eye(4))
     resolution: float = 0.1
     min_voxel_hits: int = 2
+    axes_yaw: float | None = None  # world heading of the box's axes; None: the reference frame's
     _cache: dict[str, object] = field(default_factory=dict, repr=False, compare=False)
 
     def invalidate(self) -> None:
@@ -207,26 +212,27 @@ class Landmark:
         """Running centroid of the observed points (world frame)."""
         return transform_points(self.T_world_ref, (self.point_sum / self.num_points)[None])[0]
 
-    def box_ref(self) -> tuple[np.ndarray, np.ndarray]:
-        """Axis-aligned box (reference frame) over the centres of well-supported voxels."""
-        if "box_ref" not in self._cache:
+    def box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Oriented box in the world, ``(center, size, R)``: the extent of the centres of the
+        well-supported voxels along the box's axes (upright at ``axes_yaw``, or the reference
+        frame's), one voxel wider."""
+        if "box" not in self._cache:
             keep = self.voxel_hits >= self.min_voxel_hits
             codes = self.voxels[keep] if keep.any() else self.voxels
             c = morton.node_centers(codes, np.zeros(len(codes), np.int8), self.resolution)
-            self._cache["box_ref"] = (c.min(0), c.max(0))
-        return self._cache["box_ref"]  # type: ignore[return-value]
+            if self.axes_yaw is None:
+                R, q, t = self.T_world_ref[:3, :3].copy(), c, self.T_world_ref[:3, 3]
+            else:
+                R, t = so3_exp(np.array([0.0, 0.0, self.axes_yaw])), np.zeros(3)
+                q = transform_points(self.T_world_ref, c) @ R  # coordinates along the axes
+            lo, hi = q.min(0), q.max(0)
+            self._cache["box"] = (R @ ((lo + hi) / 2) + t, hi - lo + self.resolution, R)
+        return self._cache["box"]  # type: ignore[return-value]
 
     @property
     def position(self) -> np.ndarray:
         """Centre of the landmark's box (world frame): the object's position estimate."""
-        lo, hi = self.box_ref()
-        return transform_points(self.T_world_ref, ((lo + hi) / 2)[None])[0]
-
-    def box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Oriented box in the world: ``(center, size, R)``."""
-        lo, hi = self.box_ref()
-        center = transform_points(self.T_world_ref, ((lo + hi) / 2)[None])[0]
-        return center, hi - lo + self.resolution, self.T_world_ref[:3, :3].copy()
+        return self.box()[0].copy()
 
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
         """World axis-aligned bounds of the oriented box."""
@@ -286,6 +292,8 @@ class ObjectMap:
         self.landmarks: dict[int, Landmark] = {}
         self._submap_ref: dict[int, np.ndarray] = {}
         self._submap_pose: dict[int, np.ndarray] = {}
+        self._axes = StructureAxes()
+        self.axes_yaw: float | None = None  # heading of the walls' axes (see :mod:`.axes`)
         self._next_id = 0
         self._frame = 0
         self._merged_into: dict[int, int] = {}
@@ -302,6 +310,20 @@ class ObjectMap:
             if lm.submap == submap_id:
                 lm.T_world_ref = C.copy()
                 lm.invalidate()
+        self._refresh_axes()
+
+    def _refresh_axes(self, tolerance: float = np.radians(0.25)) -> None:
+        """Adopt the walls' axes as the submaps now place them; boxes follow a change."""
+        yaw = self._axes.yaw(self._correction)
+        old = self.axes_yaw
+        if (yaw is None) == (old is None) and (
+            yaw is None or abs((yaw - old + np.pi / 4) % (np.pi / 2) - np.pi / 4) <= tolerance  # type: ignore[operator]
+        ):
+            return
+        self.axes_yaw = yaw
+        for lm in self.landmarks.values():
+            lm.axes_yaw = yaw
+            lm.invalidate()
 
     def _correction(self, submap_id: int) -> np.ndarray:
         if submap_id not in self._submap_ref:
@@ -315,7 +337,14 @@ class ObjectMap:
         """Detect objects in one keyframe (world-frame end points) and fold them into the map.
 
         Returns the ids of the landmarks the detections were associated with (new ones too).
+        The keyframe's structure points vote for the walls' axes (:mod:`.axes`).
         """
+        lab = np.asarray(labels).reshape(-1)
+        if len(self.structure_classes) and len(lab) == len(points):
+            structure = np.isin(lab, self.structure_classes)
+            self._axes.add(submap_id, np.asarray(points, dtype=np.float64).reshape(-1, 3)[structure],
+                           self._correction(submap_id))
+            self._refresh_axes()
         dets = detect_objects(
             points,
             labels,
@@ -424,6 +453,7 @@ class ObjectMap:
             self.resolution,
             self.min_voxel_hits,
         )
+        lm.axes_yaw = self.axes_yaw
         self.landmarks[lid] = lm
         return lid
 
