@@ -197,12 +197,19 @@ class EvidenceMap:
         T = np.asarray(T, dtype=np.float64)
         if e.T is not None and e.T_ref is not None and np.array_equal(e.T, T) and np.array_equal(e.T_ref, T_ref):
             return
-        was = e.world is not None
-        if was:
-            self._withdraw(e)
+        old = e.world
         e.T_ref, e.T = T_ref.copy(), T.copy()
-        if was or e.active:
-            self._deposit(e)
+        if old is None:
+            if e.active:
+                self._deposit(e)
+            return
+        # only the cells that change world cell move: a small correction moves few of them
+        e.world = map_codes(e.codes, correction(T, T_ref), self.resolution)
+        moved = np.flatnonzero(old != e.world)
+        if len(moved):
+            ones = np.ones(len(moved), np.int32)
+            self._apply(np.concatenate([old[moved], e.world[moved]]),
+                        np.concatenate([-e.rows[moved], e.rows[moved]]), np.concatenate([-ones, ones]))
 
     def set_active(self, key: Key, active: bool) -> None:
         """Let a record contribute (its robot is in the team frame) or withdraw it."""

@@ -9,7 +9,8 @@ from pathlib import Path
 from typing import Any
 
 # Fields that measure the machine, not the algorithm: excluded when comparing runs.
-TIMING_KEYS = frozenset({"wall_s", "realtime_factor", "rays_per_s", "build_s", "front_end_ms_per_keyframe"})
+TIMING_KEYS = frozenset({"wall_s", "realtime_factor", "rays_per_s", "build_s", "front_end_ms_per_keyframe",
+                         "phi_records_s"})
 
 
 @dataclass

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from kimera_multi_py.consensus.map_exchange import MapExchange
 from kimera_multi_py.consensus.map_fusion import (
     EvidenceMap,
     centralised_team_map,
+    fuse_records,
     octree_cells,
     records_of,
     union_sorted,
@@ -64,6 +67,29 @@ def test_evidence_map_does_not_depend_on_the_order_of_updates() -> None:
         assert np.array_equal(codes, octree_cells(ref)[0])
     em.set_active(records[0].key, False)
     assert not same(snapshot(em.octree), snapshot(ref))
+
+
+def test_small_corrections_move_the_team_map_exactly() -> None:
+    """Corrections of millimetres move only the cells that change voxel; after any sequence of
+    them the team map is the fusion at the last poses, bit for bit."""
+    maps = {r: robot_map(r) for r in range(3)}
+    records = [rec for r in maps for rec in records_of(r, maps[r])]
+    em = EvidenceMap(maps[0].octree)
+    for rec in records:
+        em.set_cells(rec.key, rec.codes, rec.rows)
+        em.set_pose(rec.key, rec.T_ref, rec.T)
+        em.set_active(rec.key, True)
+    rng = np.random.default_rng(4)
+    final = {}
+    for step in range(6):
+        for rec in records:
+            C = make_pose(so3_exp(rng.normal(0, 2e-3, 3)), rng.normal(0, 0.01 * (step + 1), 3))
+            final[rec.key] = C @ rec.T
+            em.set_pose(rec.key, rec.T_ref, final[rec.key])
+    ref = fuse_records([replace(rec, T=final[rec.key]) for rec in records], maps[0].octree)
+    assert not same(snapshot(ref), snapshot(centralised_team_map(maps)))  # the corrections moved cells
+    assert same(snapshot(em.octree), snapshot(ref))
+    assert np.array_equal(em.evidence()[0], octree_cells(ref)[0])
 
 
 def test_union_sorted_matches_numpy() -> None:
