@@ -9,7 +9,8 @@ are arbitrary (the robot's heading when it started, or when a submap began), the
 Each keyframe's structure points give surface normals (the least principal axis of a point's
 ``k`` neighbours, Pauly et al.'s normal estimate); vertical surfaces (``|n_z| < max_normal_z``)
 vote with ``exp(4 i phi)``, ``phi`` the heading of their normal, so that the four directions of a
-Manhattan frame vote alike (the 4-fold circular mean). Votes are kept per submap in the submap's
+Manhattan frame vote alike (the 4-fold circular mean). A keyframe whose normals are mostly
+oblique (the map's frame is not upright) does not vote. Votes are kept per submap in the submap's
 reference frame and turned by the submap's current correction when summed, so the axes re-anchor
 exactly with the submaps. Walls off the Manhattan grid only weaken the vote; without enough
 support (``min_support`` votes, or a resultant shorter than ``min_coherence`` times their number) there are
@@ -23,6 +24,14 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
+_LEVEL = 0.95  # |n_z| above this: a horizontal surface (within 18 degrees)
+_UPRIGHT = np.cos(np.radians(10.0))  # a correction turning z by more than 10 degrees is no yaw
+
+
+def upright(T: np.ndarray) -> bool:
+    """Does a pose or a rotation keep +z within 10 degrees (so that it acts as a yaw)?"""
+    return bool(T[2, 2] >= _UPRIGHT)
+
 
 def heading(T: np.ndarray) -> float:
     """Yaw (rad) of a pose's or a rotation's x axis about +z."""
@@ -30,10 +39,13 @@ def heading(T: np.ndarray) -> float:
 
 
 def wall_votes(points: np.ndarray, k: int = 8, max_spread: float = 0.5, max_normal_z: float = 0.3,
-               voxel: float = 0.1, max_points: int = 1024) -> tuple[complex, int]:
+               voxel: float = 0.1, max_points: int = 1024, max_oblique: float = 0.25) -> tuple[complex, int]:
     """Sum of ``exp(4 i phi)`` over the points on vertical surfaces (normal headings ``phi``), and
     their number. The points are thinned to one per ``voxel`` (dense patches do not outvote the
-    rest) and then to at most ``max_points``: a few hundred settle the axes."""
+    rest) and then to at most ``max_points``: a few hundred settle the axes. No votes when more
+    than ``max_oblique`` of the normals are neither vertical nor horizontal: the frame is not
+    upright (in an upright frame 5-7 % of a keyframe's structure normals are, at edges; in a frame
+    tilted by tens of degrees, half or more)."""
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     P = P[np.all(np.isfinite(P), axis=1)]
     _, first = np.unique(np.floor(P / voxel).astype(np.int64), axis=0, return_index=True)
@@ -49,7 +61,10 @@ def wall_votes(points: np.ndarray, k: int = 8, max_spread: float = 0.5, max_norm
     d = nb - nb.mean(axis=1, keepdims=True)
     _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))
     n = vec[:, :, 0]  # eigenvalues ascend: the normal is the least principal axis
-    vertical = np.abs(n[:, 2]) < max_normal_z
+    nz = np.abs(n[:, 2])
+    if np.mean((nz >= max_normal_z) & (nz <= _LEVEL)) > max_oblique:
+        return 0j, 0
+    vertical = nz < max_normal_z
     phi = np.arctan2(n[vertical, 1], n[vertical, 0])
     return complex(np.exp(4j * phi).sum()), int(len(phi))
 
@@ -65,6 +80,8 @@ class StructureAxes:
     def add(self, submap: int, points_world: np.ndarray, correction: np.ndarray) -> None:
         """Vote with one keyframe's structure points (world frame), seen in ``submap``, whose
         reference frame the world reaches through ``correction``."""
+        if not upright(correction):
+            return
         z, n = wall_votes(points_world)
         if n == 0:
             return
@@ -75,9 +92,11 @@ class StructureAxes:
     def yaw(self, correction: Callable[[int], np.ndarray]) -> float | None:
         """The heading of the walls' axes in the world now (in ``[-pi/4, pi/4)``), each submap at
         ``correction(submap)``; None without enough coherent support."""
-        total = sum((complex(v[0], v[1]) * np.exp(4j * heading(correction(s))) for s, v in self._votes.items()),
-                    start=0j)
-        support = sum(float(v[2]) for v in self._votes.values())
+        # a submap turned out of the upright since it voted no longer shows where its walls run
+        used = [(v, correction(s)) for s, v in self._votes.items()]
+        used = [(v, C) for v, C in used if upright(C)]
+        total = sum((complex(v[0], v[1]) * np.exp(4j * heading(C)) for v, C in used), start=0j)
+        support = sum(float(v[2]) for v, _ in used)
         if support < self.min_support or abs(total) < self.min_coherence * support:
             return None
         return float(np.angle(total) / 4.0)

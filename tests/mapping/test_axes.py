@@ -83,3 +83,16 @@ def test_an_object_seen_from_one_corner_is_boxed_along_the_walls():
             assert np.allclose(np.abs(R[:2, :2]), np.abs(rot(yaw)[:2, :2]), atol=0.02)
     assert errors[True] < 0.04
     assert errors[False] > 0.1  # in the map's own axes the L is boxed off-centre
+
+
+def test_a_frame_that_is_not_upright_has_no_axes():
+    rng = np.random.default_rng(4)
+    pts, lab = room(0.3, rng)
+    tilt = make_pose(so3_exp(np.array([0.5, 0.2, 0.0])), np.zeros(3))
+    axes = StructureAxes()
+    axes.add(0, transform_points(tilt, pts), np.eye(4))  # mostly oblique normals: no votes
+    assert axes.yaw(lambda s: np.eye(4)) is None
+    axes.add(0, pts, np.eye(4))
+    assert axes.yaw(lambda s: np.eye(4)) == pytest.approx(0.3, abs=np.radians(0.5))
+    # the submap later turned out of the upright: its votes no longer give a heading
+    assert axes.yaw(lambda s: tilt) is None
