@@ -289,7 +289,7 @@ class Agent:
         lms = [lm for lm in lms if lm.num_observations >= 2]
         if len(lms) < self.params.min_objects:
             return None
-        xyz_world = np.array([lm.position for lm in lms])
+        xyz_world = np.array([lm.ref_position for lm in lms])
         xyz = transform_points(inverse(self.poses[k]), xyz_world)
         classes = np.array([lm.label for lm in lms])
         desc = constellation_descriptor(xyz, _CLASS_TO_SLOT[classes], self.spec)

@@ -234,6 +234,27 @@ class Landmark:
         """Centre of the landmark's box (world frame): the object's position estimate."""
         return self.box()[0].copy()
 
+    def ref_aabb(self) -> tuple[np.ndarray, np.ndarray]:
+        """World bounds of the box in the landmark's reference axes. Association, merging and
+        place descriptors use it (and :attr:`ref_position`), not the walls' axes: an estimate
+        of the axes that moves never changes which detections are one object or which places
+        look alike, so the front end does not depend on it."""
+        if "ref_aabb" not in self._cache:
+            keep = self.voxel_hits >= self.min_voxel_hits
+            codes = self.voxels[keep] if keep.any() else self.voxels
+            c = morton.node_centers(codes, np.zeros(len(codes), np.int8), self.resolution)
+            lo, hi = c.min(0), c.max(0)
+            center = transform_points(self.T_world_ref, ((lo + hi) / 2)[None])[0]
+            ext = np.abs(self.T_world_ref[:3, :3]) @ ((hi - lo + self.resolution) / 2)
+            self._cache["ref_aabb"] = (center - ext, center + ext)
+        return self._cache["ref_aabb"]  # type: ignore[return-value]
+
+    @property
+    def ref_position(self) -> np.ndarray:
+        """Centre of :meth:`ref_aabb` (world frame)."""
+        lo, hi = self.ref_aabb()
+        return (lo + hi) / 2
+
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
         """World axis-aligned bounds of the oriented box."""
         if "aabb" not in self._cache:
@@ -409,8 +430,8 @@ class ObjectMap:
         dlo = np.array([d.box_min for d in dets]) - self.box_margin
         dhi = np.array([d.box_max for d in dets]) + self.box_margin
         lms = [self.landmarks[i] for i in ids]
-        lc = np.array([lm.position for lm in lms])
-        boxes = [lm.aabb() for lm in lms]
+        lc = np.array([lm.ref_position for lm in lms])
+        boxes = [lm.ref_aabb() for lm in lms]
         llo = np.array([b[0] for b in boxes])
         lhi = np.array([b[1] for b in boxes])
         post = np.array([lm.posterior for lm in lms])  # (m, K+1)
@@ -485,7 +506,7 @@ class ObjectMap:
             other = self.landmarks[oid]
             if other.label != keep.label:
                 continue
-            olo, ohi = other.aabb()
+            olo, ohi = other.ref_aabb()
             inter = np.clip(np.minimum(hi, ohi) - np.maximum(lo, olo), 0, None).prod()
             if inter >= 0.5 * max(float(np.prod(ohi - olo)), 1e-12):
                 self._merge(keep, self.landmarks.pop(oid))
@@ -514,7 +535,7 @@ class ObjectMap:
                 self._merged_into[ib] = ia
 
     def _boxes(self, ids: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        boxes = [self.landmarks[i].aabb() for i in ids]
+        boxes = [self.landmarks[i].ref_aabb() for i in ids]
         return (
             np.array([b[0] for b in boxes]),
             np.array([b[1] for b in boxes]),
