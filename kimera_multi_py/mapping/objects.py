@@ -212,14 +212,19 @@ class Landmark:
         """Running centroid of the observed points (world frame)."""
         return transform_points(self.T_world_ref, (self.point_sum / self.num_points)[None])[0]
 
+    def supported_centers(self) -> np.ndarray:
+        """Reference-frame centres of the voxels hit at least ``min_voxel_hits`` times (all
+        voxels while none is)."""
+        keep = self.voxel_hits >= self.min_voxel_hits
+        codes = self.voxels[keep] if keep.any() else self.voxels
+        return morton.node_centers(codes, np.zeros(len(codes), np.int8), self.resolution)
+
     def box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Oriented box in the world, ``(center, size, R)``: the extent of the centres of the
         well-supported voxels along the box's axes (upright at ``axes_yaw``, or the reference
         frame's), one voxel wider."""
         if "box" not in self._cache:
-            keep = self.voxel_hits >= self.min_voxel_hits
-            codes = self.voxels[keep] if keep.any() else self.voxels
-            c = morton.node_centers(codes, np.zeros(len(codes), np.int8), self.resolution)
+            c = self.supported_centers()
             if self.axes_yaw is None:
                 R, q, t = self.T_world_ref[:3, :3].copy(), c, self.T_world_ref[:3, 3]
             else:
@@ -240,9 +245,7 @@ class Landmark:
         of the axes that moves never changes which detections are one object or which places
         look alike, so the front end does not depend on it."""
         if "ref_aabb" not in self._cache:
-            keep = self.voxel_hits >= self.min_voxel_hits
-            codes = self.voxels[keep] if keep.any() else self.voxels
-            c = morton.node_centers(codes, np.zeros(len(codes), np.int8), self.resolution)
+            c = self.supported_centers()
             lo, hi = c.min(0), c.max(0)
             center = transform_points(self.T_world_ref, ((lo + hi) / 2)[None])[0]
             ext = np.abs(self.T_world_ref[:3, :3]) @ ((hi - lo + self.resolution) / 2)
@@ -624,10 +627,7 @@ class ObjectMap:
 
 def _world_voxel_centers(lm: Landmark) -> np.ndarray:
     """World centres of a landmark's well-supported voxels (all voxels if none is yet)."""
-    keep = lm.voxel_hits >= lm.min_voxel_hits
-    codes = lm.voxels[keep] if keep.any() else lm.voxels
-    c = morton.node_centers(codes, np.zeros(len(codes), np.int8), lm.resolution)
-    return transform_points(lm.T_world_ref, c)
+    return transform_points(lm.T_world_ref, lm.supported_centers())
 
 
 def _merge_counts(
