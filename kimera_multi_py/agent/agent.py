@@ -54,6 +54,7 @@ from kimera_multi_py.geometry import inverse, so3_log, transform_points
 from kimera_multi_py.io.pose_graph import robot_key, split_key
 from kimera_multi_py.mapping.config import MappingConfig, get_object_map, get_submap_map
 from kimera_multi_py.mapping.floor import FloorReference
+from kimera_multi_py.mapping.heading import HeadingReference
 from kimera_multi_py.mapping.registration import ScanRegistration
 from kimera_multi_py.mapping.scan_odometry import ScanOdometry
 from kimera_multi_py.semantics import NUM_CLASSES, OBJECT_CLASSES, class_id
@@ -64,6 +65,7 @@ _OBJECT_IDS = np.array([class_id(c) for c in OBJECT_CLASSES])
 _CLASS_TO_SLOT = np.full(NUM_CLASSES + 1, -1)
 _CLASS_TO_SLOT[_OBJECT_IDS] = np.arange(len(_OBJECT_IDS))
 _FLOOR = class_id("floor")
+_WALL = class_id("wall")
 _FLOOR_CEILING = (_FLOOR, class_id("ceiling"))
 MAX_AGENT_ID = 25  # robot i owns gtsam Symbol chr(ord('a') + i)
 
@@ -119,6 +121,9 @@ class AgentParams:
     # the floor seen at each keyframe sets the registration chain's roll, pitch and height
     # (mapping.floor: a ground robot on one floor; a fit off the predicted floor is not used)
     floor_reference: bool = True
+    # the walls' grid seen at each keyframe sets the chain's yaw (mapping.heading: walls along two
+    # perpendicular directions; a keyframe whose walls are off that grid is not used)
+    heading_reference: bool = True
     team_object_sightings: int = 5  # sightings before a landmark enters the team's object map
     server: int | None = None  # centralised mode: the server's id (odometry streams to it)
     pcm: PcmNoise | None = None  # default: drift from odom_sigmas, closure noise from closure_sigmas
@@ -200,7 +205,8 @@ class Agent:
                                                            point_sigma=p.reg_point_sigma,
                                                            information_scale=p.reg_information_scale),
                                            p.odom_information(), p.reg_window, p.reg_min_ratio, p.reg_gate,
-                                           FloorReference() if p.floor_reference else None)
+                                           FloorReference() if p.floor_reference else None,
+                                           HeadingReference() if p.heading_reference else None)
                               if p.registration else None)
         self.closure_registration = ScanRegistration(p.cloud_voxel, p.closure_correspondence,
                                                      point_sigma=p.reg_point_sigma)
@@ -241,7 +247,8 @@ class Agent:
         static = hits & ~np.isin(kf.labels, self.map.octree.dynamic_classes)
         so = self.scan_odometry
         floor = kf.points[hits & (kf.labels == _FLOOR)] if so is not None and so.floor is not None else None
-        step = odom if so is None else so.step(kf.index, odom, kf.points[static], floor)
+        walls = kf.points[hits & (kf.labels == _WALL)] if so is not None and so.heading is not None else None
+        step = odom if so is None else so.step(kf.index, odom, kf.points[static], floor, walls)
         dr = odom.copy() if kf.index == 0 else self.dead_reckoning[-1] @ odom
         pose = odom.copy() if kf.index == 0 else self.poses[-1] @ step
         self.stamps.append(kf.stamp)

@@ -65,7 +65,7 @@ from kimera_multi_py.errors import CheckpointError
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 _HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
 
@@ -88,6 +88,8 @@ ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.mapping.floor.FloorReference",
     "kimera_multi_py.mapping.floor.FloorStats",
     "kimera_multi_py.mapping.floor.Plane",
+    "kimera_multi_py.mapping.heading.HeadingReference",
+    "kimera_multi_py.mapping.heading.HeadingStats",
     "kimera_multi_py.mapping.objects.Landmark",
     "kimera_multi_py.mapping.objects.ObjectMap",
     "kimera_multi_py.mapping.registration.ScanRegistration",

@@ -25,7 +25,7 @@ from kimera_multi_py.geometry import relative, so3_log, transform_points
 from kimera_multi_py.mapping.config import MappingConfig, get_octree
 
 _SCAN_COUNTS = ("registered", "degenerate", "gated", "failed")
-_FLOOR_COUNTS = ("corrected", "missing", "gated")
+_FLOOR_COUNTS = ("corrected", "missing", "gated")  # of the floor and of the heading reference
 
 
 @dataclass
@@ -115,6 +115,7 @@ def accuracy_results(world: Any, mapping: MappingConfig, truth: Sequence[np.ndar
     team_map["registration_odometry"] = team_map_quality(mapping, scans, reg_world, centers, gt)
     stats = [a.scan_odometry.stats for a in agents if a.scan_odometry is not None]
     floors = [f for f in (a.scan_odometry.floor for a in agents if a.scan_odometry is not None) if f is not None]
+    headings = [h for h in (a.scan_odometry.heading for a in agents if a.scan_odometry is not None) if h is not None]
     keyframes = max(sum(a.num_keyframes for a in agents), 1)
     return {
         "team_map": team_map,
@@ -122,7 +123,8 @@ def accuracy_results(world: Any, mapping: MappingConfig, truth: Sequence[np.ndar
         "drift_per_distance": {"dead_reckoning": _drift(truth, dr), "registration_odometry": _drift(truth, reg)},
         "closure_error": closure_errors(truth, outcomes),
         "scan_odometry": {**{k: sum(getattr(s, k) for s in stats) for k in _SCAN_COUNTS},
-                          **{f"floor_{k}": sum(getattr(f.stats, k) for f in floors) for k in _FLOOR_COUNTS}},
+                          **{f"floor_{k}": sum(getattr(f.stats, k) for f in floors) for k in _FLOOR_COUNTS},
+                          **{f"heading_{k}": sum(getattr(h.stats, k) for h in headings) for k in _FLOOR_COUNTS}},
         "front_end_ms_per_keyframe": {
             "total": 1000 * sum(a.front_end_seconds for a in agents) / keyframes,
             "registration": 1000 * sum(s.seconds for s in stats) / keyframes},

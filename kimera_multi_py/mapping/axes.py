@@ -38,34 +38,43 @@ def heading(T: np.ndarray) -> float:
     return float(np.arctan2(T[1, 0], T[0, 0]))
 
 
-def wall_votes(points: np.ndarray, k: int = 8, max_spread: float = 0.5, max_normal_z: float = 0.3,
-               voxel: float = 0.1, max_points: int = 1024, max_oblique: float = 0.25) -> tuple[complex, int]:
-    """Sum of ``exp(4 i phi)`` over the points on vertical surfaces (normal headings ``phi``), and
-    their number. The points are thinned to one per ``voxel`` (dense patches do not outvote the
-    rest) and then to at most ``max_points``: a few hundred settle the axes. No votes when more
-    than ``max_oblique`` of the normals are neither vertical nor horizontal: the frame is not
-    upright (in an upright frame 5-7 % of a keyframe's structure normals are, at edges; in a frame
-    tilted by tens of degrees, half or more)."""
+def vertical_surfaces(points: np.ndarray, k: int = 8, max_spread: float = 0.5, max_normal_z: float = 0.3,
+                      voxel: float = 0.1, max_points: int = 1024,
+                      max_oblique: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """The points on vertical surfaces and the headings ``phi`` of their normals (rad).
+
+    The points are thinned to one per ``voxel`` (dense patches do not outvote the rest) and then
+    to at most ``max_points``: a few hundred settle the axes. Nothing when more than
+    ``max_oblique`` of the normals are neither vertical nor horizontal: the frame is not upright
+    (in an upright frame 5-7 % of a keyframe's structure normals are, at edges; in a frame tilted
+    by tens of degrees, half or more)."""
+    none = (np.zeros((0, 3)), np.zeros(0))
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     P = P[np.all(np.isfinite(P), axis=1)]
     _, first = np.unique(np.floor(P / voxel).astype(np.int64), axis=0, return_index=True)
     P = P[np.sort(first)]
     P = P[:: -(-len(P) // max_points) or 1]
     if len(P) <= k:
-        return 0j, 0
+        return none
     dist, idx = cKDTree(P).query(P, k=k)
     ok = dist[:, -1] <= max_spread  # a neighbourhood spread over the room is no surface
     if not ok.any():
-        return 0j, 0
+        return none
     nb = P[idx[ok]]
     d = nb - nb.mean(axis=1, keepdims=True)
     _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))
     n = vec[:, :, 0]  # eigenvalues ascend: the normal is the least principal axis
     nz = np.abs(n[:, 2])
     if np.mean((nz >= max_normal_z) & (nz <= _LEVEL)) > max_oblique:
-        return 0j, 0
+        return none
     vertical = nz < max_normal_z
-    phi = np.arctan2(n[vertical, 1], n[vertical, 0])
+    return P[ok][vertical], np.arctan2(n[vertical, 1], n[vertical, 0])
+
+
+def wall_votes(points: np.ndarray, **kwargs: float) -> tuple[complex, int]:
+    """Sum of ``exp(4 i phi)`` over the points on vertical surfaces (:func:`vertical_surfaces`,
+    whose keywords it takes), and their number."""
+    _, phi = vertical_surfaces(points, **kwargs)  # type: ignore[arg-type]
     return complex(np.exp(4j * phi).sum()), int(len(phi))
 
 

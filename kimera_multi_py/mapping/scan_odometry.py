@@ -26,6 +26,7 @@ import numpy as np
 
 from kimera_multi_py.geometry import inverse, se3_exp, se3_log, transform_points
 from kimera_multi_py.mapping.floor import FloorReference
+from kimera_multi_py.mapping.heading import HeadingReference
 from kimera_multi_py.mapping.registration import ScanRegistration, constrained_information, fuse
 
 
@@ -42,7 +43,8 @@ class ScanOdometry:
     """One robot's scan-to-map odometry (see the module docstring)."""
 
     def __init__(self, registration: ScanRegistration, odom_information: np.ndarray, window: int = 8,
-                 min_ratio: float = 1.0, gate: float = 25.0, floor: FloorReference | None = None) -> None:
+                 min_ratio: float = 1.0, gate: float = 25.0, floor: FloorReference | None = None,
+                 heading: HeadingReference | None = None) -> None:
         if window < 1:
             raise ValueError(f"scan odometry: the local map needs a window of >= 1 keyframes, not {window}")
         self.registration = registration
@@ -51,15 +53,18 @@ class ScanOdometry:
         self.min_ratio = float(min_ratio)
         self.gate = float(gate)
         self.floor = floor
+        self.heading = heading
         self.poses: list[np.ndarray] = []  # registration-refined chain R_k, own frame
         self.clouds: dict[int, np.ndarray] = {}  # the window's scans, sensor frame, float32
         self.edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # k -> (Z_{k-1,k}, information)
         self.stats = ScanOdometryStats()
 
-    def step(self, k: int, odometry: np.ndarray, points: np.ndarray, floor: np.ndarray | None = None) -> np.ndarray:
+    def step(self, k: int, odometry: np.ndarray, points: np.ndarray, floor: np.ndarray | None = None,
+             walls: np.ndarray | None = None) -> np.ndarray:
         """Register keyframe ``k``'s scan ``points`` (sensor frame) and return the fused step
-        ``T_{k-1,k}`` (the odometry itself where the registration cannot tell). ``floor``: the
-        scan's points labelled floor, for the floor reference (none: no floor correction)."""
+        ``T_{k-1,k}`` (the odometry itself where the registration cannot tell). ``floor`` and
+        ``walls``: the scan's points labelled floor and wall, for the floor and heading references
+        (none: no such correction)."""
         if k != len(self.poses):
             raise ValueError(f"scan odometry: keyframe {k} out of order (expected {len(self.poses)})")
         odometry = np.asarray(odometry, dtype=np.float64)
@@ -72,10 +77,15 @@ class ScanOdometry:
             step = self._register(k, odometry, pts)
             self.stats.seconds += time.perf_counter() - t0
             self.poses.append(self.poses[-1] @ step)
+        corrected = False
         if self.floor is not None and floor is not None:
             self.poses[-1] = self.floor.correct(self.poses[-1], floor)
-            if k:
-                step = inverse(self.poses[-2]) @ self.poses[-1]
+            corrected = True
+        if self.heading is not None and walls is not None:
+            self.poses[-1] = self.heading.correct(self.poses[-1], walls)
+            corrected = True
+        if corrected and k:
+            step = inverse(self.poses[-2]) @ self.poses[-1]
         self.clouds[k] = pts
         self.clouds.pop(k - self.window, None)
         return step

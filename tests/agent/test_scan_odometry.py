@@ -109,3 +109,17 @@ def test_tiny_end_to_end_reports_accuracy_by_cause():
     # 384-ray sensor sees fewer floor points than a fit needs at most of them: mostly missing)
     so, n = d["scan_odometry"], sum(r["keyframes"] for r in d["robots"])
     assert n - len(d["robots"]) <= so["floor_corrected"] + so["floor_missing"] + so["floor_gated"] <= n
+    assert n - len(d["robots"]) <= so["heading_corrected"] + so["heading_missing"] + so["heading_gated"] <= n
+
+
+def test_the_walls_keep_the_agents_chain_at_its_heading(small_robot):
+    sim, _ = small_robot
+    kfs = list(sim.keyframes(0))  # the whole run: yaw drift needs distance to show
+    true = np.array([kf.true_pose for kf in kfs])
+    yaw = {}
+    for walls in (True, False):
+        agent = _run(kfs, heading_reference=walls)
+        reg = true[0] @ np.array(agent.scan_odometry.poses)
+        err = np.angle(np.exp(1j * (np.arctan2(reg[:, 1, 0], reg[:, 0, 0]) - np.arctan2(true[:, 1, 0], true[:, 0, 0]))))
+        yaw[walls] = float(np.degrees(np.sqrt(np.mean(err**2))))
+    assert agent.scan_odometry.heading is None and yaw[True] < 0.5 * yaw[False]
