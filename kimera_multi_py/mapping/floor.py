@@ -13,8 +13,14 @@ floor keep the registration's (the plane says nothing about them).
   One SVD per iteration, no loop over points.
 * :class:`FloorReference`: the floor plane in the robot's own frame, taken from the first good
   fit (the sensor frame's z axis points up, REP 103, so that fit must be nearly level). Each
-  later fit, gated against the plane the chain predicts, moves the keyframe's pose by the
-  smallest rotation and the shift along the normal that make the prediction match it.
+  later fit, gated against the plane the chain predicts, moves the keyframe's pose towards it:
+  the smallest rotation and the shift along the normal that make the prediction match the fit,
+  each scaled by a one-state Kalman gain. The chain's tilt and height uncertainty grows by
+  ``step_sigmas`` per keyframe; a fit's own uncertainty comes from its residuals and the spread
+  of its points (:meth:`Plane.uncertainty`; a patch of floor seen at the foot of a wall fixes
+  the tilt poorly), never below ``min_sigmas``. Taking every fit as exact, as this did first,
+  passed each fit's noise into the chain: on office seed 2, pitch 0.25 degrees and height
+  1.2 cm RMS against 0.12 degrees and 1.1 cm filtered.
 
 A keyframe with too little floor in view (facing a wall) keeps its pose. A fit far from the
 prediction (a ramp, another storey, a mislabelled surface) is not used: the robot then drifts
@@ -40,11 +46,25 @@ class Plane:
     offset: float
     inliers: int = 0
     rms: float = 0.0  # of the inliers' distances (m)
+    centroid: np.ndarray | None = None  # of the inliers
+    spread: float = 0.0  # the inliers' least in-plane variance (m^2): how well they fix the tilt
+
+    def uncertainty(self, at: np.ndarray) -> tuple[float, float]:
+        """Standard deviations of the normal's direction (rad) and of the plane's height at the
+        point ``at`` (m), from the residuals as independent point noise."""
+        n = max(self.inliers, 1)
+        tilt2 = self.rms**2 / (n * max(self.spread, 1e-6))
+        lever2 = 0.0  # squared distance along the plane from the points' centroid to ``at``
+        if self.centroid is not None:
+            d = np.asarray(at, dtype=np.float64) - self.centroid
+            lever2 = float(d @ d - (d @ self.normal) ** 2)
+        return float(np.sqrt(tilt2)), float(np.sqrt(self.rms**2 / n + lever2 * tilt2))
 
     def transformed(self, T: np.ndarray) -> Plane:
         """The same plane in the frame ``A`` when this one is in frame ``B`` and ``T = T_A_B``."""
         n = T[:3, :3] @ self.normal
-        return Plane(n, float(self.offset - n @ T[:3, 3]), self.inliers, self.rms)
+        c = None if self.centroid is None else T[:3, :3] @ self.centroid + T[:3, 3]
+        return Plane(n, float(self.offset - n @ T[:3, 3]), self.inliers, self.rms, c, self.spread)
 
 
 def fit_plane(points: np.ndarray, guess: Plane, band: float = 0.2, min_points: int = 50,
@@ -55,10 +75,12 @@ def fit_plane(points: np.ndarray, guess: Plane, band: float = 0.2, min_points: i
     P = P[np.abs(P @ guess.normal + guess.offset) < band]
     if len(P) < min_points:
         return None
-    n, d, rms = guess.normal, guess.offset, float("inf")
+    n, d, rms, spread = guess.normal, guess.offset, float("inf"), 0.0
+    c = P.mean(axis=0)
     for _ in range(iterations):
         c = P.mean(axis=0)
-        n = np.linalg.svd(P - c, full_matrices=False)[2][-1]
+        _, sv, vt = np.linalg.svd(P - c, full_matrices=False)
+        n, spread = vt[-1], float(sv[1] ** 2 / len(P))
         n = n if n @ guess.normal >= 0 else -n
         d = float(-n @ c)
         r = np.abs(P @ n + d)
@@ -67,7 +89,7 @@ def fit_plane(points: np.ndarray, guess: Plane, band: float = 0.2, min_points: i
         if keep.all() or keep.sum() < min_points:
             break
         P = P[keep]
-    return Plane(n, d, len(P), rms)
+    return Plane(n, d, len(P), rms, c, spread)
 
 
 @dataclass
@@ -83,20 +105,27 @@ class FloorReference:
     ``band``: metres around the predicted floor that a point may be to count; ``max_rms``: the
     largest residual of a fit used as the reference; ``max_tilt``: the largest angle (rad)
     between that first fit's normal and the sensor's up axis; ``gate_angle`` (rad) and
-    ``gate_offset`` (m): how far a later fit may be from the predicted floor to be used.
+    ``gate_offset`` (m): how far a later fit may be from the predicted floor to be used;
+    ``step_sigmas``: the chain's tilt (rad) and height (m) noise per keyframe; ``min_sigmas``:
+    the least uncertainty of a fit's tilt and height.
     """
 
     def __init__(self, band: float = 0.2, min_points: int = 50, max_rms: float = 0.03,
                  max_tilt: float = np.deg2rad(15.0), gate_angle: float = np.deg2rad(3.0),
-                 gate_offset: float = 0.15) -> None:
-        if band <= 0 or min_points < 3 or max_rms <= 0 or gate_angle <= 0 or gate_offset <= 0:
-            raise ValueError("floor: band, max_rms and the gates must be > 0, and min_points >= 3")
+                 gate_offset: float = 0.15, step_sigmas: tuple[float, float] = (np.deg2rad(0.08), 0.01),
+                 min_sigmas: tuple[float, float] = (np.deg2rad(0.05), 0.005)) -> None:
+        if (band <= 0 or min_points < 3 or max_rms <= 0 or gate_angle <= 0 or gate_offset <= 0
+                or min(step_sigmas) <= 0 or min(min_sigmas) <= 0):
+            raise ValueError("floor: band, max_rms, the gates and the sigmas must be > 0, and min_points >= 3")
         self.band = float(band)
         self.min_points = int(min_points)
         self.max_rms = float(max_rms)
         self.max_tilt = float(max_tilt)
         self.gate_angle = float(gate_angle)
         self.gate_offset = float(gate_offset)
+        self.q = np.square(np.asarray(step_sigmas, dtype=np.float64))  # per keyframe: tilt, height
+        self.r_min = np.square(np.asarray(min_sigmas, dtype=np.float64))
+        self.variance = np.zeros(2)  # of the chain's tilt and height against the reference
         self.plane: Plane | None = None  # the floor in the robot's own frame
         self.stats = FloorStats()
 
@@ -109,6 +138,7 @@ class FloorReference:
         if self.plane is None:
             self._adopt(pose, pts)
             return pose
+        self.variance += self.q
         predicted = self.plane.transformed(inverse(pose))
         fit = fit_plane(pts, predicted, self.band, self.min_points)
         if fit is None:
@@ -117,14 +147,17 @@ class FloorReference:
         axis = np.cross(predicted.normal, fit.normal)
         angle = float(np.arctan2(np.linalg.norm(axis), predicted.normal @ fit.normal))
         shift = fit.offset - predicted.offset
+        innovation = self.variance + np.maximum(np.square(fit.uncertainty(np.zeros(3))), self.r_min)
         if angle > self.gate_angle or abs(shift) > self.gate_offset:
             self.stats.gated += 1
             return pose
+        gain = self.variance / innovation
+        self.variance *= 1.0 - gain
         out = pose.copy()
         if angle > 0:  # R' = R Exp(-angle * axis) maps the predicted normal onto the fitted one
-            out[:3, :3] = pose[:3, :3] @ so3_exp(-angle * axis / np.linalg.norm(axis))
+            out[:3, :3] = pose[:3, :3] @ so3_exp(-gain[0] * angle * axis / np.linalg.norm(axis))
         # along the reference normal, by the fitted height's difference from the prediction
-        out[:3, 3] = pose[:3, 3] + shift * self.plane.normal
+        out[:3, 3] = pose[:3, 3] + gain[1] * shift * self.plane.normal
         self.stats.corrected += 1
         return out
 

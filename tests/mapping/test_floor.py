@@ -48,7 +48,9 @@ def test_the_reference_corrects_roll_pitch_and_height_but_not_yaw_or_position_on
     true = yaw_pose(3.0, -2.0, 0.0, 0.7)
     drifted = true @ se3_exp(np.array([0.01, -0.02, 0.03, 0.05, -0.04, 0.08]))  # pitch, roll, height off
     seen = (inverse(true)[:3, :3] @ floor.T).T + inverse(true)[:3, 3]  # the same floor from the true pose
-    out = ref.correct(drifted, seen)
+    out = drifted
+    for _ in range(8):  # a robot standing still: each fit pulls by the filter's gain, and the
+        out = ref.correct(out, seen)  # estimate converges onto the floor
     assert abs(out[2, 3] - true[2, 3]) < 0.003  # height restored
     up = out[:3, :3].T @ np.array([0.0, 0.0, 1.0])
     assert np.degrees(np.arccos(min(1.0, up[2]))) < 0.1  # level again
@@ -57,7 +59,7 @@ def test_the_reference_corrects_roll_pitch_and_height_but_not_yaw_or_position_on
     yaw = np.arctan2(out[1, 0], out[0, 0])
     assert abs(yaw - np.arctan2(drifted[1, 0], drifted[0, 0])) < np.deg2rad(0.1)
     assert abs(yaw - 0.7) > np.deg2rad(1.0)
-    assert ref.stats.corrected == 1
+    assert ref.stats.corrected == 8
 
 
 def test_a_floor_off_the_prediction_or_out_of_view_leaves_the_pose_alone():
@@ -86,7 +88,8 @@ def test_the_first_floor_must_be_level_and_below_the_sensor():
 
 def test_on_the_office_the_floor_stops_the_registration_chain_drifting_in_height_and_tilt():
     """A 12 m drive down the office corridor with odometry that pitches 0.3 degrees per
-    keyframe: registration alone carries part of that into height; with the floor it stays level."""
+    keyframe (four times the filter's model): registration alone carries part of that into height;
+    with the floor it stays level."""
     world = World(load_scenario(OFFICE))
     sensor = RangeCategorySensor(ray_pattern("pinhole", 90.0, 60.0, 48, 64), 8.0, 0.02, flip_confusion(0.1))
     bias = se3_exp(np.array([0.0, np.deg2rad(0.3), 0.0, 0.0, 0.0, 0.0]))
@@ -104,5 +107,23 @@ def test_on_the_office_the_floor_stops_the_registration_chain_drifting_in_height
         dz = np.abs(est[:, 2, 3] - 1.05).max()
         tilt = float(np.degrees(np.arccos(np.clip(est[:, 2, 2], -1.0, 1.0))).max())  # z axis off vertical
         out[use_floor] = (dz, tilt, so.floor.stats.corrected if so.floor else 0)
-    assert out[True][0] < 0.01 and out[True][1] < 0.1 and out[True][2] >= 20
+    assert out[True][0] < 0.01 and out[True][1] < 0.15 and out[True][2] >= 20
     assert out[False][0] > 3 * out[True][0] or out[False][1] > 3 * out[True][1]
+
+
+def test_noisy_fits_are_filtered_not_copied_into_the_chain():
+    """A robot standing still over small noisy patches of floor: each fit alone is tilted by
+    tenths of a degree, and the chain (the filter) by much less."""
+    rng = np.random.default_rng(5)
+    ref = FloorReference()
+    ref.correct(np.eye(4), _plane_points(np.array([0.0, 0.0, 1.0]), 1.0, rng))
+    pose, fits, chain = np.eye(4), [], []
+    for _ in range(60):
+        patch = _plane_points(np.array([0.0, 0.0, 1.0]), 1.0, rng, count=80, noise=0.02) * [0.15, 0.15, 1.0]
+        fit = fit_plane(patch, Plane(np.array([0.0, 0.0, 1.0]), 1.0), band=0.2, min_points=50)
+        assert fit is not None
+        fits.append(np.degrees(np.arccos(min(1.0, fit.normal[2]))))
+        assert np.degrees(fit.uncertainty(np.zeros(3))[0]) > 0.3  # a 0.9 m patch: the tilt is poorly fixed
+        pose = ref.correct(pose, patch)
+        chain.append(np.degrees(np.arccos(min(1.0, pose[2, 2]))))
+    assert np.sqrt(np.mean(np.square(chain))) < 0.3 * np.sqrt(np.mean(np.square(fits)))
