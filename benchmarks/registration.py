@@ -1,9 +1,10 @@
 """Scan-to-map odometry: accuracy and cost per keyframe, against dead reckoning in the same run.
 
 Streams one robot of a scenario through :class:`~kimera_multi_py.mapping.scan_odometry.ScanOdometry`
-(small_gicp GICP onto the last ``--window`` keyframes' scans, fused with the odometry), once as
-the agents run it by default (no floor reference) and once with the floor reference
-(:mod:`~kimera_multi_py.mapping.floor`, ``AgentParams.floor_reference``), and reports, for both
+(small_gicp GICP onto the last ``--window`` keyframes' scans, fused with the odometry, with the
+agents' correspondence stages), three times: registration alone, with the floor reference
+(:mod:`~kimera_multi_py.mapping.floor`), and with the floor and the walls' heading
+(:mod:`~kimera_multi_py.mapping.heading`; the agents' default), and reports, for the three
 chains and for dead reckoning (the reference), the final
 position error per distance travelled and the ATE after anchoring at the true start, plus the
 median per-step error against the true relative poses and the registration's milliseconds per
@@ -24,10 +25,12 @@ import numpy as np
 from kimera_multi_py.eval.metrics import ate_rmse
 from kimera_multi_py.geometry import inverse, se3_log
 from kimera_multi_py.mapping.floor import FloorReference
+from kimera_multi_py.mapping.heading import HeadingReference
 from kimera_multi_py.mapping.registration import ScanRegistration
 from kimera_multi_py.mapping.scan_odometry import ScanOdometry
 from kimera_multi_py.semantics import class_id
 from kimera_multi_py.sim import Simulation, load_scenario
+from kimera_multi_py.sim.runner import agent_params
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -45,12 +48,13 @@ def _chain_figures(true: np.ndarray, est: np.ndarray) -> dict[str, float]:
 def run(scenario: str, robot: int, keyframes: int, window: int, seed: int = 0) -> dict[str, object]:
     cfg = load_scenario(scenario, env=False)
     sim = Simulation(cfg, seed)
-    o = cfg.odometry
-    info = np.diag(np.repeat(1.0 / np.square([np.deg2rad(o.rot_sigma_deg), o.trans_sigma]), 3))
-    ref = FloorReference()
-    so = ScanOdometry(ScanRegistration(), info, window=window)
-    with_floor = ScanOdometry(ScanRegistration(), info, window=window, floor=ref)
-    floor = class_id("floor")
+    p = agent_params(cfg)
+    chains = {name: ScanOdometry(ScanRegistration(p.reg_voxel, p.registration_stages()), p.odom_information(),
+                                 window=window, floor=FloorReference() if floor else None,
+                                 heading=HeadingReference() if heading else None)
+              for name, floor, heading in (("registration", False, False), ("registration_with_floor", True, False),
+                                           ("registration_with_floor_and_heading", True, True))}
+    floor, wall = class_id("floor"), class_id("wall")
     true, dead = [], [np.eye(4)]
     t0 = time.perf_counter()
     for kf, _ in zip(sim.keyframes(robot), range(keyframes), strict=False):
@@ -58,20 +62,22 @@ def run(scenario: str, robot: int, keyframes: int, window: int, seed: int = 0) -
         if kf.index:
             dead.append(dead[-1] @ kf.odometry)
         pts, hit = kf.scan.points(), kf.scan.hit
-        so.step(kf.index, kf.odometry, pts[hit])
-        with_floor.step(kf.index, kf.odometry, pts[hit], pts[hit & (kf.scan.labels == floor)])
-    wall = time.perf_counter() - t0
+        for so in chains.values():
+            so.step(kf.index, kf.odometry, pts[hit], pts[hit & (kf.scan.labels == floor)],
+                    pts[hit & (kf.scan.labels == wall)])
+    elapsed = time.perf_counter() - t0
     T = np.array(true)
     n = len(T)
-    return {"scenario": cfg.name, "robot": robot, "keyframes": n, "window": window,
-            "registration": _chain_figures(T, np.array(so.poses)),
-            "registration_with_floor": _chain_figures(T, np.array(with_floor.poses)),
+    full = chains["registration_with_floor_and_heading"]
+    assert full.floor is not None and full.heading is not None
+    return {"scenario": cfg.name, "robot": robot, "seed": seed, "keyframes": n, "window": window,
+            **{name: _chain_figures(T, np.array(so.poses)) for name, so in chains.items()},
             "dead_reckoning (reference)": _chain_figures(T, np.array(dead)),
-            "registration_ms_per_keyframe": 1000 * so.stats.seconds / max(n - 1, 1),
-            "stream_ms_per_keyframe (simulator and both chains included)": 1000 * wall / n,
-            "counts": {"registered": so.stats.registered, "degenerate": so.stats.degenerate,
-                       "gated": so.stats.gated, "failed": so.stats.failed},
-            "floor": {"corrected": ref.stats.corrected, "missing": ref.stats.missing, "gated": ref.stats.gated}}
+            "registration_ms_per_keyframe": 1000 * chains["registration"].stats.seconds / max(n - 1, 1),
+            "stream_ms_per_keyframe (simulator and the three chains included)": 1000 * elapsed / n,
+            "counts": {k: getattr(full.stats, k) for k in ("registered", "degenerate", "gated", "failed")},
+            "floor": {k: getattr(full.floor.stats, k) for k in ("corrected", "missing", "gated")},
+            "heading": {k: getattr(full.heading.stats, k) for k in ("corrected", "missing", "gated")}}
 
 
 def main() -> None:
@@ -80,9 +86,10 @@ def main() -> None:
     ap.add_argument("--robot", type=int, default=0)
     ap.add_argument("--keyframes", type=int, default=200)
     ap.add_argument("--window", type=int, default=8)
+    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
-    out = run(args.scenario, args.robot, args.keyframes, args.window)
+    out = run(args.scenario, args.robot, args.keyframes, args.window, args.seed)
     print(json.dumps(out, indent=None if args.json else 2))
 
 
