@@ -4,17 +4,16 @@ Scan registration drifts in yaw like a gyro does: on office, 0.09 degrees per ke
 walk that reaches a degree within a hundred keyframes, and a degree turns a point 8 m away by
 14 cm. Man-made buildings give the same cure a compass gives: their walls run along two
 perpendicular directions (the Manhattan frame). Each keyframe's wall points give those
-directions' heading in the robot's own frame (:func:`~.axes.wall_votes`, the 4-fold circular mean
-of the wall normals); the first keyframe that sees coherent walls fixes the reference, and every
-later one measures the chain's yaw error against it (modulo 90 degrees).
+directions' heading in the robot's own frame (:func:`grid_heading`: the 4-fold circular mean of
+the wall normals, refined on the wall planes); the first keyframe that sees coherent walls fixes
+the reference, and every later one measures the chain's yaw error against it (modulo 90 degrees).
 
 :class:`HeadingReference` fuses those measurements with the chain like a one-state Kalman filter:
 the chain's yaw uncertainty grows by ``step_sigma`` per keyframe (a random walk) and a measurement
-of ``measurement_sigma`` pulls it back by the gain ``P / (P + r)``. The pose turns about its own
+of noise ``r`` pulls it back by the gain ``P / (P + r)``. The pose turns about its own
 position, so the correction is a pure yaw. A measurement farther than ``gate`` standard
 deviations from the prediction and than ``min_gate`` (walls off the grid: a diagonal wall, a
-round room) or with
-incoherent votes is not used; the chain then drifts as before. Where no walls run along a common
+round room) or with incoherent votes is not used; the chain then drifts as before. Where no walls run along a common
 grid the robot never adopts a reference and nothing changes.
 """
 
