@@ -19,7 +19,7 @@ floor keep the registration's (the plane says nothing about them).
   ``step_sigmas`` per keyframe; a fit's own uncertainty comes from its residuals and the spread
   of its points (:meth:`Plane.uncertainty`; a patch of floor seen at the foot of a wall fixes
   the tilt poorly), never below ``min_sigmas``. Taking every fit as exact, as this did first,
-  passed each fit's noise into the chain: on office seed 2, pitch 0.25 degrees and height
+  passed each fit's noise into the chain: on office seed 2 (robot 0), pitch 0.25 degrees and height
   1.2 cm RMS against 0.12 degrees and 1.1 cm filtered.
 
 A keyframe with too little floor in view (facing a wall) keeps its pose. A fit far from the

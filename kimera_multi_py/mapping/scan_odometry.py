@@ -11,7 +11,9 @@ odometry's noise) is not trusted at all. The step the robot chains is the fusion
 
 With a :class:`~kimera_multi_py.mapping.floor.FloorReference`, each fused pose is then moved in
 roll, pitch and height onto the floor the keyframe sees (the points labelled floor), so the chain
-does not drift in those three directions; the step returned is the one to that corrected pose.
+does not drift in those three directions; with a
+:class:`~kimera_multi_py.mapping.heading.HeadingReference`, the walls' grid then does the same
+for yaw. The step returned is the one to the corrected pose.
 
 The state is plain numpy (the window's clouds are rebuilt into library objects at every
 keyframe), so a checkpoint restores it exactly.
