@@ -13,8 +13,8 @@ the chain's yaw uncertainty grows by ``step_sigma`` per keyframe (a random walk)
 of noise ``r`` pulls it back by the gain ``P / (P + r)``. The pose turns about its own
 position, so the correction is a pure yaw. A measurement farther than ``gate`` standard
 deviations from the prediction and than ``min_gate`` (walls off the grid: a diagonal wall, a
-round room) or with incoherent votes is not used; the chain then drifts as before. Where no walls run along a common
-grid the robot never adopts a reference and nothing changes.
+round room) or with incoherent votes is not used; the chain then drifts as before. Where no
+walls run along a common grid the robot never adopts a reference and nothing changes.
 """
 
 from __future__ import annotations
@@ -105,12 +105,11 @@ class HeadingReference:
     measurement needs, and the length of their 4-fold resultant over their number; ``gate``: in
     standard deviations of the innovation, but never tighter than ``min_gate`` (rad), so that a
     chain that drifted faster than ``step_sigma`` says is still pulled back; ``sigma_scale``: a
-    fit's standard deviation (from its residuals, as if independent) times this is its noise
-    (``measurement_sigma`` at least: office's fits erred 0.11-0.13 degrees, tiny's 0.22-0.28).
-    Against the truth the fits erred 2.5 (tiny's 384-ray
-    sensor) to 4 (office) times more than their residuals say: neighbouring points' errors are
-    not independent. Taken at face value, the sparse sensor's fits passed their noise into the
-    chain and tiny's twin-room run lost its true closures.
+    fit's standard deviation (from its residuals, as if independent) times this is its noise,
+    never below ``measurement_sigma``. Against the truth the fits erred 0.11-0.13 degrees on
+    office and 0.22-0.28 on tiny (384 rays), 4 and 2.5 times what their residuals say:
+    neighbouring points' errors are not independent. Taken at face value, the sparse sensor's
+    fits passed their noise into the chain and tiny's twin-room run lost its true closures.
     """
 
     def __init__(self, step_sigma: float = np.deg2rad(0.1), measurement_sigma: float = np.deg2rad(0.15),
