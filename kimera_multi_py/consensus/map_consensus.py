@@ -406,7 +406,7 @@ class MapConsensus:
         """Every finest-level cell of the team map: sorted codes and int16 rows (as the tree holds them)."""
         if self.mode == "exact":
             codes, rows, _ = self.team.evidence()
-            return codes, _compressed(self.team.octree, view_rows(self.team.octree, rows))
+            return codes, _compressed(self.team.template, view_rows(self.team.template, rows))
         if self.roam is not None:
             return octree_cells(self.roam.tree)
         assert self.lap is not None

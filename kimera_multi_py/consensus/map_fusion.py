@@ -146,14 +146,31 @@ class EvidenceMap:
     An entry contributes once it has a pose and is *active* (its robot is aligned into the team
     frame); until then its cells are kept but not in the map. Every change adds or subtracts
     exact integer contributions, so the result never depends on the order of updates.
+
+    The evidence is what is kept up to date; the octree view (:attr:`octree`) is built from it
+    when asked for after a change. Robots exchange and compare evidence, and only an export or a
+    viewer needs the tree: keeping a tree current through every small update cost more than
+    the whole rest of the map consensus.
     """
 
     def __init__(self, template: SemanticOctree) -> None:
-        self.octree = template.empty_like()
-        self.resolution = self.octree.resolution
-        self.k1 = self.octree.num_classes + 1
+        self.template = template.empty_like()  # resolution, classes, clamping, prior and top-K
+        self.resolution = self.template.resolution
+        self.k1 = self.template.num_classes + 1
         self.entries: dict[Key, _Entry] = {}
         self._fused = _CellStore(self.k1)
+        self._tree: SemanticOctree | None = None  # the octree view while no change came since
+
+    @property
+    def octree(self) -> SemanticOctree:
+        """The team map as an octree (built on first use after a change; do not change it)."""
+        if self._tree is None:
+            tree = self.template.empty_like()
+            codes, rows, _ = self._fused.arrays()
+            if len(codes):
+                tree.set_cells(codes, view_rows(tree, rows))
+            self._tree = tree
+        return self._tree
 
     def _entry(self, key: Key) -> _Entry:
         e = self.entries.get(key)
@@ -251,7 +268,5 @@ class EvidenceMap:
         uniq, summed, _ = _group_sum(codes, rows.astype(np.int32))
         sup = np.zeros(len(uniq), dtype=np.int32)
         np.add.at(sup, np.searchsorted(uniq, codes), support)
-        live, live_rows, dead = self._fused.add(uniq, summed, sup)
-        self.octree.remove_cells(dead)
-        if len(live):
-            self.octree.set_cells(live, view_rows(self.octree, live_rows))
+        self._fused.add(uniq, summed, sup)
+        self._tree = None
