@@ -167,6 +167,28 @@ def test_a_tie_between_single_place_groups_keeps_the_robot_out_of_the_team_frame
     assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)  # returned in its own frame
 
 
+def test_a_tie_between_multi_place_groups_keeps_the_robot_out_instead_of_letting_gnc_choose() -> None:
+    """The alias (room A against room B, and room B against 16 m along the corridor) and the truth
+    (room A against room A, and the corner) each rest on two places; the alias has more
+    edges. Neither leads, so robot 1 stays out of the team frame (``align_tie="exclude"``, the
+    server's rule) and its estimate stays in its own frame; the consensus of every edge would
+    have aligned it on whichever group GNC preferred."""
+    trajs, odo, first = _team()
+    rng = np.random.default_rng(4)
+    a, b = np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0])
+    edges = _closures(trajs, first, [(a, b, True), (b, np.array([16.0, 0.0]), True)], rng,
+                      per_place=6)
+    edges += _closures(trajs, first, [(a, a, False), (CORNER, CORNER, False)], rng, per_place=3)
+    graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
+    agents, poses = asyncio.run(_epoch(graph))
+    report = agents[1].alignment
+    assert report["status"] == "excluded" and report["reason"] == "no frame hypothesis leads", report
+    assert sorted(c[0] for c in report["competitors"])[-2:] == [2, 2], report  # two groups of two places
+    assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)  # returned in its own frame
+    agents, _ = asyncio.run(_epoch(graph, align_tie="consensus"))
+    assert agents[1].alignment["status"] == "aligned"  # the other policy does align it
+
+
 def test_a_robot_in_the_team_frame_switches_only_on_every_neighbours_evidence() -> None:
     """At an epoch's start only the root has published. Robot 1 sits in the team frame (an earlier
     epoch aligned it); its closures with the root rest on one true place and on two places that
