@@ -211,9 +211,12 @@ class FrameDecision:
             stay = [h for h in hyps if h.places == hyps[0].places and near_identity(h.T)]
             if stay:
                 best, settles = stay[0], True  # the frame an earlier epoch settled
-        if best is None and final and p.align_tie == "consensus" and placed and not contested:
-            # competing hypotheses and none leads: the robust consensus of every edge aligns the
-            # robot and the team's GNC decides between the groups; the report says it was a tie
+        ahead = len(hyps) < 2 or hyps[0].places > hyps[1].places
+        if best is None and final and p.align_tie == "consensus" and placed and ahead and not contested:
+            # competing hypotheses, none clearly ahead but one ahead by places: the robust
+            # consensus of every edge aligns the robot and the team's GNC decides between the
+            # groups; the report says it was a tie. Groups level on places are no evidence
+            # either way: the robot stays out (below)
             self._align_consensus(known)
             self.alignment.update(reason="no frame hypothesis leads: consensus of every edge", margin=int(margin),
                                   competitors=_competitors(hyps))

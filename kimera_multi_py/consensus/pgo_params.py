@@ -92,14 +92,15 @@ class PgoParams:
     align_min_places: int = 2
     align_min_margin: int = 1
     align_early_margin: int = 1
-    # no hypothesis leads when the epoch's evidence is in: "exclude" keeps the robot out of the
-    # team frame (its own frame) for the epoch, as the centralised server's frame screen does;
-    # "consensus" aligns by the robust consensus of every edge and leaves the choice to GNC. GNC
-    # picked the alias in 3 of the 22 sweep runs whose last decision was such a tie, and carried the
-    # whole team into it (aliased_wing, 3 robots, seed 9: a tie of 3 places each, 24 true edges
-    # against 17; team ATE 2.82 m, 7.3x dead reckoning). Excluded, the robot waits for a clear
-    # lead in a later epoch, or ends scored on its own odometry (that run: 0.055 m)
-    align_tie: str = "exclude"
+    # no hypothesis clearly leads when the epoch's evidence is in: "consensus" aligns by the robust
+    # consensus of every edge and leaves the choice to GNC, but only while the leader rests on
+    # more places than any other hypothesis; an exact tie in places is no evidence for either,
+    # and the robot stays out of the team frame for the epoch, as the centralised server's frame
+    # screen does. After exact ties GNC has picked the alias and carried the whole team into it
+    # (aliased_wing, 3 robots, seed 9: 3 places each, 24 true edges against 17; team ATE 2.82 m,
+    # 7.3x dead reckoning; seed 5 on an earlier front end: 3 against 3, 2.81 m). "exclude" keeps
+    # the robot out on any tie without a clear lead
+    align_tie: str = "consensus"
     # ... but only between hypotheses that each rest on this many places or more: a tie between
     # single-place groups is the aliasing case itself (twin rooms: each group is one room), where
     # more edges are no evidence at all; the robot stays out of the team frame (issue 11's safety
