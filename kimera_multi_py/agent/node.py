@@ -94,7 +94,7 @@ class AgentNode:
         if self.params.server is None:
             self.pgo = TeamPgo(agent.robot, pgo_params or team_params(),
                                self.schedule, agent.local_graph, agent.apply_poses,
-                               lambda: agent.robot_graph, self._accepted_inter)
+                               lambda: agent.robot_graph, self._accepted_inter, agent.objects.centres)
         if self.params.map_consensus not in MAP_MODES:
             raise KimeraMultiError(f"map consensus: unknown mode {self.params.map_consensus!r} "
                                    f"(available: {', '.join(MAP_MODES)})")

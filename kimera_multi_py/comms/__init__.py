@@ -67,6 +67,7 @@ from kimera_multi_py.comms.loopback import (
 from kimera_multi_py.comms.messages import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,
+    FrameLandmarks,
     GncWeights,
     Heartbeat,
     KeyframeDescriptor,
@@ -106,6 +107,7 @@ __all__ = [
     "Envelope",
     "FaultStats",
     "Faults",
+    "FrameLandmarks",
     "GncWeights",
     "Heartbeat",
     "KeyframeDescriptor",

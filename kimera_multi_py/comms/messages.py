@@ -505,6 +505,19 @@ class PublicPoses(Message):
     settled: bool = _f(Bool(), default=True)
 
 
+@message("FrameLandmarks", keys.FRAME_LANDMARKS)
+class FrameLandmarks(Message):
+    """A settled robot's confirmed object landmarks, in its frame (rooted at robot ``frame``),
+    sent when a PGO epoch opens: MAP class and box centre per object. A robot whose frame
+    hypotheses closures cannot tell apart checks them against these
+    (:mod:`kimera_multi_py.consensus.landmark_check`)."""
+
+    robot: int = robot_id()
+    frame: int = robot_id()
+    classes: np.ndarray = arr("int32", "n", lo=0)
+    centroids: np.ndarray = arr("float32", "n", 3)
+
+
 @message("PgoStatus", keys.PGO_STATUS)
 class PgoStatus(Message):
     """A robot's PGO progress: ``ready`` once the relative pose change is below tolerance."""

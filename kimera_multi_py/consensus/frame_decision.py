@@ -18,7 +18,11 @@ to two frames (settled peers against the rest, or two settled peers against each
 contested, no decision (:func:`.alignment.settled_decision`). A lone single-place group with no
 competitor (one room seen by both robots, which an alias looks exactly like) is adopted once no
 more edges can arrive, and reported as such (not settled); ``align_lone_place=False`` keeps the
-robot out until a second place agrees. Without such a hypothesis the robot stays out of the team
+robot out until a second place agrees. Where closures leave groups of several places competing
+(twin rooms: the truth and the frame one room over rest on as many places), the team's object
+landmarks may decide (:mod:`.landmark_check`; settled peers publish theirs as
+:class:`.messages.FrameLandmarks` when an epoch opens): adopted when they clearly favour one
+hypothesis, reported as such and not settled. Without such a hypothesis the robot stays out of the team
 frame for the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
 :attr:`PgoAgent.alignment` and the log. A robot already in a settled team frame switches frames
 only once every neighbour's poses are known (or patience ran out): at an epoch's start only the
@@ -36,6 +40,7 @@ from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
+from scipy.spatial import cKDTree
 
 from kimera_multi_py.consensus.alignment import (
     Alignment,
@@ -48,6 +53,7 @@ from kimera_multi_py.consensus.alignment import (
     supported_edges,
 )
 from kimera_multi_py.consensus.factors import to_values
+from kimera_multi_py.consensus.landmark_check import LandmarkScore, landmark_lead, landmark_scores
 from kimera_multi_py.geometry import inverse
 
 if TYPE_CHECKING:
@@ -64,6 +70,11 @@ class FrameDecision:
     params: PgoParams
     robot: int
     root: bool
+    root_robot: int
+    landmark_anchor: np.ndarray | None
+    landmark_offset: np.ndarray
+    landmark_classes: np.ndarray
+    peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]]
     poses: np.ndarray
     prev_poses: np.ndarray
     published: np.ndarray
@@ -211,6 +222,14 @@ class FrameDecision:
             stay = [h for h in hyps if h.places == hyps[0].places and near_identity(h.T)]
             if stay:
                 best, settles = stay[0], True  # the frame an earlier epoch settled
+        landmarks: list[LandmarkScore] = []
+        if best is None and final and placed and not contested:
+            # closures do not decide between groups of several places: the team's object map
+            # may (the true frame puts the robot's landmarks on the team's everywhere they both
+            # mapped, an alias only in the twin rooms); decided so, the frame is not settled
+            lead, landmarks = self._landmark_lead(hyps)
+            if lead is not None:
+                best, settles = lead, False
         ahead = len(hyps) < 2 or hyps[0].places > hyps[1].places
         if best is None and final and p.align_tie == "consensus" and placed and ahead and not contested:
             # competing hypotheses, none clearly ahead but one ahead by places: the robust
@@ -234,6 +253,8 @@ class FrameDecision:
                 # decided again as they come (only then is the exclusion news for the log)
                 self._exclude(why, hyps[0] if hyps else None, margin, hyps,
                               level=logging.WARNING if bool(known.all()) else logging.INFO)
+                if landmarks:
+                    self.alignment["landmarks"] = [sc.as_list() for sc in landmarks]
             return
         inliers = np.zeros(len(lg.inter_edge), dtype=bool)
         inliers[best.edges] = True
@@ -248,9 +269,43 @@ class FrameDecision:
         self.screened = bool(known.all())
         self.settled = settles
         self.alignment = self._report("aligned", best, margin, len(hyps))
+        if landmarks:
+            self.alignment.update(reason="closures tie: the team's landmarks decide", competitors=_competitors(hyps),
+                                  landmarks=[sc.as_list() for sc in landmarks])
         log.info("robot %d aligned%s: %d edges from %d places (margin %d over %d other hypotheses), origin moved %s",
                  self.robot, "" if settles else " (not settled)", best.size, best.places, margin, len(hyps) - 1,
                  np.round(best.T[:3, 3], 2).tolist())
+
+    # ---------------------------------------------------------------- landmarks
+    def set_landmarks(self, classes: np.ndarray, centres: np.ndarray,
+                      peers: dict[int, tuple[int, np.ndarray, np.ndarray]]) -> None:
+        """The robot's object landmarks (MAP classes, centres in the frame of the estimate this
+        solver starts from, :attr:`LocalGraph.poses`), each anchored to its nearest keyframe so
+        it moves with the estimate; ``peers``: robot -> (root of its frame, classes, centres) of
+        settled peers (read when deciding, so landmarks that arrive during the epoch count)."""
+        P = self.local.poses
+        c = np.asarray(centres, dtype=float).reshape(-1, 3)
+        self.peer_landmarks = peers
+        if not len(c) or not len(P):
+            return
+        k = cKDTree(P[:, :3, 3]).query(c)[1]
+        self.landmark_anchor = np.asarray(k)
+        self.landmark_offset = np.einsum("nji,nj->ni", P[k, :3, :3], c - P[k, :3, 3])  # Rᵀ (c − t)
+        self.landmark_classes = np.asarray(classes)
+
+    def _landmark_lead(self, hyps: list[FrameHypothesis]) -> tuple[FrameHypothesis | None, list[LandmarkScore]]:
+        """The hypothesis the team's landmarks clearly favour (:mod:`.landmark_check`), among
+        those resting on ``align_tie_min_places`` places, and every hypothesis's score."""
+        team = [(c, x) for r, (f, c, x) in self.peer_landmarks.items() if f == self.root_robot and r != self.robot]
+        if self.landmark_anchor is None or not team or not hyps:
+            return None, []
+        k = self.landmark_anchor
+        own = np.einsum("nij,nj->ni", self.poses[k, :3, :3], self.landmark_offset) + self.poses[k, :3, 3]
+        scores = landmark_scores(own, self.landmark_classes, np.concatenate([x for _, x in team]),
+                                 np.concatenate([c for c, _ in team]), [h.T for h in hyps],
+                                 place_radius=self.params.place_radius)
+        i = landmark_lead(scores, [h.places >= self.params.align_tie_min_places for h in hyps])
+        return (None if i is None else hyps[i]), scores
 
     def _report(self, status: str, h: FrameHypothesis | None, margin: int, hypotheses: int,
                 reason: str = "") -> dict[str, object]:

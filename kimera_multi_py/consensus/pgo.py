@@ -159,12 +159,18 @@ def colour_robots(robots: tuple[int, ...], pairs: list[tuple[int, int]]) -> dict
     return colour
 
 
-def frame_root(robot: int, robots: tuple[int, ...], pairs: list[tuple[int, int]]) -> bool:
-    """True when ``robot`` is the lowest id of its connected component of the robot graph."""
+def component_root(robot: int, robots: tuple[int, ...], pairs: list[tuple[int, int]]) -> int:
+    """The lowest id of ``robot``'s connected component of the robot graph: its frame's root."""
     g = nx.Graph()
     g.add_nodes_from(robots)
+    g.add_node(robot)
     g.add_edges_from(pairs)
-    return robot == min(nx.node_connected_component(g, robot))
+    return int(min(nx.node_connected_component(g, robot)))
+
+
+def frame_root(robot: int, robots: tuple[int, ...], pairs: list[tuple[int, int]]) -> bool:
+    """True when ``robot`` is the lowest id of its connected component of the robot graph."""
+    return robot == component_root(robot, robots, pairs)
 
 
 class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
@@ -183,7 +189,8 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         colours = colour_robots(team, local.robot_graph)
         self.colour = colours[self.robot]
         self.num_colours = max(colours.values()) + 1
-        self.root = frame_root(self.robot, team, local.robot_graph)
+        self.root_robot = component_root(self.robot, team, local.robot_graph)  # the team frame's root
+        self.root = self.root_robot == self.robot
         # state
         self.kappa_intra, self.tau_intra = edge_weights(local.intra_info)
         self.kappa_inter, self.tau_inter = edge_weights(local.inter_info)
@@ -226,6 +233,12 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         self.statuses: dict[int, PgoStatus] = {}
         self.last_sent_round = -10**9
         self.alignment_inliers: np.ndarray | None = None
+        # object landmarks (set by TeamPgo, :meth:`set_landmarks`): own ones anchored to their
+        # nearest keyframes, so they move with the estimate; settled peers' by robot
+        self.landmark_anchor: np.ndarray | None = None
+        self.landmark_offset = np.zeros((0, 3))
+        self.landmark_classes = np.zeros(0, dtype=np.int32)
+        self.peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         self.screened = False  # robust mode: inter-robot edges checked for consistency
         self.excluded = False  # kept out of the team frame this epoch (see :attr:`alignment`)
         # the poses are already in the team frame (an earlier epoch aligned this robot); set by

@@ -34,8 +34,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import AgentState, GncWeights, Message, PgoCommand, PgoEpoch, PgoStatus, PublicPoses
-from kimera_multi_py.consensus.pgo import LocalGraph, PgoAgent, PgoParams
+from kimera_multi_py.comms.messages import (
+    AgentState,
+    FrameLandmarks,
+    GncWeights,
+    Message,
+    PgoCommand,
+    PgoEpoch,
+    PgoStatus,
+    PublicPoses,
+)
+from kimera_multi_py.consensus.pgo import LocalGraph, PgoAgent, PgoParams, component_root
 
 log = logging.getLogger(__name__)
 
@@ -83,12 +92,15 @@ class TeamPgoStats:
 
 class TeamPgo:
     """See the module docstring. ``build`` returns the robot's current :class:`LocalGraph`;
-    ``apply`` adopts optimised poses of its first keyframes."""
+    ``apply`` adopts optimised poses of its first keyframes; ``landmarks`` (optional) returns
+    the robot's object landmarks, MAP classes ``(n,)`` and centres ``(n, 3)`` in its current
+    estimate's frame."""
 
     def __init__(self, robot: int, params: PgoParams, schedule: ScheduleParams,
                  build: Callable[[], LocalGraph], apply: Callable[[np.ndarray], object],
                  robot_graph: Callable[[], Collection[tuple[int, int]]],
-                 accepted_closures: Callable[[], int]) -> None:
+                 accepted_closures: Callable[[], int],
+                 landmarks: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> None:
         self.robot = robot
         self.params = params
         self.schedule = schedule
@@ -96,6 +108,12 @@ class TeamPgo:
         self._apply = apply
         self._robot_graph = robot_graph
         self._accepted = accepted_closures
+        self._landmarks = landmarks
+        # robot -> (root of its frame, classes, centres): settled peers' latest FrameLandmarks
+        self.peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
+        self.frame = robot  # root of the frame this robot's poses are in
+        self.frame_settled = False  # that frame is settled (the root's, or decided on settled evidence)
+        self._outbox: list[Message] = []  # messages not tied to a round (FrameLandmarks)
         self.epoch = 0  # the newest epoch heard of or opened
         self.completed = 0  # the newest epoch this robot completed
         self.final_done = False  # a final epoch completed (and no robot joined since)
@@ -128,6 +146,11 @@ class TeamPgo:
             if msg.epoch > self.epoch or (self.session is None and msg.epoch > self.completed
                                           and msg.epoch == self.epoch):
                 self._begin(msg, alive)
+            return
+        if isinstance(msg, FrameLandmarks):
+            if msg.robot != self.robot:
+                self.peer_landmarks[msg.robot] = (msg.frame, np.asarray(msg.classes),
+                                                  np.asarray(msg.centroids, dtype=float))
             return
         if not isinstance(msg, _PGO_MESSAGES) or msg.robot == self.robot:
             return
@@ -169,6 +192,8 @@ class TeamPgo:
         # a frame an earlier epoch settled is kept against a tie or an early lead; an unsettled
         # one (adopted on one place) is decided afresh
         pgo.in_team_frame = last is not None and (last.root or (last.aligned and not last.excluded and last.settled))
+        if self._landmarks is not None:
+            self._share_landmarks(pgo, members, local.robot_graph)
         leader = min(members)
         # the epoch's leader waits for everyone; the others for their neighbours and the leader
         # (which paces a robot without neighbours yet, instead of it racing to the round cap)
@@ -206,12 +231,26 @@ class TeamPgo:
             robot_graph=sorted(p for p in pairs if p[0] in ms and p[1] in ms), team=members)
         return local, seeded
 
+    def _share_landmarks(self, pgo: PgoAgent, members: tuple[int, ...], pairs: list[tuple[int, int]]) -> None:
+        """Hand the solver the landmarks (own and settled peers'); publish ours when our poses
+        are in the team frame on settled evidence."""
+        assert self._landmarks is not None
+        classes, centres = self._landmarks()
+        pgo.set_landmarks(classes, centres, self.peer_landmarks)
+        root = component_root(self.robot, members, pairs)
+        if len(classes) and (pgo.root or (self.frame_settled and self.frame == root)):
+            self._outbox.append(FrameLandmarks(robot=self.robot, frame=root, classes=classes,
+                                               centroids=np.asarray(centres, dtype=np.float32)))
+
     def _finish(self, s: Session) -> None:
         log.info("robot %d: PGO epoch %d ends after %d rounds (%s; %d timeouts so far, GNC step %d)", self.robot,
                  s.epoch, s.rnd, "stopped" if s.pgo.done else "round cap", self.stats.timeouts, s.pgo.gnc.steps,
                  extra={"robot": self.robot})
         self._apply(s.pgo.final_poses())
         self.last_pgo = s.pgo
+        in_frame = s.pgo.root or (s.pgo.aligned and not s.pgo.excluded)
+        self.frame = component_root(self.robot, s.pgo.team, s.pgo.local.robot_graph) if in_frame else self.robot
+        self.frame_settled = bool(in_frame and (s.pgo.root or s.pgo.settled))
         self.completed = s.epoch
         self.session = None
         self.stats.epochs += 1
@@ -228,6 +267,7 @@ class TeamPgo:
         ``finished`` whether this robot's stream ended; ``force`` ends a round's wait."""
         self._now = now
         out = self._lead(now, wall, set(alive), finished)
+        out, self._outbox = out + self._outbox, []
         s = self.session
         if s is None:
             return out

@@ -424,6 +424,12 @@ class ObjectMap:
     def confirmed(self) -> list[Landmark]:
         return [lm for lm in self.landmarks.values() if lm.confirmed]
 
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """MAP classes ``(n,)`` and box centres ``(n, 3)`` (world) of the confirmed landmarks."""
+        lms = self.confirmed()
+        return (np.array([lm.label for lm in lms], dtype=np.int32),
+                np.array([lm.position for lm in lms], dtype=float).reshape(-1, 3))
+
     # ---- internals -------------------------------------------------------------------------
     def _gate(self, dets: list[Detection], ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
         n, m = len(dets), len(ids)

@@ -187,6 +187,58 @@ def test_a_tie_between_multi_place_groups_keeps_the_robot_out_instead_of_letting
     assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)  # returned in its own frame
 
 
+# objects around the ring: the twin rooms hold the same ones, the rest look like nothing else
+ROOM_OBJECTS = np.array([[-1.0, -2.0, 0.4], [1.0, -2.0, 0.4], [0.0, -2.8, 0.8]])
+UNIQUE_OBJECTS = np.array([[16.8, 3.0, 0.5], [13.0, 8.8, 0.5], [7.0, 8.9, 1.0], [1.0, 8.8, 0.5],
+                           [-0.8, 4.0, 0.5], [16.8, 6.5, 1.0]])
+
+
+def _landmarks(graph: PoseGraph, trajs: list[np.ndarray], robot: int, world: np.ndarray) -> np.ndarray:
+    """The ``world`` objects as ``robot``'s estimate has them: each seen from its nearest keyframe."""
+    idx = graph.robot_indices(robot)
+    true, est = trajs[robot], graph.poses[idx]
+    k = np.linalg.norm(true[None, :, :3, 3] - world[:, None], axis=2).argmin(1)
+    local = np.einsum("nji,nj->ni", true[k, :3, :3], world - true[k, :3, 3])
+    return np.einsum("nij,nj->ni", est[k, :3, :3], local) + est[k, :3, 3]
+
+
+def test_a_tie_between_multi_place_groups_is_decided_by_the_teams_landmarks() -> None:
+    """The tie above (truth and alias on two places each), but the robots' object maps hold objects
+    that look like nothing else around the ring. Moved by the true frame, robot 1's landmarks land
+    on robot 0's everywhere; moved by the alias, only in the twin rooms. Robot 1 joins the true
+    frame, not settled, and says the landmarks decided. Landmarks of a robot in another frame
+    (another root) are not the team's map and decide nothing."""
+    trajs, odo, first = _team()
+    rng = np.random.default_rng(4)
+    a, b = np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0])
+    edges = _closures(trajs, first, [(a, b, True), (b, np.array([16.0, 0.0]), True)], rng, per_place=6)
+    edges += _closures(trajs, first, [(a, a, False), (CORNER, CORNER, False)], rng, per_place=3)
+    graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
+    world = np.concatenate([ROOM_OBJECTS + [ROOM_A, 0.0, 0.0], ROOM_OBJECTS + [ROOM_B, 0.0, 0.0], UNIQUE_OBJECTS])
+    classes = np.array([3, 4, 5] * 2 + [6, 7, 8, 9, 10, 11])
+    team = (classes, _landmarks(graph, trajs, 0, world))
+
+    def decide(peer_frame: int) -> PgoAgent:
+        pgo = PgoAgent(split_local(graph, frames="given")[1], team_params())
+        for k in graph.robot_indices(0):  # the root's poses: the team frame
+            pgo.neighbour_poses[int(graph.ids[k])] = graph.poses[k]
+        pgo.set_landmarks(classes, _landmarks(graph, trajs, 1, world), {0: (peer_frame, *team)})
+        pgo._try_align()
+        return pgo
+
+    pgo = decide(peer_frame=0)
+    report = pgo.alignment
+    assert pgo.aligned and not pgo.settled and report["status"] == "aligned", report
+    assert report["reason"] == "closures tie: the team's landmarks decide", report
+    assert sorted(c[0] for c in report["competitors"])[-2:] == [2, 2], report  # closures: two places each
+    t = np.array(report["landmarks"])  # per hypothesis: places, matched, conflicts
+    assert t[:, 0].max() >= 2 * np.sort(t[:, 0])[-2]
+    error = np.linalg.norm(pgo.poses[:, :3, 3] - (inverse(trajs[0][0]) @ trajs[1])[:, :3, 3], axis=1).mean()
+    assert error < 0.5  # the true frame
+    other = decide(peer_frame=5)
+    assert other.excluded and other.alignment["reason"] == "no frame hypothesis leads", other.alignment
+
+
 def test_a_robot_in_the_team_frame_switches_only_on_every_neighbours_evidence() -> None:
     """At an epoch's start only the root has published. Robot 1 sits in the team frame (an earlier
     epoch aligned it); its closures with the root rest on one true place and on two places that
