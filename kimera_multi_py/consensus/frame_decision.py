@@ -19,7 +19,8 @@ contested, no decision (:func:`.alignment.settled_decision`). A lone single-plac
 competitor (one room seen by both robots, which an alias looks exactly like) is adopted once no
 more edges can arrive, and reported as such (not settled); ``align_lone_place=False`` keeps the
 robot out until a second place agrees. Where closures leave groups of several places competing
-(twin rooms: the truth and the frame one room over rest on as many places), the team's object
+(twin rooms: the truth and the frame one room over rest on as many places, or closures through
+different peers lead to different frames), the team's object
 landmarks may decide (:mod:`.landmark_check`; settled peers publish theirs as
 :class:`.messages.FrameLandmarks` when an epoch opens): adopted when they clearly favour one
 hypothesis, reported as such and not settled. Without such a hypothesis the robot stays out of the team
@@ -223,10 +224,11 @@ class FrameDecision:
             if stay:
                 best, settles = stay[0], True  # the frame an earlier epoch settled
         landmarks: list[LandmarkScore] = []
-        if best is None and final and placed and not contested:
-            # closures do not decide between groups of several places: the team's object map
-            # may (the true frame puts the robot's landmarks on the team's everywhere they both
-            # mapped, an alias only in the twin rooms); decided so, the frame is not settled
+        if best is None and final and placed:
+            # closures do not decide between groups of several places (a tie, or peers' closures
+            # leading to different frames): the team's object map may (the true frame puts the
+            # robot's landmarks on the team's everywhere they both mapped, an alias only in the
+            # twin rooms); decided so, the frame is not settled
             lead, landmarks = self._landmark_lead(hyps)
             if lead is not None:
                 best, settles = lead, False
@@ -270,7 +272,7 @@ class FrameDecision:
         self.settled = settles
         self.alignment = self._report("aligned", best, margin, len(hyps))
         if landmarks:
-            self.alignment.update(reason="closures tie: the team's landmarks decide", competitors=_competitors(hyps),
+            self.alignment.update(reason="closures do not decide: the team's landmarks do", competitors=_competitors(hyps),
                                   landmarks=[sc.as_list() for sc in landmarks])
         log.info("robot %d aligned%s: %d edges from %d places (margin %d over %d other hypotheses), origin moved %s",
                  self.robot, "" if settles else " (not settled)", best.size, best.places, margin, len(hyps) - 1,

@@ -218,18 +218,21 @@ def test_a_tie_between_multi_place_groups_is_decided_by_the_teams_landmarks() ->
     classes = np.array([3, 4, 5] * 2 + [6, 7, 8, 9, 10, 11])
     team = (classes, _landmarks(graph, trajs, 0, world))
 
-    def decide(peer_frame: int) -> PgoAgent:
+    def decide(peer_frame: int, contested: bool = False) -> PgoAgent:
         pgo = PgoAgent(split_local(graph, frames="given")[1], team_params())
         for k in graph.robot_indices(0):  # the root's poses: the team frame
             pgo.neighbour_poses[int(graph.ids[k])] = graph.poses[k]
         pgo.set_landmarks(classes, _landmarks(graph, trajs, 1, world), {0: (peer_frame, *team)})
+        if contested:  # as if two settled peers' own closures each led to a different frame
+            evidence = pgo._evidence
+            pgo._evidence = lambda known: (*evidence(known)[:3], "contested")  # type: ignore[method-assign]
         pgo._try_align()
         return pgo
 
     pgo = decide(peer_frame=0)
     report = pgo.alignment
     assert pgo.aligned and not pgo.settled and report["status"] == "aligned", report
-    assert report["reason"] == "closures tie: the team's landmarks decide", report
+    assert report["reason"] == "closures do not decide: the team's landmarks do", report
     assert sorted(c[0] for c in report["competitors"])[-2:] == [2, 2], report  # closures: two places each
     t = np.array(report["landmarks"])  # per hypothesis: places, matched, conflicts
     assert t[:, 0].max() >= 2 * np.sort(t[:, 0])[-2]
@@ -237,6 +240,12 @@ def test_a_tie_between_multi_place_groups_is_decided_by_the_teams_landmarks() ->
     assert error < 0.5  # the true frame
     other = decide(peer_frame=5)
     assert other.excluded and other.alignment["reason"] == "no frame hypothesis leads", other.alignment
+    # contested closures (aliased_wing, 8 robots, seed 9: robot 2 kept out): the landmarks decide too
+    contested = decide(peer_frame=0, contested=True)
+    assert contested.aligned and contested.alignment["reason"] == "closures do not decide: the team's landmarks do"
+    assert np.allclose(contested.poses, pgo.poses)
+    alone = decide(peer_frame=5, contested=True)
+    assert alone.excluded and alone.alignment["reason"] == "closures through different peers lead to different frames"
 
 
 def test_a_robot_in_the_team_frame_switches_only_on_every_neighbours_evidence() -> None:
