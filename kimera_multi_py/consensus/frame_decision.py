@@ -272,8 +272,8 @@ class FrameDecision:
         self.settled = settles
         self.alignment = self._report("aligned", best, margin, len(hyps))
         if landmarks:
-            self.alignment.update(reason="closures do not decide: the team's landmarks do", competitors=_competitors(hyps),
-                                  landmarks=[sc.as_list() for sc in landmarks])
+            self.alignment.update(reason="closures do not decide: the team's landmarks do",
+                                  competitors=_competitors(hyps), landmarks=[sc.as_list() for sc in landmarks])
         log.info("robot %d aligned%s: %d edges from %d places (margin %d over %d other hypotheses), origin moved %s",
                  self.robot, "" if settles else " (not settled)", best.size, best.places, margin, len(hyps) - 1,
                  np.round(best.T[:3, 3], 2).tolist())
