@@ -111,8 +111,6 @@ class TeamPgo:
         self._landmarks = landmarks
         # robot -> (root of its frame, classes, centres): settled peers' latest FrameLandmarks
         self.peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
-        self.frame = robot  # root of the frame this robot's poses are in
-        self.frame_settled = False  # that frame is settled (the root's, or decided on settled evidence)
         self._outbox: list[Message] = []  # messages not tied to a round (FrameLandmarks)
         self.epoch = 0  # the newest epoch heard of or opened
         self.completed = 0  # the newest epoch this robot completed
@@ -193,7 +191,7 @@ class TeamPgo:
         # one (adopted on one place) is decided afresh
         pgo.in_team_frame = last is not None and (last.root or (last.aligned and not last.excluded and last.settled))
         if self._landmarks is not None:
-            self._share_landmarks(pgo, members, local.robot_graph)
+            self._share_landmarks(pgo, last, members, local.robot_graph)
         leader = min(members)
         # the epoch's leader waits for everyone; the others for their neighbours and the leader
         # (which paces a robot without neighbours yet, instead of it racing to the round cap)
@@ -231,14 +229,16 @@ class TeamPgo:
             robot_graph=sorted(p for p in pairs if p[0] in ms and p[1] in ms), team=members)
         return local, seeded
 
-    def _share_landmarks(self, pgo: PgoAgent, members: tuple[int, ...], pairs: list[tuple[int, int]]) -> None:
+    def _share_landmarks(self, pgo: PgoAgent, last: PgoAgent | None, members: tuple[int, ...],
+                         pairs: list[tuple[int, int]]) -> None:
         """Hand the solver the landmarks (own and settled peers'); publish ours when our poses
-        are in the team frame on settled evidence."""
+        are in this epoch's team frame on settled evidence (the last epoch's, rooted alike)."""
         assert self._landmarks is not None
         classes, centres = self._landmarks()
         pgo.set_landmarks(classes, centres, self.peer_landmarks)
         root = component_root(self.robot, members, pairs)
-        if len(classes) and (pgo.root or (self.frame_settled and self.frame == root)):
+        settled = pgo.in_team_frame and last is not None and last.root_robot == root
+        if len(classes) and (pgo.root or settled):
             self._outbox.append(FrameLandmarks(robot=self.robot, frame=root, classes=classes,
                                                centroids=np.asarray(centres, dtype=np.float32)))
 
@@ -248,9 +248,6 @@ class TeamPgo:
                  extra={"robot": self.robot})
         self._apply(s.pgo.final_poses())
         self.last_pgo = s.pgo
-        in_frame = s.pgo.root or (s.pgo.aligned and not s.pgo.excluded)
-        self.frame = component_root(self.robot, s.pgo.team, s.pgo.local.robot_graph) if in_frame else self.robot
-        self.frame_settled = bool(in_frame and (s.pgo.root or s.pgo.settled))
         self.completed = s.epoch
         self.session = None
         self.stats.epochs += 1
