@@ -3,6 +3,8 @@
     python benchmarks/team_robustness.py --json                    # 10 seeds x {3,5,8} robots, 2 scenarios
     python benchmarks/team_robustness.py --quick                   # 2 seeds x 3 robots, office only
     python benchmarks/team_robustness.py --seeds 1 2 --robots 5 --modes distributed centralized
+    python benchmarks/team_robustness.py --modes distributed centralized --report FILE.jsonl --codes OLD NEW
+                                                                   # the table of recorded runs
 
 Every run is the single-process simulation (``SimRunner``), each in a fresh process. Per run it
 reports the loop closures (inter- and intra-robot; true and false; accepted and rejected by PCM
@@ -215,6 +217,13 @@ def table(runs: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def report(runs: list[dict[str, Any]], summary_: dict[str, Any]) -> str:
+    """The table, then the summary with only the distributed/centralised pairs that miss 1.05x."""
+    pairs = summary_.get("distributed_vs_centralized", [])
+    brief = {**summary_, "distributed_vs_centralized": [p for p in pairs if not p["ok"]]} if pairs else summary_
+    return table(runs) + "\n" + json.dumps(brief, indent=1)
+
+
 def _done_runs(path: Path, code: str) -> dict[tuple[str, int, int, str], dict[str, Any]]:
     """Runs already recorded in a ``--jsonl`` file on this ``code``, by (scenario, robots, seed, mode)."""
     out: dict[tuple[str, int, int, str], dict[str, Any]] = {}
@@ -224,6 +233,30 @@ def _done_runs(path: Path, code: str) -> dict[tuple[str, int, int, str], dict[st
                 r = json.loads(line)
                 if r.get("code") == code:
                     out[(r["scenario"], r["robots"], r["seed"], r["mode"])] = r
+    return out
+
+
+def recorded_runs(path: Path, codes: list[str]) -> list[dict[str, Any]]:
+    """The runs a ``--jsonl`` file holds on the code labels ``codes`` (prefixes of ``code``), one
+    per (scenario, robots, seed, mode): a later label's run replaces an earlier one's."""
+    chosen: dict[tuple[str, int, int, str], tuple[int, dict[str, Any]]] = {}
+    for line in path.read_text().splitlines():
+        if not line.strip():
+            continue
+        r = json.loads(line)
+        rank = [i for i, c in enumerate(codes) if str(r.get("code", "")).startswith(c)]
+        key = (r["scenario"], r["robots"], r["seed"], r["mode"])
+        if rank and (key not in chosen or rank[-1] >= chosen[key][0]):
+            chosen[key] = (rank[-1], r)
+    return [chosen[k][1] for k in sorted(chosen)]
+
+
+def code_counts(runs: list[dict[str, Any]]) -> dict[str, dict[str, int]]:
+    """Per mode, how many runs each code gave (a report names the code it stands on)."""
+    out: dict[str, dict[str, int]] = {}
+    for r in runs:
+        per = out.setdefault(r["mode"], {})
+        per[r.get("code", "unknown")] = per.get(r.get("code", "unknown"), 0) + 1
     return out
 
 
@@ -239,11 +272,23 @@ def main() -> None:
     ap.add_argument("--jsonl", type=Path, help="append each run to this file as it ends; runs already in it, "
                     "measured on the same committed code, are not run again (a long sweep survives being stopped)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="runs at once (default: one per core)")
+    ap.add_argument("--report", type=Path, help="run nothing: the table and summary of the runs this --jsonl file "
+                    "holds (of the chosen scenarios, robots, seeds and modes) on the --codes labels")
+    ap.add_argument("--codes", nargs="+", help="with --report: code labels (prefixes of a run's code), oldest first; "
+                    "a later label's run replaces an earlier one's (default: the current code)")
     args = ap.parse_args()
     if args.quick:
         args.scenarios, args.seeds, args.robots = SCENARIOS[:1], [0, 1], [3]
-    jobs = [(s, n, seed, m) for s in args.scenarios for n in args.robots for seed in args.seeds for m in args.modes]
     code = code_version()
+    if args.report:
+        stems = {Path(s).stem for s in args.scenarios}
+        runs = [r for r in recorded_runs(args.report, args.codes or [code]) if r["scenario"] in stems
+                and r["robots"] in args.robots and r["seed"] in args.seeds and r["mode"] in args.modes]
+        codes, sums = code_counts(runs), summary(runs)
+        print(json.dumps({"codes": codes, "runs": runs, "summary": sums}, indent=1) if args.json
+              else report(runs, {"codes": codes, **sums}))
+        return
+    jobs = [(s, n, seed, m) for s in args.scenarios for n in args.robots for seed in args.seeds for m in args.modes]
     done = _done_runs(args.jsonl, code) if args.jsonl else {}
 
     def one(job: tuple[str, int, int, str]) -> dict[str, Any]:
@@ -260,12 +305,8 @@ def main() -> None:
     # each run is its own process: run as many at once as there are cores (--jobs)
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         runs = list(pool.map(one, jobs))
-    out = {"code": code, "runs": runs, "summary": summary(runs)}
-    if args.json:
-        print(json.dumps(out, indent=1))
-        return
-    print(table(runs))
-    print(json.dumps(out["summary"], indent=1))
+    sums = summary(runs)
+    print(json.dumps({"code": code, "runs": runs, "summary": sums}, indent=1) if args.json else report(runs, sums))
 
 
 if __name__ == "__main__":

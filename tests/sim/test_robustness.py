@@ -26,3 +26,31 @@ def test_quick_robustness_sweep() -> None:
         assert r["team_ate_m"] <= 0.5 * r["odometry_ate_m"], r
         assert "aliased" not in r["frames"], r
         assert len(r["alignment"]) == r["robots"] and all("status" in a for a in r["alignment"])
+
+
+def test_report_takes_each_run_from_the_latest_listed_code(tmp_path: Path) -> None:
+    """``--report`` runs nothing: one row per (scenario, robots, seed, mode), a later label's run
+    replacing an earlier one's; runs on unlisted code are left out, and the summary says which
+    code each mode's runs stand on."""
+    def run(mode: str, seed: int, code: str, ate: float) -> dict[str, object]:
+        zero = {f"{k}_{t}_{s}": 0 for k in ("inter", "intra") for t in ("true", "false")
+                for s in ("verified", "rejected_pcm", "rejected_gnc", "accepted")}
+        return {"scenario": "office", "robots": 3, "seed": seed, "mode": mode, "team_ate_m": ate,
+                "odometry_ate_m": 0.4, "ratio": ate / 0.4, "frames": ["true"] * 3, "alignment": [],
+                "closures": zero, "wall_s": 1.0, "code": code}
+
+    f = tmp_path / "runs.jsonl"
+    rows = [run("centralized", 0, "old-x", 0.030), run("distributed", 0, "old-x", 0.090),
+            run("distributed", 0, "new-x", 0.031), run("distributed", 1, "other-x", 0.5),
+            run("centralized", 1, "old-x", 0.020), run("distributed", 1, "new-x", 0.025)]
+    f.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    out = subprocess.run([sys.executable, str(REPO / "benchmarks" / "team_robustness.py"), "--report", str(f),
+                          "--codes", "old", "new", "--modes", "distributed", "centralized", "--seeds", "0", "1",
+                          "--json"], capture_output=True, text=True, check=True, timeout=120)
+    data = json.loads(out.stdout)
+    got = {(r["mode"], r["seed"]): (r["code"], r["team_ate_m"]) for r in data["runs"]}
+    assert got == {("centralized", 0): ("old-x", 0.030), ("centralized", 1): ("old-x", 0.020),
+                   ("distributed", 0): ("new-x", 0.031), ("distributed", 1): ("new-x", 0.025)}
+    assert data["codes"] == {"centralized": {"old-x": 2}, "distributed": {"new-x": 2}}
+    pairs = {p["seed"]: p["ok"] for p in data["summary"]["distributed_vs_centralized"]}
+    assert pairs == {0: True, 1: False}  # 0.031 <= 1.05 x 0.030; 0.025 > 1.05 x 0.020
