@@ -240,12 +240,19 @@ def recorded_runs(path: Path, codes: list[str]) -> list[dict[str, Any]]:
     """The runs a ``--jsonl`` file holds on the code labels ``codes`` (prefixes of ``code``), one
     per (scenario, robots, seed, mode): a later label's run replaces an earlier one's."""
     chosen: dict[tuple[str, int, int, str], tuple[int, dict[str, Any]]] = {}
-    for line in path.read_text().splitlines():
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SystemExit(f"--report {path}: cannot read it ({exc})") from None
+    for n, line in enumerate(lines, 1):
         if not line.strip():
             continue
-        r = json.loads(line)
+        try:
+            r = json.loads(line)
+            key = (r["scenario"], r["robots"], r["seed"], r["mode"])
+        except (ValueError, KeyError, TypeError) as exc:
+            raise SystemExit(f"--report {path}, line {n}: not a run record ({exc!r})") from None
         rank = [i for i, c in enumerate(codes) if str(r.get("code", "")).startswith(c)]
-        key = (r["scenario"], r["robots"], r["seed"], r["mode"])
         if rank and (key not in chosen or rank[-1] >= chosen[key][0]):
             chosen[key] = (rank[-1], r)
     return [chosen[k][1] for k in sorted(chosen)]

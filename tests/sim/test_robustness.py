@@ -54,3 +54,13 @@ def test_report_takes_each_run_from_the_latest_listed_code(tmp_path: Path) -> No
     assert data["codes"] == {"centralized": {"old-x": 2}, "distributed": {"new-x": 2}}
     pairs = {p["seed"]: p["ok"] for p in data["summary"]["distributed_vs_centralized"]}
     assert pairs == {0: True, 1: False}  # 0.031 <= 1.05 x 0.030; 0.025 > 1.05 x 0.020
+
+
+@pytest.mark.parametrize("content", ["not json\n", '{"scenario": "office"}\n', "[1, 2]\n"])
+def test_report_names_a_bad_line(tmp_path: Path, content: str) -> None:
+    f = tmp_path / "runs.jsonl"
+    f.write_text(content)
+    out = subprocess.run([sys.executable, str(REPO / "benchmarks" / "team_robustness.py"), "--report", str(f)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1
+    assert out.stderr.strip().splitlines() == [out.stderr.strip()] and "line 1: not a run record" in out.stderr
