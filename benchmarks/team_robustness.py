@@ -224,34 +224,40 @@ def report(runs: list[dict[str, Any]], summary_: dict[str, Any]) -> str:
     return table(runs) + "\n" + json.dumps(brief, indent=1)
 
 
-def _done_runs(path: Path, code: str) -> dict[tuple[str, int, int, str], dict[str, Any]]:
-    """Runs already recorded in a ``--jsonl`` file on this ``code``, by (scenario, robots, seed, mode)."""
-    out: dict[tuple[str, int, int, str], dict[str, Any]] = {}
-    if path.exists() and not code.endswith(("+dirty", "unknown")):
-        for line in path.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                if r.get("code") == code:
-                    out[(r["scenario"], r["robots"], r["seed"], r["mode"])] = r
-    return out
+RunKey = tuple[str, int, int, str]  # (scenario, robots, seed, mode)
 
 
-def recorded_runs(path: Path, codes: list[str]) -> list[dict[str, Any]]:
-    """The runs a ``--jsonl`` file holds on the code labels ``codes`` (prefixes of ``code``), one
-    per (scenario, robots, seed, mode): a later label's run replaces an earlier one's."""
-    chosen: dict[tuple[str, int, int, str], tuple[int, dict[str, Any]]] = {}
+def _records(path: Path) -> list[tuple[RunKey, dict[str, Any]]]:
+    """The runs a ``--jsonl`` file holds, in order, with their keys; an unreadable file or a line
+    that is not a run record stops the benchmark with one line naming it."""
     try:
         lines = path.read_text().splitlines()
     except (OSError, UnicodeDecodeError) as exc:
-        raise SystemExit(f"--report {path}: cannot read it ({exc})") from None
+        raise SystemExit(f"{path}: cannot read it ({exc})") from None
+    out = []
     for n, line in enumerate(lines, 1):
         if not line.strip():
             continue
         try:
             r = json.loads(line)
-            key = (r["scenario"], r["robots"], r["seed"], r["mode"])
+            out.append(((r["scenario"], r["robots"], r["seed"], r["mode"]), r))
         except (ValueError, KeyError, TypeError) as exc:
-            raise SystemExit(f"--report {path}, line {n}: not a run record ({exc!r})") from None
+            raise SystemExit(f"{path}, line {n}: not a run record ({exc!r})") from None
+    return out
+
+
+def _done_runs(path: Path, code: str) -> dict[RunKey, dict[str, Any]]:
+    """Runs already recorded in a ``--jsonl`` file on this ``code``, by key."""
+    if not path.exists() or code.endswith(("+dirty", "unknown")):
+        return {}
+    return {key: r for key, r in _records(path) if r.get("code") == code}
+
+
+def recorded_runs(path: Path, codes: list[str]) -> list[dict[str, Any]]:
+    """The runs a ``--jsonl`` file holds on the code labels ``codes`` (prefixes of ``code``), one
+    per (scenario, robots, seed, mode): a later label's run replaces an earlier one's."""
+    chosen: dict[RunKey, tuple[int, dict[str, Any]]] = {}
+    for key, r in _records(path):
         rank = [i for i, c in enumerate(codes) if str(r.get("code", "")).startswith(c)]
         if rank and (key not in chosen or rank[-1] >= chosen[key][0]):
             chosen[key] = (rank[-1], r)
