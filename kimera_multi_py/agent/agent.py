@@ -11,15 +11,19 @@ owns:
   degenerate directions; the estimate chains the fusion of both) and intra-robot loop closures;
 * submaps feeding a semantic octree (:class:`SubmapMap`) and an object map, both re-anchored
   exactly when PGO moves the submaps;
-* its loop-closure front end. Every ``descriptor_every`` keyframes the objects seen over the
-  last ``descriptor_window`` keyframes form a constellation in the keyframe's frame; its
+* its loop-closure front end, which works in the robot's own odometric frame (the chained
+  registration-refined steps) and never reads the team estimate: what it verifies depends on the
+  robot's sensor data and its peers' messages, not on when or how the back end ran, so the
+  distributed and centralised modes gather the same evidence. Every ``descriptor_every``
+  keyframes the objects seen over the last ``descriptor_window`` keyframes (in a second object
+  map, kept in the odometric frame) form a constellation in the keyframe's frame; its
   descriptor is published (only the descriptor). A robot compares other robots' descriptors
   with its own; for a pair of robots the lower id verifies (within a budget of candidates per
   period), fetching the full constellation with a query, verifying it geometrically (max
   clique + Umeyama, then GICP on the fetched cloud) and passing every verified closure of the
   pair through PCM. The accepted set is published as ``LoopClosures``; both robots then hold
   the edges for PGO. Intra-robot closures come from constellations and from places: an older
-  keyframe near the current estimate is registered against this one (:meth:`Agent._revisits`).
+  keyframe near this one by odometry is registered against it (:meth:`Agent._revisits`).
 """
 
 from __future__ import annotations
@@ -228,6 +232,10 @@ class Agent:
                                                      point_sigma=p.reg_point_sigma)
         self.front_end_seconds = 0.0  # wall time in process_keyframe (a machine measure)
         self.dead_reckoning: list[np.ndarray] = []  # own frame, fixed
+        # the front end's frame: the chained steps (odometry fused with scan registration), own
+        # frame, never moved by PGO; with the place objects below, the front end reads no estimate
+        self.odometric: list[np.ndarray] = []
+        self.place_objects = get_object_map(p.mapping)  # objects in the odometric frame (descriptors)
         self.poses: list[np.ndarray] = []  # current estimate (team frame once aligned)
         self.submap_of: list[int] = []
         self.kf_landmarks: list[list[int]] = []
@@ -267,11 +275,13 @@ class Agent:
         step = odom if so is None else so.step(kf.index, odom, kf.points[static], floor, walls)
         dr = odom.copy() if kf.index == 0 else self.dead_reckoning[-1] @ odom
         pose = odom.copy() if kf.index == 0 else self.poses[-1] @ step
+        fe = odom.copy() if kf.index == 0 else self.odometric[-1] @ step
         self.stamps.append(kf.stamp)
         self.odometry.append(odom)
         self.steps.append(step)
         self.dead_reckoning.append(dr)
         self.poses.append(pose)
+        self.odometric.append(fe)
         # mapping: a new submap every keyframes_per_submap keyframes, anchored at its first pose
         sid = kf.index // self.params.mapping.keyframes_per_submap
         if sid not in self.map.submaps:
@@ -279,10 +289,12 @@ class Agent:
                 self.objects.merge_fragments(self.map.octree)
             self.map.new_submap(sid, pose)
             self.objects.set_submap_pose(sid, pose)
+            self.place_objects.set_submap_pose(sid, fe)  # never moved (nor fragment-merged: no octree here)
         self.submap_of.append(sid)
         T_sub = inverse(self.map.submaps[sid].T) @ pose
         self.map.integrate(sid, T_sub, kf.points, kf.labels, kf.max_range)
-        seen = self.objects.update(transform_points(pose, kf.points[hits]), kf.labels[hits], sid, kf.index)
+        self.objects.update(transform_points(pose, kf.points[hits]), kf.labels[hits], sid, kf.index)
+        seen = self.place_objects.update(transform_points(fe, kf.points[hits]), kf.labels[hits], sid, kf.index)
         self.kf_landmarks.append(seen)
         # the semantic cloud for ICP: walls and objects (floor and ceiling add bytes, not constraints)
         walls = static & ~np.isin(kf.labels, _FLOOR_CEILING)
@@ -307,13 +319,13 @@ class Agent:
 
     def _constellation(self, k: int) -> Constellation | None:
         window = self.kf_landmarks[max(0, k - self.params.descriptor_window + 1): k + 1]
-        ids = sorted({i for ids in window for i in ids if i in self.objects.landmarks})
-        lms = [self.objects.landmarks[i] for i in ids]
+        ids = sorted({i for ids in window for i in ids if i in self.place_objects.landmarks})
+        lms = [self.place_objects.landmarks[i] for i in ids]
         lms = [lm for lm in lms if lm.num_observations >= 2]
         if len(lms) < self.params.min_objects:
             return None
         xyz_world = np.array([lm.ref_position for lm in lms])
-        xyz = transform_points(inverse(self.poses[k]), xyz_world)
+        xyz = transform_points(inverse(self.odometric[k]), xyz_world)
         classes = np.array([lm.label for lm in lms])
         desc = constellation_descriptor(xyz, _CLASS_TO_SLOT[classes], self.spec)
         cloud, cloud_labels = self._window_cloud(k)
@@ -322,29 +334,30 @@ class Agent:
     def _window_cloud(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The semantic cloud of the ``descriptor_window`` keyframes up to ``k``, in ``k``'s frame."""
         first = max(0, k - self.params.descriptor_window + 1)
-        inv = inverse(self.poses[k])
-        parts = [transform_points(inv @ self.poses[j], self.kf_clouds[j][0]) for j in range(first, k + 1)]
+        inv = inverse(self.odometric[k])
+        parts = [transform_points(inv @ self.odometric[j], self.kf_clouds[j][0]) for j in range(first, k + 1)]
         labels = np.concatenate([self.kf_clouds[j][1] for j in range(first, k + 1)])
         return voxel_downsample(np.concatenate(parts), labels, self.params.cloud_voxel)
 
     def _revisits(self, k: int) -> list[Message]:
-        """Intra-robot closures by place, not by appearance: the nearest older keyframe (by the
-        current estimate, at least ``intra_min_gap`` back, facing within ``revisit_angle``) within
+        """Intra-robot closures by place, not by appearance: the nearest older keyframe (by
+        odometry, at least ``intra_min_gap`` back, facing within ``revisit_angle``) within
         ``revisit_radius`` is registered against this one (GICP on the windows' clouds) and, when
         the clouds overlap well, goes to PCM like any closure. Corridors and doorways have too
         few objects for a constellation, and twin rooms are never that close by odometry."""
         p = self.params
         if p.revisit_radius <= 0 or k < p.intra_min_gap:
             return []
-        P = np.array(self.poses[: k - p.intra_min_gap + 1: p.descriptor_every])
-        cos = np.einsum("ni,i->n", P[:, :3, 0], self.poses[k][:3, 0])
-        d = np.linalg.norm(P[:, :3, 3] - self.poses[k][:3, 3], axis=1)
+        odo = self.odometric
+        P = np.array(odo[: k - p.intra_min_gap + 1: p.descriptor_every])
+        cos = np.einsum("ni,i->n", P[:, :3, 0], odo[k][:3, 0])
+        d = np.linalg.norm(P[:, :3, 3] - odo[k][:3, 3], axis=1)
         d[cos < np.cos(p.revisit_angle)] = np.inf
         if not np.isfinite(d.min()) or d.min() > p.revisit_radius or not self._spend(self.robot, self.stamps[k]):
             return []
         old = int(np.argmin(d)) * p.descriptor_every
         self.stats.candidates += 1
-        guess = inverse(self.poses[old]) @ self.poses[k]
+        guess = inverse(odo[old]) @ odo[k]
         res = self.closure_registration.register(self._window_cloud(old)[0], self._window_cloud(k)[0], guess)
         step = None if res is None else inverse(guess) @ res.T
         max_t, max_r = p.icp_max_correction

@@ -65,7 +65,7 @@ from kimera_multi_py.errors import CheckpointError
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 _HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
 

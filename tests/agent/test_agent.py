@@ -211,3 +211,27 @@ def test_restored_agents_continue_bit_identical_to_ones_that_never_stopped(tmp_p
             t.agents[r].apply_poses(yaw_pose(0.4, -0.3, 0.0, 0.05) @ np.array(t.agents[r].poses))
             t.agents[r].objects.merge_fragments(t.agents[r].map.octree)
         assert_same_agent(team.agents[r], restored.agents[r])
+
+
+def test_the_front_end_sends_the_same_messages_whatever_the_back_end_estimates():
+    """The front end works in each robot's odometric frame: a team whose estimates a back end
+    keeps moving (a shift and a bend every 10 keyframes) sends the same messages, byte for byte,
+    as a team whose estimates nothing moves. So the distributed and centralised modes, whose back
+    ends estimate differently and at other times, verify the same closures."""
+    cfg = load_scenario(TINY)
+    stream = sorted(((kf.stamp, r, kf) for r in (0, 1) for kf in itertools.islice(SimSource(cfg, 0, r), 80)),
+                    key=lambda t: t[:2])
+    still, moved = (_Team([Agent(r, (0, 1), AgentParams()) for r in (0, 1)]) for _ in range(2))
+    for n, (_, r, kf) in enumerate(stream):
+        still.feed(kf, r)
+        moved.feed(kf, r)
+        if n % 10 == 9:
+            for a in moved.agents.values():
+                P = np.array(a.poses)
+                half = len(P) // 2
+                P[half:] = yaw_pose(0.2 + 0.1 * a.robot, -0.1 * n / 10, 0.0, 0.03 * n / 10) @ P[half:]
+                a.apply_poses(yaw_pose(0.05 * n / 10, 0.0, 0.0, -0.02) @ P)
+    for r in (0, 1):
+        assert not np.allclose(np.array(still.agents[r].poses), np.array(moved.agents[r].poses), atol=0.05)
+    assert sum(a.stats.candidates for a in still.agents.values()) > 0 and still.agents[0].closures.get(1)
+    assert still.sent == moved.sent
