@@ -5,8 +5,9 @@
   It is invariant to the viewpoint and a few hundred bytes on the wire; similarity is the
   cosine of two descriptors.
 * **Verification** (TEASER-style). Class-consistent correspondences between two object
-  sets, the maximum clique of pairwise-distance-consistent correspondences (exact, networkx),
-  then a Umeyama pose on the clique. Accepted with enough inliers that span more than a line.
+  sets, the maximum clique of pairwise-distance-consistent correspondences (exact, igraph; see
+  :mod:`kimera_multi_py.clique`), then a Umeyama pose on the clique. Accepted with enough
+  inliers that span more than a line.
   The agent then refines the pose by GICP on the semantic clouds
   (:class:`~kimera_multi_py.mapping.registration.ScanRegistration`).
 """
@@ -15,9 +16,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import networkx as nx
 import numpy as np
 
+from kimera_multi_py.clique import max_clique
 from kimera_multi_py.geometry import make_pose, umeyama
 
 
@@ -90,12 +91,8 @@ def consistent_clique(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, eps: 
     ds = np.linalg.norm(src[pairs[:, 0], None] - src[None, pairs[:, 0]], axis=-1)
     dd = np.linalg.norm(dst[pairs[:, 1], None] - dst[None, pairs[:, 1]], axis=-1)
     distinct = (pairs[:, 0, None] != pairs[None, :, 0]) & (pairs[:, 1, None] != pairs[None, :, 1])
-    adj = distinct & (np.abs(ds - dd) <= eps)
-    g = nx.Graph()
-    g.add_nodes_from(range(len(pairs)))
-    g.add_edges_from(zip(*np.nonzero(np.triu(adj, k=1)), strict=True))
-    clique, _ = nx.max_weight_clique(g, weight=None)
-    return np.array(sorted(clique), dtype=int)
+    err = np.abs(ds - dd)
+    return max_clique(distinct & (err <= eps), err)
 
 
 def verify(src_xyz: np.ndarray, src_cls: np.ndarray, dst_xyz: np.ndarray, dst_cls: np.ndarray,

@@ -8,17 +8,18 @@ Two closures k, l are consistent when the cycle through them and both robots' od
 is close to identity: its squared Mahalanobis norm, with a covariance that grows with the
 odometry path length spanned on each robot (random-walk rotation and translation drift, plus
 the translation drift that integrated heading error causes), stays below a χ² quantile. The accepted set is the
-maximum clique of the consistency graph (exact, networkx). Everything is vectorised over pairs.
+maximum clique of the consistency graph (exact; ties go to the smallest total cycle error, see
+:mod:`kimera_multi_py.clique`). Everything is vectorised over pairs.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import networkx as nx
 import numpy as np
 from scipy.stats import chi2
 
+from kimera_multi_py.clique import max_clique
 from kimera_multi_py.geometry import inverse, se3_log
 
 
@@ -69,17 +70,14 @@ def odometry_consistent(Z: np.ndarray, A_i: np.ndarray, A_j: np.ndarray, path_i:
 
 
 def max_consistent_set(r2: np.ndarray, threshold: float) -> np.ndarray:
-    """Indices of the maximum clique of ``r2 <= threshold`` (exact; sorted)."""
-    c = len(r2)
-    if c == 0:
+    """Indices of the maximum clique of ``r2 <= threshold`` (exact; sorted). Of equally large
+    cliques, the one with the smallest summed ``r2`` (the most mutually consistent)."""
+    r2 = np.asarray(r2, dtype=float)
+    if len(r2) == 0:
         return np.zeros(0, dtype=int)
     adj = (r2 <= threshold) & (r2.T <= threshold)
     np.fill_diagonal(adj, False)
-    g = nx.Graph()
-    g.add_nodes_from(range(c))
-    g.add_edges_from(zip(*np.nonzero(np.triu(adj)), strict=True))
-    clique, _ = nx.max_weight_clique(g, weight=None)
-    return np.array(sorted(clique), dtype=int)
+    return max_clique(adj, r2 + r2.T)
 
 
 def pcm(Z: np.ndarray, A_i: np.ndarray, B_j: np.ndarray, path_a: np.ndarray, path_b: np.ndarray,
