@@ -144,8 +144,7 @@ def to_gtsam(T: np.ndarray) -> gtsam.Pose3:
     """4x4 numpy pose to ``gtsam.Pose3``."""
     import gtsam
 
-    T = np.asarray(T, dtype=float)
-    return gtsam.Pose3(gtsam.Rot3(T[:3, :3]), gtsam.Point3(*T[:3, 3]))
+    return gtsam.Pose3(np.asarray(T, dtype=float))
 
 
 def from_gtsam(pose: gtsam.Pose3) -> np.ndarray:

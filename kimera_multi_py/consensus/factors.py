@@ -43,15 +43,28 @@ def fixed_neighbour(key: int, own_is_i: bool, neighbour: np.ndarray, measurement
     For ``own = j``: ``Log(Z⁻¹Xᵢ⁻¹Xⱼ) = Log(P⁻¹Xⱼ)`` with ``P = Xᵢ Z``. For ``own = i`` the
     prior ``P = Xⱼ Z⁻¹`` has error ``−Ad_Z e``, so its information is ``Ad_{Z⁻¹}ᵀ Λ Ad_{Z⁻¹}``.
     """
+    return neighbour_factor(key, neighbour, neighbour_parts(own_is_i, measurement, information, weight))
+
+
+def neighbour_parts(own_is_i: bool, measurement: np.ndarray, information: np.ndarray,
+                    weight: float = 1.0) -> tuple[gtsam.Pose3, gtsam.noiseModel.Base]:
+    """What a :func:`fixed_neighbour` factor takes from its edge alone: the offset from the
+    neighbour's pose to the prior (``Z`` or ``Z⁻¹``) and the noise model. A solver that rebuilds
+    the factor for every new neighbour pose computes these once per edge and weight."""
     Z = to_gtsam(measurement)
     if own_is_i:
         # whiten with R·Ad_{Z⁻¹} (R the square root the between factor would use) rather than
         # re-factoring Ad ᵀΛ Ad: that Cholesky fails on the singular R'R matrices of cubicle
-        prior = to_gtsam(neighbour) * Z.inverse()
         ad = Z.inverse().AdjointMap()
-        return gtsam.PriorFactorPose3(int(key), prior, gtsam.noiseModel.Gaussian.SqrtInformation(
-            sqrt_information(information, weight) @ ad))
-    return gtsam.PriorFactorPose3(int(key), to_gtsam(neighbour) * Z, noise(information, weight))
+        return Z.inverse(), gtsam.noiseModel.Gaussian.SqrtInformation(sqrt_information(information, weight) @ ad)
+    return Z, noise(information, weight)
+
+
+def neighbour_factor(key: int, neighbour: np.ndarray,
+                     parts: tuple[gtsam.Pose3, gtsam.noiseModel.Base]) -> gtsam.PriorFactorPose3:
+    """The :func:`fixed_neighbour` factor from its :func:`neighbour_parts`."""
+    offset, model = parts
+    return gtsam.PriorFactorPose3(int(key), to_gtsam(neighbour) * offset, model)
 
 
 def to_values(keys: np.ndarray, poses: np.ndarray) -> gtsam.Values:

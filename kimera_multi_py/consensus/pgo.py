@@ -42,7 +42,7 @@ import numpy as np
 
 from kimera_multi_py.comms.messages import GncWeights, Message, PgoCommand, PgoStatus, PublicPoses
 from kimera_multi_py.consensus.chordal import edge_weights
-from kimera_multi_py.consensus.factors import between, fixed_neighbour, to_values
+from kimera_multi_py.consensus.factors import between, neighbour_factor, neighbour_parts, to_values
 from kimera_multi_py.consensus.frame_decision import FrameDecision
 from kimera_multi_py.consensus.pgo_init import Initialisation
 from kimera_multi_py.consensus.pgo_params import PgoParams
@@ -249,6 +249,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         self._no_peer_rounds = 0
         self._tried = b""  # the known-edge mask of the last alignment attempt
         self._base: gtsam.NonlinearFactorGraph | None = None
+        self._parts: dict[int, tuple[float, tuple[gtsam.Pose3, gtsam.noiseModel.Base]]] = {}
         self._values = to_values(local.keys, self.poses)
 
     def dependencies(self) -> set[int]:
@@ -369,9 +370,17 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
             nb = self.neighbour_poses.get(int(lg.inter_peer_key[e]))
             if w <= 0 or nb is None or int(lg.inter_peer[e]) in follows:
                 continue
-            fg.add(fixed_neighbour(lg.keys[lg.inter_own[e]], bool(lg.inter_own_is_i[e]), nb,
-                                   lg.inter_meas[e], lg.inter_info[e], w))
+            fg.add(neighbour_factor(lg.keys[lg.inter_own[e]], nb, self._neighbour_parts(e, float(w))))
         return fg
+
+    def _neighbour_parts(self, e: int, w: float) -> tuple[gtsam.Pose3, gtsam.noiseModel.Base]:
+        """Edge ``e``'s factor parts at weight ``w``, computed once per edge and weight."""
+        cached = self._parts.get(e)
+        if cached is None or cached[0] != w:
+            lg = self.local
+            cached = (w, neighbour_parts(bool(lg.inter_own_is_i[e]), lg.inter_meas[e], lg.inter_info[e], w))
+            self._parts[e] = cached
+        return cached[1]
 
     def _followers(self) -> set[int]:
         """Peers whose edges this robot's solve leaves out: a robot in a settled frame (the root,
