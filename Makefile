@@ -32,6 +32,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/pgo.py --json
 	$(BIN)/python benchmarks/allocator.py --json
 	$(BIN)/python benchmarks/cli_sim.py --json
+	$(BIN)/python benchmarks/pcm_clique.py --json
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache
