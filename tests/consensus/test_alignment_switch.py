@@ -50,11 +50,11 @@ def _near(T: np.ndarray, centre: np.ndarray) -> list[int]:
 
 
 def _closures(trajs: list[np.ndarray], first: np.ndarray, places: list[tuple[np.ndarray, np.ndarray, bool]],
-              rng: np.random.Generator, pair: tuple[int, int] = (0, 1), per_place: int = 4
-              ) -> list[tuple[int, int, np.ndarray, np.ndarray, bool]]:
+              rng: np.random.Generator, pair: tuple[int, int] = (0, 1), per_place: int = 4,
+              alias_offset: float = OFFSET) -> list[tuple[int, int, np.ndarray, np.ndarray, bool]]:
     """Closures between robots ``pair`` at each place (centre on the first, centre on the second,
-    aliased: the second robot's pose seen 6 m back)."""
-    shift = make_pose(np.eye(3), np.array([-OFFSET, 0.0, 0.0]))  # room B seen as room A
+    aliased: the second robot's pose seen ``alias_offset`` m back, by default room B as room A)."""
+    shift = make_pose(np.eye(3), np.array([-alias_offset, 0.0, 0.0]))
     a, b = pair
     out = []
     for c0, c1, alias in places:
