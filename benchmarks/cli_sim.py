@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from kimera_multi_py.sim import load_scenario
-from kimera_multi_py.sim.runner import SimRunner
+from kimera_multi_py.workflow.simulate import SimRunner
 
 REPO = Path(__file__).resolve().parents[1]
 EXE = Path(sys.executable).parent / "kimera-multi"

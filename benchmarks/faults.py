@@ -1,4 +1,4 @@
-"""The fault suite's figures (issue 16), each beside the clean run's, measured in this run.
+"""The fault suite's figures, each beside the clean run's, measured in this run.
 
 Loopback simulation of ``sims/faults.toml`` (small's building, shorter and faster routes: 39 s of
 stream; seed 0, distributed, exact map consensus, PGO period 20 s), the tests' setting:
@@ -51,11 +51,13 @@ from kimera_multi_py.comms.faults import sim_faults
 from kimera_multi_py.comms.fuzz import fuzz_payloads, stranger_traffic
 from kimera_multi_py.comms.loopback import Faults
 from kimera_multi_py.comms.messages import AgentState
+from kimera_multi_py.comms.team import free_ports
 from kimera_multi_py.comms.zenoh_bus import Tls, ZenohBus
-from kimera_multi_py.consensus.zenoh_team import free_ports
 from kimera_multi_py.sim import Simulation, load_scenario
-from kimera_multi_py.sim.runner import SimRunner, agent_params, keyframe_input
+from kimera_multi_py.sim.source import keyframe_input
+from kimera_multi_py.team.build import agent_params
 from kimera_multi_py.team.certs import make_certs
+from kimera_multi_py.workflow.simulate import SimRunner
 
 ROOT = Path(__file__).resolve().parents[1]
 FAULTS = ROOT / "sims" / "faults.toml"
@@ -230,7 +232,7 @@ async def mtls_case() -> dict[str, Any]:
 # ---------------------------------------------------------------------------- processes
 def _launch(out: Path, *extra: str) -> dict[str, Any]:
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli", "launch", str(TINY), "--robots", "2",
+    proc = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli.main", "launch", str(TINY), "--robots", "2",
                            "--out", str(out), "--rate", "4", "--checkpoint-every", "2", *extra],
                           capture_output=True, text=True, timeout=900, cwd=ROOT)
     fig: dict[str, Any] = {"exit_code": proc.returncode, "wall_s": round(time.perf_counter() - t0, 1)}

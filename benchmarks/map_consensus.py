@@ -22,14 +22,14 @@ from pathlib import Path
 import numpy as np
 
 from kimera_multi_py.comms.comm_range import neighbours_within
-from kimera_multi_py.consensus.map_consensus import MapConsensus, MapConsensusParams
-from kimera_multi_py.consensus.map_exchange import MapExchange
-from kimera_multi_py.consensus.map_fusion import centralised_team_map, octree_cells
-from kimera_multi_py.consensus.map_metrics import TeamMapReport, phi, team_map_report
+from kimera_multi_py.core.geometry import inverse
+from kimera_multi_py.eval.map_metrics import TeamMapReport, phi, team_map_report
 from kimera_multi_py.eval.slam import map_quality
-from kimera_multi_py.geometry import inverse
 from kimera_multi_py.mapping.config import MappingConfig, get_submap_map
 from kimera_multi_py.mapping.submaps import SubmapMap
+from kimera_multi_py.mapshare.consensus import MapConsensus, MapConsensusParams
+from kimera_multi_py.mapshare.exchange import MapExchange
+from kimera_multi_py.mapshare.fusion import centralised_team_map, octree_cells
 from kimera_multi_py.sim.scenario import load_scenario
 from kimera_multi_py.sim.simulation import Simulation
 

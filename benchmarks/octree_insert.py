@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from kimera_multi_py.geometry import transform_points
+from kimera_multi_py.core.geometry import transform_points
+from kimera_multi_py.core.semantics import NUM_CLASSES
 from kimera_multi_py.mapping import SemanticOctree
-from kimera_multi_py.semantics import NUM_CLASSES
 from kimera_multi_py.sim import Simulation, load_scenario
 
 REPO = Path(__file__).resolve().parents[1]

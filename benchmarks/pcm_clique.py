@@ -25,14 +25,15 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from kimera_multi_py.clique import max_clique  # noqa: E402
 from kimera_multi_py.consensus import pcm as pcm_module  # noqa: E402
+
+from kimera_multi_py.core.clique import max_clique  # noqa: E402
 
 
 def record_graphs(scenario: str, robots: int, seed: int) -> list[np.ndarray]:
     """The adjacency matrices PCM searched during one distributed run."""
     from kimera_multi_py.sim import load_scenario
-    from kimera_multi_py.sim.runner import SimRunner
+    from kimera_multi_py.workflow.simulate import SimRunner
 
     graphs: list[np.ndarray] = []
     original = pcm_module.max_clique

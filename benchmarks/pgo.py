@@ -26,9 +26,9 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from kimera_multi_py.consensus.cli_pgo import CLI_METHOD  # noqa: E402
-from kimera_multi_py.consensus.pgo import PgoParams  # noqa: E402
-from kimera_multi_py.consensus.workflow import run_pgo  # noqa: E402
+from kimera_multi_py.cli.pgo import CLI_METHOD  # noqa: E402
+from kimera_multi_py.pgo.params import PgoParams  # noqa: E402
+from kimera_multi_py.workflow.pgo_benchmark import run_pgo  # noqa: E402
 
 DATASETS = ("tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "torus3D", "cubicle")
 ROBUST = ("smallGrid3D", 0.5)

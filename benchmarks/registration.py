@@ -22,15 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
+from kimera_multi_py.core.geometry import inverse, se3_log
+from kimera_multi_py.core.semantics import class_id
 from kimera_multi_py.eval.metrics import ate_rmse
-from kimera_multi_py.geometry import inverse, se3_log
 from kimera_multi_py.mapping.floor import FloorReference
 from kimera_multi_py.mapping.heading import HeadingReference
 from kimera_multi_py.mapping.registration import ScanRegistration
 from kimera_multi_py.mapping.scan_odometry import ScanOdometry
-from kimera_multi_py.semantics import class_id
 from kimera_multi_py.sim import Simulation, load_scenario
-from kimera_multi_py.sim.runner import agent_params
+from kimera_multi_py.team.build import agent_params
 
 REPO = Path(__file__).resolve().parents[1]
 

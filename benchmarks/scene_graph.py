@@ -31,13 +31,14 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from kimera_multi_py.core.geometry import transform_points
 from kimera_multi_py.eval.metrics import align_se3
-from kimera_multi_py.geometry import transform_points
+from kimera_multi_py.eval.scene_graph import graphs_agree, scene_graph_and_outputs
+from kimera_multi_py.eval.scene_graph_truth import perfect_octree
 from kimera_multi_py.mapping import SemanticOctree
 from kimera_multi_py.mapping.config import get_object_map, get_octree, mapping_config
-from kimera_multi_py.scene_graph import SceneGraphParams, graphs_agree, scene_graph_and_outputs
+from kimera_multi_py.scene_graph import SceneGraphParams
 from kimera_multi_py.scene_graph.grid import occupancy_grid
-from kimera_multi_py.scene_graph.truth import perfect_octree
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.world import World
 
@@ -83,7 +84,7 @@ def score(tree: SemanticOctree, T: np.ndarray, objects: Any, traj: Any, world: W
 
 
 def team_maps(cfg: Any, seed: int, world: World, params: SceneGraphParams, repeats: int) -> dict[str, Any]:
-    from kimera_multi_py.sim.runner import SimRunner
+    from kimera_multi_py.workflow.simulate import SimRunner
 
     t0 = time.perf_counter()
     runner = SimRunner(cfg, seed=seed, mode="distributed")

@@ -23,8 +23,9 @@ from pathlib import Path
 
 from kimera_multi_py.agent.agent import Agent, AgentParams
 from kimera_multi_py.agent.checkpoint import load_checkpoint, save_checkpoint, snapshot
-from kimera_multi_py.agent.sources import RecordedSource, SimSource, keyframe_input, write_recording
+from kimera_multi_py.io.sources import RecordedSource
 from kimera_multi_py.sim import Simulation, load_scenario
+from kimera_multi_py.sim.source import SimSource, keyframe_input, write_recording
 
 
 def _timed(f, repeat: int = 1):  # type: ignore[no-untyped-def]

@@ -55,8 +55,8 @@ def same_graph_central_ate(agents: list[Any], truth: list[Any]) -> float:
     import numpy as np
 
     from kimera_multi_py.agent.team_graph import joint_graph
-    from kimera_multi_py.consensus.server import solve_centralized
     from kimera_multi_py.eval.team import trajectory_results
+    from kimera_multi_py.pgo.centralised import solve_centralized
 
     graph, _ = joint_graph(agents)
     # the votes the agents' own solve used, in joint_graph's edge order: every robot's intra
@@ -79,7 +79,7 @@ def measure(scenario: str, robots: int, seed: int, mode: str) -> dict[str, Any]:
     from kimera_multi_py.eval.metrics import align_se3, ate_rmse
     from kimera_multi_py.eval.team import excluded_robots, scored_closures, team_frame_estimates, trajectory_results
     from kimera_multi_py.sim import load_scenario
-    from kimera_multi_py.sim.runner import SimRunner
+    from kimera_multi_py.workflow.simulate import SimRunner
 
     cfg = load_scenario(scenario, robots=robots)
     with tempfile.TemporaryDirectory() as d:

@@ -22,7 +22,7 @@ _CHILD = r"""
 import json, resource, sys, tempfile
 sys.path.insert(0, {repo!r})
 from kimera_multi_py.sim import load_scenario
-from kimera_multi_py.sim.runner import SimRunner
+from kimera_multi_py.workflow.simulate import SimRunner
 cfg = load_scenario({scenario!r}, robots={robots})
 with tempfile.TemporaryDirectory() as d:
     res = SimRunner(cfg, seed={seed}, mode={mode!r}, out_dir=d, map_consensus={map_consensus!r}).run().to_dict()

@@ -6,7 +6,7 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from kimera_multi_py.clique import max_clique
+from kimera_multi_py.core.clique import max_clique
 
 
 def _random_adj(rng: np.random.Generator, n: int, p: float) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Corrupt files users hand the CLI (issue 16): scenario, g2o, DPGO CSV, recorded source,
+"""Corrupt files users hand the CLI: scenario, g2o, DPGO CSV, recorded source,
 checkpoint, scene graph and map. Each is one line on stderr naming the file and the problem,
 exit code 1, no traceback."""
 
@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from kimera_multi_py.cli import app
-from kimera_multi_py.consensus.zenoh_team import free_ports
-from kimera_multi_py.errors import KimeraMultiError
+from kimera_multi_py.cli.main import app
+from kimera_multi_py.comms.team import free_ports
+from kimera_multi_py.core.errors import KimeraMultiError
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = REPO / "sims" / "tiny.toml"

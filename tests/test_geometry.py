@@ -2,7 +2,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from kimera_multi_py import geometry as g
+from kimera_multi_py.core import geometry as g
 
 
 def random_poses(n, rng):

@@ -1,7 +1,7 @@
-"""The per-robot Agent: pure logic, no I/O (DESIGN §1, §6).
+"""The per-robot Agent: pure logic, no I/O (docs/architecture.md, §6).
 
 ``Agent.process_keyframe(kf)`` and ``Agent.handle(msg)`` return the messages to send; a
-runtime (:mod:`.node`, :class:`~kimera_multi_py.sim.runner.SimRunner`) moves them. The agent
+runtime (:mod:`.node`, :class:`~kimera_multi_py.workflow.simulate.SimRunner`) moves them. The agent
 owns:
 
 * its pose graph: dead-reckoned poses in its own odometry frame (never changed, used by PCM),
@@ -34,13 +34,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kimera_multi_py.agent.loop_closure import (
-    DescriptorSpec,
-    constellation_descriptor,
-    similarity,
-    verify,
-    voxel_downsample,
-)
 from kimera_multi_py.comms.messages import (
     KeyframeDescriptor,
     KeyframeOdometry,
@@ -51,17 +44,25 @@ from kimera_multi_py.comms.messages import (
     Message,
     PublicPoses,
 )
-from kimera_multi_py.consensus.pcm import PcmNoise, odometry_consistent_path, pcm
-from kimera_multi_py.consensus.pgo import LocalGraph
-from kimera_multi_py.consensus.robust import correlated_votes
-from kimera_multi_py.geometry import inverse, so3_log, transform_points
-from kimera_multi_py.io.pose_graph import robot_key, split_key
+from kimera_multi_py.core.geometry import inverse, so3_log, transform_points
+from kimera_multi_py.core.keyframe import KeyframeInput
+from kimera_multi_py.core.posegraph import robot_key, split_key
+from kimera_multi_py.core.robust import correlated_votes
+from kimera_multi_py.core.semantics import NUM_CLASSES, OBJECT_CLASSES, class_id
+from kimera_multi_py.frontend.loop_closure import (
+    DescriptorSpec,
+    constellation_descriptor,
+    similarity,
+    verify,
+    voxel_downsample,
+)
+from kimera_multi_py.frontend.pcm import PcmNoise, odometry_consistent_path, pcm
 from kimera_multi_py.mapping.config import MappingConfig, get_object_map, get_submap_map
 from kimera_multi_py.mapping.floor import FloorReference
 from kimera_multi_py.mapping.heading import HeadingReference
 from kimera_multi_py.mapping.registration import ScanRegistration
 from kimera_multi_py.mapping.scan_odometry import ScanOdometry
-from kimera_multi_py.semantics import NUM_CLASSES, OBJECT_CLASSES, class_id
+from kimera_multi_py.pgo.local_graph import LocalGraph
 
 log = logging.getLogger(__name__)
 
@@ -158,19 +159,6 @@ class AgentParams:
         per_m = 1.0 / np.sqrt(self.keyframe_distance)
         return PcmNoise(closure_rot=self.closure_sigmas[0], closure_trans=self.closure_sigmas[1],
                         odom_rot_per_m=self.odom_sigmas[0] * per_m, odom_trans_per_m=self.odom_sigmas[1] * per_m)
-
-
-@dataclass
-class KeyframeInput:
-    """What a robot's sensors give the agent at a keyframe (sensor frame)."""
-
-    index: int
-    stamp: float
-    odometry: np.ndarray  # T_{k-1,k}, identity at k = 0
-    points: np.ndarray  # (n, 3) end points, misses at max range
-    labels: np.ndarray  # (n,) int, 0 for misses
-    hit: np.ndarray  # (n,) bool
-    max_range: float
 
 
 @dataclass

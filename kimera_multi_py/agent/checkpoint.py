@@ -1,4 +1,4 @@
-"""Agent checkpoints: a versioned, non-executable file that may travel between machines (DESIGN §4.7).
+"""Agent checkpoints: a versioned, non-executable file that may travel between machines (docs/deployment.md).
 
 A checkpoint holds a whole :class:`~kimera_multi_py.agent.agent.Agent` plus a caller's ``extra``
 dict of plain data (the node's own state: next keyframe, PGO epoch, counters, ...). Nothing is
@@ -61,7 +61,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from kimera_multi_py import __version__
-from kimera_multi_py.errors import CheckpointError
+from kimera_multi_py.core.errors import CheckpointError
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
@@ -77,10 +77,10 @@ ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.agent.agent.Closure",
     "kimera_multi_py.agent.agent.Constellation",
     "kimera_multi_py.agent.agent.LoopClosureStats",
-    "kimera_multi_py.agent.loop_closure.DescriptorSpec",
-    "kimera_multi_py.consensus.pcm.PcmNoise",
-    "kimera_multi_py.consensus.pgo.LocalGraph",
-    "kimera_multi_py.consensus.pgo.PgoParams",
+    "kimera_multi_py.frontend.loop_closure.DescriptorSpec",
+    "kimera_multi_py.frontend.pcm.PcmNoise",
+    "kimera_multi_py.pgo.local_graph.LocalGraph",
+    "kimera_multi_py.pgo.params.PgoParams",
     "kimera_multi_py.mapping.axes.StructureAxes",
     "kimera_multi_py.mapping.config.MappingConfig",
     "kimera_multi_py.mapping.config.ObjectMapConfig",
@@ -102,6 +102,14 @@ ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.mapping.submaps.SubmapMap",
     "kimera_multi_py.mapping.submaps._CellStore",
 })
+# Classes that moved when the package was split by concern: files written before still load.
+RENAMED_CLASSES: dict[str, str] = {
+    "kimera_multi_py.agent.loop_closure.DescriptorSpec": "kimera_multi_py.frontend.loop_closure.DescriptorSpec",
+    "kimera_multi_py.consensus.pcm.PcmNoise": "kimera_multi_py.frontend.pcm.PcmNoise",
+    "kimera_multi_py.consensus.pgo.LocalGraph": "kimera_multi_py.pgo.local_graph.LocalGraph",
+    "kimera_multi_py.consensus.pgo.PgoParams": "kimera_multi_py.pgo.params.PgoParams",
+    "kimera_multi_py.consensus.pgo_params.PgoParams": "kimera_multi_py.pgo.params.PgoParams",
+}
 _ARRAY_KINDS = "biuf"  # bool, signed, unsigned, float: nothing that could hold a Python object
 
 
@@ -194,6 +202,7 @@ def _sorted(items: set[Any] | frozenset[Any]) -> list[Any]:
 
 
 def _import(name: str, path: str, allowed: frozenset[str]) -> Any:
+    name = RENAMED_CLASSES.get(name, name)
     if name not in allowed:
         raise StateError(f"{path}: class {name!r} is not on the checkpoint allowlist")
     module, _, qual = name.rpartition(".")  # allowlisted names are all ``module.Class``

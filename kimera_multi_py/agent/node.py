@@ -1,4 +1,4 @@
-"""AgentNode: the asyncio runtime of one robot, end to end on its own clock (DESIGN §4.7).
+"""AgentNode: the asyncio runtime of one robot, end to end on its own clock (docs/deployment.md).
 
 The node binds a pure :class:`Agent` and a :class:`TeamPgo` to a Bus and runs everything the
 robot does, with no orchestrator:
@@ -7,7 +7,7 @@ robot does, with no orchestrator:
 * the loop-closure protocol: descriptors out, constellation queries to peers, verified closures
   out (re-sent until acknowledged, and again to a robot that (re)appears, together with our
   descriptors, so late joiners and restarted robots catch up);
-* distributed PGO that the team starts and stops itself (:mod:`kimera_multi_py.consensus.team_pgo`),
+* distributed PGO that the team starts and stops itself (:mod:`kimera_multi_py.pgo.team`),
   or in centralised mode the server's corrected poses;
 * its progress as :class:`AgentState` on a period (the leader's view of who has finished).
 
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import networkx as nx
 
-from kimera_multi_py.agent.agent import MAX_AGENT_ID, Agent, KeyframeInput
+from kimera_multi_py.agent.agent import MAX_AGENT_ID, Agent
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, BusClosedError, Closeable, PresenceEvent, Stream, Subscription
 from kimera_multi_py.comms.messages import (
@@ -45,13 +45,13 @@ from kimera_multi_py.comms.messages import (
     PgoEpoch,
     PublicPoses,
 )
-from kimera_multi_py.consensus.map_consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
-from kimera_multi_py.consensus.object_exchange import OBJECT_MESSAGES, ObjectExchange
-from kimera_multi_py.consensus.pgo import PgoParams
-from kimera_multi_py.consensus.pgo_params import team_params
-from kimera_multi_py.consensus.team_pgo import ScheduleParams, TeamPgo
-from kimera_multi_py.errors import KimeraMultiError
-from kimera_multi_py.io.pose_graph import split_key
+from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.keyframe import KeyframeInput
+from kimera_multi_py.core.posegraph import split_key
+from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
+from kimera_multi_py.mapshare.objects import OBJECT_MESSAGES, ObjectExchange
+from kimera_multi_py.pgo.params import PgoParams, team_params
+from kimera_multi_py.pgo.team import ScheduleParams, TeamPgo
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ class NodeParams:
     state_period: float = 5.0  # clock s between AgentState messages (the tick's ``wall`` clock)
     resend_period: float = 5.0  # clock s between re-sends of unacknowledged closures
     server: int | None = None  # centralised mode: the server's id (then no team PGO)
-    map_consensus: str = "exact"  # off, roam, exact or laplacian (DESIGN §4.5)
+    map_consensus: str = "exact"  # off, roam, exact or laplacian (docs/algorithms/map_consensus.md)
     # lossy links: every descriptor goes out again with the next one (duplicates are ignored), and
     # a constellation query that gets no reply is asked again this many times
     descriptor_repeats: int = 1

@@ -2,7 +2,7 @@
 
 :func:`outcome_of` takes it from a live node; :func:`write_outcome` writes it; :func:`read_outcome`
 reads it back, so the evaluator (:mod:`kimera_multi_py.eval.team`) scores a single-process
-simulation and N agent processes from the same data. Files (DESIGN §4.7):
+simulation and N agent processes from the same data. Files (docs/deployment.md):
 
 * ``trajectory.tum``: keyframe stamps and estimated poses (team frame once aligned);
 * ``map.bt`` (OctoMap, maximum-likelihood occupancy), ``map.ply`` (occupied leaves coloured by
@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 
 from kimera_multi_py.agent.agent import Agent
-from kimera_multi_py.errors import DatasetError, MapError
+from kimera_multi_py.core.errors import DatasetError, MapError
+from kimera_multi_py.core.posegraph import PoseGraph, robot_key, split_key
 from kimera_multi_py.io.g2o import write_g2o
-from kimera_multi_py.io.pose_graph import PoseGraph, robot_key, split_key
 from kimera_multi_py.io.tum import read_tum, write_tum
 from kimera_multi_py.mapping.octree_io import export_bt, export_ply, load_octree, save_octree
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from kimera_multi_py.agent.agent import Agent
-from kimera_multi_py.io.pose_graph import PoseGraph, robot_key
+from kimera_multi_py.core.posegraph import PoseGraph, robot_key
 
 
 def joint_graph(agents: Sequence[Agent]) -> tuple[PoseGraph, list[tuple[int, int, int, int]]]:

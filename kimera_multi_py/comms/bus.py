@@ -26,7 +26,7 @@ from typing import Any, Generic, Protocol, TypeVar, runtime_checkable
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec, CodecError, Envelope, Group
 from kimera_multi_py.comms.messages import Message
-from kimera_multi_py.errors import KimeraMultiError, MessageError
+from kimera_multi_py.core.errors import KimeraMultiError, MessageError
 
 log = logging.getLogger(__name__)
 

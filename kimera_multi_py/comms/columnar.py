@@ -3,7 +3,7 @@
 A publisher that sends many messages of one type back to back (a burst of pings, keyframe
 descriptors, object updates) would otherwise pay a full envelope, a msgpack map per body and a
 per-field validation for every message, on both sides. A columnar batch is one ordinary envelope
-(DESIGN §3: ``{v, type, team, src, seq, stamp, body}``) with ``type = "Batch"`` and::
+(docs/architecture.md: ``{v, type, team, src, seq, stamp, body}``) with ``type = "Batch"`` and::
 
     body = {"type": inner message type, "n": number of messages, "cols": {field: column}}
 
@@ -42,7 +42,8 @@ from kimera_multi_py.comms.messages import (
     Message,
     Str,
 )
-from kimera_multi_py.errors import MessageError
+from kimera_multi_py.comms.wire import CodecError
+from kimera_multi_py.core.errors import MessageError
 
 BATCH_TYPE = "Batch"
 MIN_COLUMNAR = 2  # shorter runs go as ordinary envelopes
@@ -56,7 +57,6 @@ def to_columns(msgs: list[Message]) -> dict[str, Any] | None:
         return None
     cls = msgs[0].__class__
     if not issubclass(cls, Message) or MESSAGE_TYPES.get(cls.TYPE) is not cls:
-        from kimera_multi_py.comms.codec import CodecError  # codec imports this module
 
         raise CodecError("body", f"not a message: {cls.__name__}")
     for m in msgs:
@@ -101,7 +101,6 @@ def from_columns(body: Any, src: int, max_batch: int) -> list[Message]:
 
 
 def _err(field: str, problem: str) -> MessageError:
-    from kimera_multi_py.comms.codec import CodecError  # codec imports this module
 
     return CodecError(f"{BATCH_TYPE}.{field}", problem)
 

@@ -22,7 +22,7 @@ from collections.abc import Collection, Iterable, Sequence
 from itertools import combinations
 
 from kimera_multi_py.comms.loopback import Faults, Partition
-from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.core.errors import ConfigError
 
 
 def parse_partition(spec: str) -> Partition:

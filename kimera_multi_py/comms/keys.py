@@ -1,6 +1,6 @@
 """Every key expression the team uses, and a small matcher for them.
 
-Layout (DESIGN §3):
+Layout (docs/architecture.md):
 
 - topics: ``kmp/{team}/r{robot}/{topic}``, e.g. ``kmp/t0/r2/pgo/public_poses``;
 - presence: a liveliness token at ``kmp/{team}/alive/r{robot}``;
@@ -16,7 +16,7 @@ import re
 from dataclasses import dataclass
 from functools import lru_cache
 
-from kimera_multi_py.errors import MessageError
+from kimera_multi_py.core.errors import MessageError
 
 ROOT = "kmp"
 

@@ -1,7 +1,7 @@
 """A msgpack writer and reader for envelopes with large arrays: one copy out, none in.
 
-:func:`codec._packb <kimera_multi_py.comms.codec._packb>` and ``msgpack.unpackb`` are fast for
-small messages but copy every array several times: on encode :func:`codec.ext_of` joins the
+:func:`wire._packb <kimera_multi_py.comms.wire._packb>` and ``msgpack.unpackb`` are fast for
+small messages but copy every array several times: on encode :func:`wire.ext_of` joins the
 header and the array (copy 1), the packer copies that into its buffer (copy 2) and into the
 returned ``bytes`` (copy 3); on decode msgpack copies each ext's data into a fresh ``bytes``
 before the ext hook sees it. For ~100 KB payloads the allocation churn (glibc mmap/munmap of the
@@ -9,23 +9,23 @@ blocks, with their page faults) costs more than the work itself. (``msgpack.pack
 mallocs a 256 KiB ``Packer`` buffer per call.)
 
 :func:`pack` is a pure-Python msgpack writer whose output is **byte-identical** to
-``codec._packb(obj)``: it collects small headers and the arrays' own buffers (no copy) in a list
+``wire._packb(obj)``: it collects small headers and the arrays' own buffers (no copy) in a list
 and joins them once, so an array's bytes are copied exactly once. Anything it does not handle
 itself (``Timestamp``, ``memoryview``, sizes beyond msgpack's limits, deep nesting, strings that
-do not encode) is handed to ``codec._packb`` for the whole object, so results and exceptions
-always match it; unsupported objects raise :class:`CodecError` (``body``) as :func:`codec._default`
+do not encode) is handed to ``wire._packb`` for the whole object, so results and exceptions
+always match it; unsupported objects raise :class:`CodecError` (``body``) as :func:`wire._default`
 does.
 
 :func:`unpack` reads one envelope (a top-level map) and returns what
-``msgpack.unpackb(data, raw=False, ext_hook=codec._ext_hook, strict_map_key=True)`` would, except
+``msgpack.unpackb(data, raw=False, ext_hook=wire._ext_hook, strict_map_key=True)`` would, except
 that arrays (ext type 1) are read-only numpy views into ``data`` itself, validated exactly as
-:func:`codec._ext_hook` validates them (the same :class:`CodecError`, raised at the same point in
+:func:`wire._ext_hook` validates them (the same :class:`CodecError`, raised at the same point in
 document order). It returns ``None`` for anything outside a conservative subset or anything odd
 — the caller then falls back to ``msgpack.unpackb``::
 
     env = largemsg.unpack(data)
     if env is None:
-        env = msgpack.unpackb(data, raw=False, ext_hook=codec._ext_hook, strict_map_key=True)
+        env = msgpack.unpackb(data, raw=False, ext_hook=wire._ext_hook, strict_map_key=True)
 
 Its only exceptions are :class:`MessageError` for a malformed array. Input other than ``bytes``
 (a ``bytearray`` could change under the views) is not taken. A view keeps the whole message
@@ -48,30 +48,30 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from kimera_multi_py.comms import codec
-from kimera_multi_py.comms.codec import EXT_NDARRAY, MAX_NDIM
-from kimera_multi_py.errors import MessageError
+from kimera_multi_py.comms import wire
+from kimera_multi_py.comms.wire import EXT_NDARRAY, MAX_NDIM
+from kimera_multi_py.core.errors import MessageError
 
 __all__ = ["pack", "unpack"]
 
 _ndarray = np.ndarray
 _ExtType = msgpack.ExtType
-_packb = codec._packb
-_default = codec._default
-_ext_of = codec.ext_of
-_ext_hook = codec._ext_hook
+_packb = wire._packb
+_default = wire._default
+_ext_of = wire.ext_of
+_ext_hook = wire._ext_hook
 _frombuffer = np.frombuffer
 _prod = math.prod
 _intern = sys.intern
-_CODES = codec._CODES
-_HEADS = codec._HEADS
-_SHAPES = codec._SHAPES
+_CODES = wire._CODES
+_HEADS = wire._HEADS
+_SHAPES = wire._SHAPES
 _ITEM_LIMIT = 2**32 - 1
 _MAX_NEST = 64  # deeper structures go to msgpack (whose own limit is 1024)
 
 
 class _Delegate(Exception):
-    """Internal: let ``codec._packb`` pack the whole object."""
+    """Internal: let ``wire._packb`` pack the whole object."""
 
 
 class _Unsupported(Exception):
@@ -104,9 +104,9 @@ _STR_CACHED = 64  # longest cached encoding (bytes); longer strings are rare and
 
 
 def pack(obj: Any) -> bytes:
-    """``codec._packb(obj)``, byte for byte, copying each array's data once.
+    """``wire._packb(obj)``, byte for byte, copying each array's data once.
 
-    Raises what ``codec._packb`` raises (:class:`CodecError` for an object it cannot encode).
+    Raises what ``wire._packb`` raises (:class:`CodecError` for an object it cannot encode).
     """
     parts: list[Any] = []
     try:
@@ -194,7 +194,7 @@ def _ext(code: Any, data: Any, append: Callable[[Any], Any]) -> None:
 
 
 def _array(a: Any, append: Callable[[Any], Any]) -> None:
-    """An array as :func:`codec.ext_of` packs it, with its own buffer as the data part."""
+    """An array as :func:`wire.ext_of` packs it, with its own buffer as the data part."""
     if a.__class__ is _ndarray and a.flags.c_contiguous:
         code = _CODES.get(a.dtype)
         ndim = a.ndim
@@ -305,7 +305,7 @@ def _pack_other(o: Any, append: Callable[[Any], Any], nest: int) -> None:
     elif isinstance(o, bytes | bytearray | dict | _ExtType | list | tuple):
         raise _Delegate  # subclasses with overridable len/items/iter: leave them to msgpack
     elif isinstance(o, _ndarray):
-        _array(o, append)  # msgpack's default: codec.ext_of
+        _array(o, append)  # msgpack's default: wire.ext_of
     elif isinstance(o, memoryview | msgpack.Timestamp):
         raise _Delegate
     else:
@@ -334,19 +334,19 @@ _uBb = struct.Struct(">Bb").unpack_from
 _uHb = struct.Struct(">Hb").unpack_from
 _uIb = struct.Struct(">Ib").unpack_from
 _U32LE = struct.Struct("<I").unpack_from
-_DT: list[np.dtype | None] = [codec._NATIVE.get(c) for c in range(256)]
-_BOOL_CODE = next(c for c, dt in codec._NATIVE.items() if dt.kind == "b")
+_DT: list[np.dtype | None] = [wire._NATIVE.get(c) for c in range(256)]
+_BOOL_CODE = next(c for c, dt in wire._NATIVE.items() if dt.kind == "b")
 _FIXEXT_LEN = {0xD4: 1, 0xD5: 2, 0xD6: 4, 0xD7: 8, 0xD8: 16}
 _uint8 = np.uint8
 _struct_error = struct.error
 
 
 def unpack(data: bytes) -> Any | None:
-    """The envelope map in ``data``, as ``msgpack.unpackb(..., ext_hook=codec._ext_hook)`` reads it.
+    """The envelope map in ``data``, as ``msgpack.unpackb(..., ext_hook=wire._ext_hook)`` reads it.
 
     Arrays are read-only views into ``data``. Returns ``None`` when ``data`` is not ``bytes``, not
     one map, or uses anything outside the supported subset (the caller then uses msgpack); raises
-    only the :class:`MessageError` that ``codec._ext_hook`` raises for a malformed array.
+    only the :class:`MessageError` that ``wire._ext_hook`` raises for a malformed array.
     """
     try:
         return _unpack(data)
@@ -520,7 +520,7 @@ def _value(data: bytes, p: int, end: int, depth: int) -> tuple[Any, int]:
 
 
 def _ext_value(data: bytes, p: int, n: int, code: int) -> Any:
-    """The ext at ``data[p:p + n]``: an array view into ``data``, checked as ``codec._ext_hook`` does."""
+    """The ext at ``data[p:p + n]``: an array view into ``data``, checked as ``wire._ext_hook`` does."""
     if code != EXT_NDARRAY:
         raise _Unsupported  # unknown types (msgpack: CodecError from the hook), timestamps (-1)
     if n >= 6 and data[p + 1] == 1:  # 1-D, the common case

@@ -42,7 +42,7 @@ from kimera_multi_py.comms.bus import (
     Subscription,
 )
 from kimera_multi_py.comms.messages import Message
-from kimera_multi_py.errors import ConfigError, MessageError
+from kimera_multi_py.core.errors import ConfigError, MessageError
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeVar, dataclass_transform
 import numpy as np
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.errors import MessageError
+from kimera_multi_py.core.errors import MessageError
 
 SCHEMA_VERSION = 1
 MAX_ROBOT_ID = 4095
@@ -495,7 +495,7 @@ class PublicPoses(Message):
     ``settled``: the sender's frame is the team frame's root, or rests on a frame hypothesis of
     at least two places decided on settled peers' poses. A frame adopted on one place (or on a
     consensus of a few edges) is not settled: an alias looks exactly like it, and its receivers
-    do not align through it while settled evidence exists (issue 11).
+    do not align through it while settled evidence exists.
     """
 
     robot: int = robot_id()
@@ -510,7 +510,7 @@ class FrameLandmarks(Message):
     """A settled robot's confirmed object landmarks, in its frame (rooted at robot ``frame``),
     sent when a PGO epoch opens: MAP class and box centre per object. A robot whose frame
     hypotheses closures cannot tell apart checks them against these
-    (:mod:`kimera_multi_py.consensus.landmark_check`)."""
+    (:mod:`kimera_multi_py.alignment.landmark_check`)."""
 
     robot: int = robot_id()
     frame: int = robot_id()
@@ -673,7 +673,7 @@ class SubmapEvidence(Message):
 
     ``payload`` holds ``cells`` Morton codes on the submap's reference grid and their integer
     evidence (fixed-point log-odds sums) of ``classes`` classes 1..K, losslessly compressed
-    (:mod:`kimera_multi_py.consensus.map_wire`). A robot at a version in ``[base, version)``
+    (:mod:`kimera_multi_py.mapshare.wire`). A robot at a version in ``[base, version)``
     applies it; relayed unchanged except for ``robot`` (the sender).
     """
 

@@ -47,7 +47,7 @@ from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import DEFAULT_QUEUE_SIZE, BusBase, Handler, Stream, Subscription
 from kimera_multi_py.comms.codec import MAX_BATCH, batch_header
 from kimera_multi_py.comms.messages import MESSAGE_TYPES, Message
-from kimera_multi_py.errors import ConfigError, MessageError
+from kimera_multi_py.core.errors import ConfigError, MessageError
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Metric accuracy of a team run, separated by cause (issue 13).
+"""Metric accuracy of a team run, separated by cause.
 
 * :func:`team_map_quality`: every keyframe of every robot integrated into one semantic octree at
   given world poses, scored against the world's voxel grid. At the final estimated poses it is
@@ -19,9 +19,9 @@ import numpy as np
 
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.outputs import RobotOutcome
+from kimera_multi_py.core.geometry import relative, so3_log, transform_points
 from kimera_multi_py.eval.metrics import align_se3, occupancy_f1, semantic_miou
 from kimera_multi_py.eval.team import team_frame_estimates
-from kimera_multi_py.geometry import relative, so3_log, transform_points
 from kimera_multi_py.mapping.config import MappingConfig, get_octree
 
 _SCAN_COUNTS = ("registered", "degenerate", "gated", "failed")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kimera_multi_py.geometry import make_pose, umeyama
+from kimera_multi_py.core.geometry import make_pose, umeyama
 
 
 def align_se3(est_xyz: np.ndarray, gt_xyz: np.ndarray) -> np.ndarray:

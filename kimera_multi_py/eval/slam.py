@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from kimera_multi_py.core.geometry import inverse, relative, so3_log, transform_points
 from kimera_multi_py.eval.metrics import object_precision_recall, occupancy_f1, semantic_miou
-from kimera_multi_py.geometry import inverse, relative, so3_log, transform_points
 from kimera_multi_py.mapping.object_fusion import object_groups
 
 

@@ -182,8 +182,8 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
     each robot's and ``agree`` whether the robots' graphs match. The team graph leaves out the
     objects and trajectories of the robots kept out of the team frame (only those of
     :func:`team_frame_robots`): they are in their own frames."""
+    from kimera_multi_py.eval.scene_graph import graphs_agree, scene_graph_and_outputs
     from kimera_multi_py.mapping.object_fusion import fuse_team
-    from kimera_multi_py.scene_graph import graphs_agree, scene_graph_and_outputs
 
     graphs, per_robot = [], {}
     for o in outcomes:

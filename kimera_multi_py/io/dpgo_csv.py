@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from kimera_multi_py.errors import DatasetError
-from kimera_multi_py.geometry import make_pose, quat_to_rot, rot_to_quat
-from kimera_multi_py.io.pose_graph import PoseGraph, chain_odometry, robot_key
+from kimera_multi_py.core.errors import DatasetError
+from kimera_multi_py.core.geometry import make_pose, quat_to_rot, rot_to_quat
+from kimera_multi_py.core.posegraph import PoseGraph, chain_odometry, robot_key
 from kimera_multi_py.io.text import read_text
 
 log = logging.getLogger(__name__)

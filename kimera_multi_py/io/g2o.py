@@ -4,7 +4,7 @@ planar SE(3)).
 
 Multi-robot files use gtsam ``Symbol`` keys (``chr << 56 | index``, Kimera-RPGO's convention):
 the letter names the robot (``'a'`` is robot 0). Plain integer ids belong to robot 0; split them
-among robots with :func:`kimera_multi_py.io.pose_graph.split_contiguous`.
+among robots with :func:`kimera_multi_py.core.posegraph.split_contiguous`.
 
 The g2o information matrix is ordered ``[translation, rotation]``; it is stored here in gtsam's
 ``[rotation, translation]`` order, which is what ``gtsam.readG2o`` does too.
@@ -17,15 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
-from kimera_multi_py.errors import DatasetError
-from kimera_multi_py.geometry import make_pose, quat_to_rot, rot_to_quat
+from kimera_multi_py.core.errors import DatasetError
+from kimera_multi_py.core.geometry import make_pose, quat_to_rot, rot_to_quat
+from kimera_multi_py.core.posegraph import PoseGraph, chain_odometry, split_key
 from kimera_multi_py.io.planar import (
     information_from_se2,
     information_to_se2,
     pose_to_se2,
     se2_to_pose,
 )
-from kimera_multi_py.io.pose_graph import PoseGraph, chain_odometry, split_key
 from kimera_multi_py.io.text import read_text
 
 log = logging.getLogger(__name__)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kimera_multi_py.geometry import make_pose
+from kimera_multi_py.core.geometry import make_pose
 
 _IN_PLANE = np.array([3, 4, 2])  # x, y, θ -> tx, ty, rz in gtsam's [R, t] order
 _OUT_OF_PLANE = np.array([0, 1, 5])  # rx, ry, tz

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from kimera_multi_py.errors import DatasetError
+from kimera_multi_py.core.errors import DatasetError
 
 
 def read_text(path: str | Path, what: str) -> str:

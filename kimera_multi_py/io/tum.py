@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kimera_multi_py.errors import DatasetError
-from kimera_multi_py.geometry import make_pose, quat_to_rot, rot_to_quat
+from kimera_multi_py.core.errors import DatasetError
+from kimera_multi_py.core.geometry import make_pose, quat_to_rot, rot_to_quat
 
 
 def write_tum(path: str | Path, stamps: np.ndarray, poses: np.ndarray) -> None:

@@ -9,18 +9,18 @@ from typing import Annotated, Any
 
 from pydantic import Field, field_validator, model_validator
 
-from kimera_multi_py.config import StrictModel, validate
-from kimera_multi_py.errors import ConfigError
-from kimera_multi_py.mapping.objects import ObjectMap
-from kimera_multi_py.mapping.semantic_octree import SemanticOctree
-from kimera_multi_py.mapping.submaps import SubmapMap
-from kimera_multi_py.semantics import (
+from kimera_multi_py.core.config import StrictModel, validate
+from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.core.semantics import (
     CLASS_IDS,
     DYNAMIC_CLASSES,
     NUM_CLASSES,
     OBJECT_CLASSES,
     STRUCTURE_CLASSES,
 )
+from kimera_multi_py.mapping.objects import ObjectMap
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
+from kimera_multi_py.mapping.submaps import SubmapMap
 
 PosFloat = Annotated[float, Field(gt=0)]
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kimera_multi_py.geometry import inverse, so3_exp
+from kimera_multi_py.core.geometry import inverse, so3_exp
 
 _UP = np.array([0.0, 0.0, 1.0])
 

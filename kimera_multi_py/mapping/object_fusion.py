@@ -21,7 +21,7 @@ def object_groups(classes: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: f
                   min_iou: float = 0.2) -> np.ndarray:
     """The group of every box: two same-class axis-aligned boxes are one object when they overlap
     by more than ``-margin`` along every axis and their union stays within the class's plausible
-    size (:data:`~kimera_multi_py.semantics.MAX_OBJECT_EXTENT`: fragments of a long table seen from
+    size (:data:`~kimera_multi_py.core.semantics.MAX_OBJECT_EXTENT`: fragments of a long table seen from
     either end merge, two cabinets side by side do not), or when their IoU is at least ``min_iou``
     (two robots' views of one object). Groups are numbered by their first box."""
     from scipy.sparse import coo_matrix

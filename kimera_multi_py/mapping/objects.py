@@ -1,4 +1,4 @@
-"""Object map: per-keyframe detections, Hungarian data association and landmarks (DESIGN §4.2).
+"""Object map: per-keyframe detections, Hungarian data association and landmarks (docs/algorithms/mapping.md).
 
 Detections
     Euclidean clusters of the end points of one keyframe that share an object class
@@ -44,11 +44,11 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from kimera_multi_py.geometry import inverse, so3_exp, transform_points
+from kimera_multi_py.core.geometry import inverse, so3_exp, transform_points
+from kimera_multi_py.core.semantics import CLASS_NAMES, MAX_OBJECT_EXTENT
 from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.axes import StructureAxes
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
-from kimera_multi_py.semantics import CLASS_NAMES, MAX_OBJECT_EXTENT
 
 log = logging.getLogger(__name__)
 

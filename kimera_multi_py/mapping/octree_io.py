@@ -11,7 +11,7 @@ Our format (all little-endian)::
 
 Reading checks the checksum first and then the structure of the octree (sorted, aligned,
 disjoint leaves, values inside the clamping range), so any corrupt or truncated file raises
-:class:`~kimera_multi_py.errors.MapError` and never anything else.
+:class:`~kimera_multi_py.core.errors.MapError` and never anything else.
 
 The ``.bt`` writer follows OctoMap's ``writeBinaryNode``: a pre-order walk over inner nodes,
 two bytes per inner node with two bits per child (``01`` occupied leaf, ``10`` free leaf,
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.errors import MapError
+from kimera_multi_py.core.errors import MapError
 from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.semantic_octree import (
     PRUNE_MAX_LEVEL,
@@ -195,7 +195,7 @@ def _check_structure(
 # ---- PLY -------------------------------------------------------------------------------------
 def class_colors(num_classes: int) -> np.ndarray:
     """RGB per class id 0..K: the shared palette when K matches it, else evenly spread hues."""
-    from kimera_multi_py.semantics import CLASS_COLORS
+    from kimera_multi_py.core.semantics import CLASS_COLORS
 
     if len(CLASS_COLORS) == num_classes + 1:
         return CLASS_COLORS.astype(np.uint8)

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kimera_multi_py.geometry import inverse, se3_exp, se3_log
+from kimera_multi_py.core.geometry import inverse, se3_exp, se3_log
 
 _COV_EPS = 1e-3  # small_gicp's covariance regularisation along the normal
 

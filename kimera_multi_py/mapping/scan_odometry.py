@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kimera_multi_py.geometry import inverse, se3_exp, se3_log, transform_points
+from kimera_multi_py.core.geometry import inverse, se3_exp, se3_log, transform_points
 from kimera_multi_py.mapping.floor import FloorReference
 from kimera_multi_py.mapping.heading import HeadingReference
 from kimera_multi_py.mapping.registration import ScanRegistration, constrained_information, fuse

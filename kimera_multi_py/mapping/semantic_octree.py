@@ -1,4 +1,4 @@
-"""Multi-class semantic octree: a linear octree of clamped semantic log-odds (DESIGN §4.1).
+"""Multi-class semantic octree: a linear octree of clamped semantic log-odds (docs/algorithms/mapping.md).
 
 Representation
     Three parallel arrays sorted by Morton code (:mod:`kimera_multi_py.mapping.morton`):
@@ -31,7 +31,6 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -763,32 +762,6 @@ class SemanticOctree:
         occ = rows[:, 1:]
         np.copyto(occ, np.broadcast_to(value, occ.shape).astype(np.int16), where=others)
         return rows
-
-    # ---- files (see octree_io) ---------------------------------------------------------------
-    def save(self, path: str | Path) -> None:
-        """Write the compact binary format of :mod:`.octree_io` (versioned, checksummed)."""
-        from kimera_multi_py.mapping.octree_io import save_octree
-
-        save_octree(self, path)
-
-    @classmethod
-    def load(cls, path: str | Path) -> SemanticOctree:
-        """Read a file written by :meth:`save`; raises ``MapError`` on any corruption."""
-        from kimera_multi_py.mapping.octree_io import load_octree
-
-        return load_octree(path)
-
-    def export_ply(self, path: str | Path) -> int:
-        """Write occupied leaves as coloured points (binary PLY); returns the point count."""
-        from kimera_multi_py.mapping.octree_io import export_ply
-
-        return export_ply(self, path)
-
-    def export_bt(self, path: str | Path) -> int:
-        """Write OctoMap's binary ``.bt`` (maximum-likelihood occupancy); returns node count."""
-        from kimera_multi_py.mapping.octree_io import export_bt
-
-        return export_bt(self, path)
 
 
 def occupied_mask(values: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kimera_multi_py.geometry import inverse, transform_points
+from kimera_multi_py.core.geometry import inverse, transform_points
 from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.semantic_octree import _BLOCK_SHIFT, SemanticOctree
 
@@ -77,7 +77,7 @@ def _group_sum(codes: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 class SubmapMap:
-    """A robot's semantic map assembled from re-anchorable submaps (DESIGN §4.1).
+    """A robot's semantic map assembled from re-anchorable submaps (docs/algorithms/mapping.md).
 
     ``octree_kwargs`` are passed to :class:`SemanticOctree` (observation model, clamping,
     dynamic classes, top-K). ``move_threshold`` (default half a voxel) is how far any cell of a

@@ -18,7 +18,8 @@ import networkx as nx
 import numpy as np
 import spark_dsg as dsg
 
-from kimera_multi_py.geometry import rot_to_quat
+from kimera_multi_py.core.geometry import rot_to_quat
+from kimera_multi_py.core.semantics import CLASS_COLORS, CLASS_NAMES
 from kimera_multi_py.scene_graph.graph import (
     AGENTS_LAYER,
     BUILDING_LAYER,
@@ -29,7 +30,6 @@ from kimera_multi_py.scene_graph.graph import (
     SceneGraphError,
     robot_letter,
 )
-from kimera_multi_py.semantics import CLASS_COLORS, CLASS_NAMES
 
 _ROOM_COLORS = np.array([[228, 26, 28], [55, 126, 184], [77, 175, 74], [152, 78, 163], [255, 127, 0],
                          [166, 86, 40], [247, 129, 191], [153, 153, 153], [255, 255, 51], [0, 128, 128]], np.uint8)

@@ -1,4 +1,4 @@
-"""The layered scene graph as flat arrays, and :func:`build_scene_graph` (DESIGN §4.6).
+"""The layered scene graph as flat arrays, and :func:`build_scene_graph` (docs/algorithms/scene_graph.md).
 
 Layers and ids follow Spark-DSG: 2 objects (``O``) and agents (the robot's letter, one
 partition per robot), 3 places (``p``), 4 rooms (``R``), 5 building (``B``). Parents: object and
@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from kimera_multi_py.errors import KimeraMultiError
+from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.semantics import CLASS_IDS, CLASS_NAMES
 from kimera_multi_py.mapping.object_fusion import team_id
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.scene_graph.grid import DistanceField, distance_field, fill_holes, occupancy_grid
@@ -33,7 +34,6 @@ from kimera_multi_py.scene_graph.level import level_frame, levelled_grid
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 from kimera_multi_py.scene_graph.places import Places, extract_places
 from kimera_multi_py.scene_graph.rooms import find_rooms, find_rooms_ceiling, room_edges
-from kimera_multi_py.semantics import CLASS_IDS, CLASS_NAMES
 
 OBJECTS_LAYER, AGENTS_LAYER, PLACES_LAYER, ROOMS_LAYER, BUILDING_LAYER = 2, 2, 3, 4, 5
 RESERVED_LETTERS = frozenset("OpRB")

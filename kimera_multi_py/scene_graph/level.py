@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from kimera_multi_py.core.semantics import CLASS_IDS
 from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.semantic_octree import Leaves, SemanticOctree
 from kimera_multi_py.scene_graph.grid import OccupancyGrid, _occupied
-from kimera_multi_py.semantics import CLASS_IDS
 
 _MARGIN = 2
 

@@ -1,11 +1,11 @@
-"""Parameters of the scene-graph builder (DESIGN §4.6; Hydra's defaults where it has them)."""
+"""Parameters of the scene-graph builder (docs/algorithms/scene_graph.md; Hydra's defaults where it has them)."""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
-from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.core.errors import ConfigError
 
 
 @dataclass(frozen=True)

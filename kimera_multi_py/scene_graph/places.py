@@ -1,6 +1,6 @@
 """Places: the generalised Voronoi diagram of free space, compressed into a sparse graph.
 
-Follows Hydra's ``gvd_integrator`` / ``graph_extractor`` (DESIGN §4.6), vectorised over the
+Follows Hydra's ``gvd_integrator`` / ``graph_extractor`` (docs/algorithms/scene_graph.md), vectorised over the
 whole grid: the distance field comes with parent (nearest obstacle) indices; a free voxel is
 on the GVD when one of its 26 neighbours has a *distinct* parent (the parents are more than
 ``gvd_parent_voxels`` apart, or seen from the two voxels at an angle whose cosine is below

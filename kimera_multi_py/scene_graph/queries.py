@@ -1,5 +1,5 @@
 """Queries on a scene graph: the room of an object, the objects in a room, a shortest route over
-places, and where a robot was at a time (DESIGN §4.6).
+places, and where a robot was at a time (docs/algorithms/scene_graph.md).
 
 Nodes are named as Spark-DSG prints them (``O(3)``, ``R(1)``, ``p(…)``, ``a(12)``); ``O3`` and
 ``R1`` are accepted too, and plain integers mean object ids for objects and room indices for
@@ -15,9 +15,9 @@ import networkx as nx
 import numpy as np
 from scipy.spatial import cKDTree
 
+from kimera_multi_py.core.semantics import CLASS_IDS, CLASS_NAMES
 from kimera_multi_py.scene_graph.dsg_io import agent_symbol, object_symbol, place_symbol, room_symbol
 from kimera_multi_py.scene_graph.graph import SceneGraph, SceneGraphError
-from kimera_multi_py.semantics import CLASS_IDS, CLASS_NAMES
 
 _NAME = re.compile(r"^\s*([A-Za-z])\s*\(?\s*(\d+)\s*\)?\s*$")
 

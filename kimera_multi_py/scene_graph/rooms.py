@@ -1,4 +1,4 @@
-"""Rooms: Hydra's dilation sweep over the places graph, then seed growth (DESIGN §4.6).
+"""Rooms: Hydra's dilation sweep over the places graph, then seed growth (docs/algorithms/scene_graph.md).
 
 For each δ from ``room_delta_max`` down to ``room_delta_min`` the places with clearance above δ
 and the edges with weight above δ form a subgraph; its components of at least

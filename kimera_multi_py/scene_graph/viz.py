@@ -11,10 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.geometry import transform_points
+from kimera_multi_py.core.geometry import transform_points
+from kimera_multi_py.core.semantics import CLASS_COLORS, CLASS_NAMES
 from kimera_multi_py.scene_graph.dsg_io import room_color
 from kimera_multi_py.scene_graph.graph import SceneGraph
-from kimera_multi_py.semantics import CLASS_COLORS, CLASS_NAMES
 
 _GREY = np.array([150, 150, 150], dtype=np.uint8)
 

@@ -18,7 +18,7 @@ Typical use::
     sim.world.raycast(origin, dirs, max_range)   # vectorised (ranges, labels)
     sim.humans_at(t)               # walking humans (class ``human``) as dynamic primitives
 
-Class ids and names are in :mod:`kimera_multi_py.semantics`.
+Class ids and names are in :mod:`kimera_multi_py.core.semantics`.
 """
 
 from kimera_multi_py.sim.scenario import ScenarioConfig, load_scenario

@@ -13,9 +13,9 @@ from typing import Annotated, Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from kimera_multi_py.config import StrictModel, apply_env_overrides, load_toml, validate
-from kimera_multi_py.errors import ConfigError
-from kimera_multi_py.semantics import CLASS_IDS, CLASS_NAMES, DYNAMIC_CLASSES, STRUCTURE_CLASSES
+from kimera_multi_py.core.config import StrictModel, apply_env_overrides, load_toml, validate
+from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.core.semantics import CLASS_IDS, CLASS_NAMES, DYNAMIC_CLASSES, STRUCTURE_CLASSES
 
 PosFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kimera_multi_py.geometry import se3_exp
-from kimera_multi_py.semantics import NUM_CLASSES
+from kimera_multi_py.core.geometry import se3_exp
+from kimera_multi_py.core.semantics import NUM_CLASSES
 from kimera_multi_py.sim.world import Primitives, World
 
 

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kimera_multi_py.errors import ConfigError
-from kimera_multi_py.geometry import relative, yaw_pose
-from kimera_multi_py.semantics import CLASS_IDS
+from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.core.geometry import relative, yaw_pose
+from kimera_multi_py.core.semantics import CLASS_IDS
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.sensors import OdometryModel, RangeCategorySensor, Scan, flip_confusion, ray_pattern
 from kimera_multi_py.sim.world import ELLIPSOID, Primitives, World

@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kimera_multi_py.errors import ConfigError
-from kimera_multi_py.geometry import so3_exp
-from kimera_multi_py.semantics import CLASS_IDS, CLASS_NAMES
+from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.core.geometry import so3_exp
+from kimera_multi_py.core.semantics import CLASS_IDS, CLASS_NAMES
 from kimera_multi_py.sim.scenario import ScenarioConfig
 
 BOX, ELLIPSOID = 0, 1

@@ -5,7 +5,7 @@
 CA: ``robot0`` .. ``robotN-1``, ``server``, ``router`` and ``observer``. Keys are EC P-256, the
 certificates carry SAN ``localhost`` and ``127.0.0.1`` and both server and client use, since a
 Zenoh process both listens and connects. With ``enable_mtls`` every link checks both ends, so a
-process without a certificate of this CA cannot join, even one that trusts the CA (DESIGN §7).
+process without a certificate of this CA cannot join, even one that trusts the CA (docs/deployment.md).
 
 :func:`write_zenoh_config` writes one process's ``--zenoh-config`` file (the
 ``transport/link/tls`` block of :func:`kimera_multi_py.comms.zenoh_bus.tls_settings`).
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.core.errors import ConfigError
 
 CA_CERT, CA_KEY = "ca.pem", "ca.key"
 DEFAULT_DAYS = 365

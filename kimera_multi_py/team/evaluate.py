@@ -9,17 +9,17 @@ from pathlib import Path
 import numpy as np
 
 from kimera_multi_py.agent.outputs import read_outcome
-from kimera_multi_py.consensus.map_fusion import octree_cells
-from kimera_multi_py.errors import DatasetError, MapError
+from kimera_multi_py.core.errors import DatasetError, MapError
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import map_quality
 from kimera_multi_py.eval.team import excluded_robots, scene_graph_results, team_results, trajectory_results
 from kimera_multi_py.io.tum import write_tum
 from kimera_multi_py.mapping.octree_io import load_octree
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
-from kimera_multi_py.sim.runner import agent_params
+from kimera_multi_py.mapshare.fusion import octree_cells
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Simulation
+from kimera_multi_py.team.build import agent_params
 
 
 def _server_weights(run_dir: Path) -> dict[tuple[int, int, int, int], float] | None:

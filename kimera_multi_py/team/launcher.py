@@ -27,8 +27,8 @@ from typing import Any
 from kimera_multi_py.comms import keys, runtime
 from kimera_multi_py.comms.loopback import Partition
 from kimera_multi_py.comms.messages import AgentState
-from kimera_multi_py.consensus.zenoh_team import free_ports
-from kimera_multi_py.errors import ConfigError, KimeraMultiError
+from kimera_multi_py.comms.team import free_ports
+from kimera_multi_py.core.errors import ConfigError, KimeraMultiError
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.team.link_proxy import LinkProxy
 
@@ -158,7 +158,7 @@ def _tls_configs(job: LaunchJob, folder: Path) -> dict[str, Path]:
 
 
 def _cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "kimera_multi_py.cli", *args]
+    return [sys.executable, "-m", "kimera_multi_py.cli.main", *args]
 
 
 async def _launch(job: LaunchJob, on_update: View | None) -> None:

@@ -20,23 +20,22 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from kimera_multi_py.agent.agent import Agent, AgentParams, KeyframeInput
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.checkpoint import load_checkpoint, save_checkpoint
 from kimera_multi_py.agent.node import AgentNode, NodeParams
 from kimera_multi_py.agent.outputs import outcome_of, own_graph, write_outcome
-from kimera_multi_py.agent.sources import KeyframeSource, SimSource, source_from_spec
 from kimera_multi_py.comms import runtime
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
-from kimera_multi_py.consensus.pgo_params import team_params
-from kimera_multi_py.consensus.server_node import SERVER_ID, Server, ServerNode
-from kimera_multi_py.consensus.team_pgo import ScheduleParams
-from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.io.g2o import write_g2o
+from kimera_multi_py.io.sources import KeyframeSource
 from kimera_multi_py.mapping.config import MappingConfig, get_submap_map
 from kimera_multi_py.mapping.octree_io import export_team_map
-from kimera_multi_py.sim.runner import agent_params
+from kimera_multi_py.pgo.params import team_params
+from kimera_multi_py.pgo.team import ScheduleParams
+from kimera_multi_py.server.node import SERVER_ID, Server, ServerNode
+from kimera_multi_py.team.build import params_for, source_from_spec
 
 log = logging.getLogger(__name__)
 
@@ -136,22 +135,6 @@ def _node_state(node: AgentNode, source: KeyframeSource) -> dict[str, Any]:
     state = json.dumps(source.state()) if hasattr(source, "state") else None
     return {"epoch": node.pgo.completed if node.pgo is not None else 0, "next_keyframe": node.agent.num_keyframes,
             "source": state}
-
-
-def params_for(source: KeyframeSource) -> AgentParams:
-    """The agent's noise model: the scenario's for the simulator, the recording's sensor info
-    (``odometry.rot_sigma_deg``, ``odometry.trans_sigma``, ``keyframe_distance``) otherwise."""
-    if isinstance(source, SimSource):
-        return agent_params(source.sim.cfg)
-    sensor = getattr(source, "manifest", {}).get("sensor", {})
-    odo = sensor.get("odometry") or {}
-    try:
-        rot = max(float(np.deg2rad(float(odo.get("rot_sigma_deg", 0.5)))), 1e-4)
-        trans = max(float(odo.get("trans_sigma", 0.03)), 1e-3)
-        dist = float(sensor.get("keyframe_distance", 0.5))
-    except (TypeError, ValueError) as exc:
-        raise ConfigError("manifest.sensor", f"bad odometry noise model: {exc}") from None
-    return AgentParams(odom_sigmas=(rot, trans), keyframe_distance=dist)
 
 
 # ---------------------------------------------------------------------------- server

@@ -7,8 +7,8 @@ from typing import Protocol
 
 import numpy as np
 
-from kimera_multi_py.geometry import rot_to_quat, transform_points
-from kimera_multi_py.semantics import CLASS_COLORS, CLASS_NAMES
+from kimera_multi_py.core.geometry import rot_to_quat, transform_points
+from kimera_multi_py.core.semantics import CLASS_COLORS, CLASS_NAMES
 
 _ROBOT_COLORS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40],
                           [148, 103, 189], [140, 86, 75], [227, 119, 194], [127, 127, 127]], dtype=np.uint8)

@@ -21,11 +21,11 @@ from kimera_multi_py.agent.checkpoint import (
     save_checkpoint,
     snapshot,
 )
-from kimera_multi_py.agent.sources import SimSource
-from kimera_multi_py.consensus.pcm import PcmNoise
-from kimera_multi_py.errors import CheckpointError, KimeraMultiError
+from kimera_multi_py.core.errors import CheckpointError, KimeraMultiError
+from kimera_multi_py.frontend.pcm import PcmNoise
 from kimera_multi_py.mapping.config import MappingConfig, ObjectMapConfig
 from kimera_multi_py.sim import load_scenario
+from kimera_multi_py.sim.source import SimSource
 
 from ..sim.helpers import TINY
 
@@ -218,3 +218,22 @@ def test_fuzzed_payloads_with_a_valid_crc_load_or_raise_checkpoint_error(tmp_pat
             assert str(exc).startswith(f"{path}: ")
             outcomes["refused"] += 1
     assert outcomes["refused"] > 50, outcomes
+
+
+def test_checkpoint_written_before_the_package_split_loads():
+    """``tests/data/agent_tiny_v6.kmc`` was written by the code before the package was split by
+    concern (classes under ``consensus/``): it loads through the renamed-class table and holds
+    the same state as an agent that processes the same 12 keyframes now."""
+    from pathlib import Path
+
+    from kimera_multi_py.team.build import agent_params
+
+    old, extra = load_checkpoint(Path(__file__).parents[1] / "data" / "agent_tiny_v6.kmc")
+    cfg = load_scenario(TINY)
+    fresh = Agent(0, (0, 1), agent_params(cfg))
+    for kf in itertools.islice(SimSource(cfg, 0, 0), 12):
+        fresh.process_keyframe(kf)
+    assert extra == {"next": 12}
+    old.scan_odometry.stats.seconds = fresh.scan_odometry.stats.seconds  # wall times, not state
+    old.front_end_seconds = fresh.front_end_seconds
+    state_equal(old, fresh)

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from kimera_multi_py.agent.loop_closure import DescriptorSpec, constellation_descriptor, similarity, verify
-from kimera_multi_py.geometry import inverse, make_pose, so3_exp, transform_points, yaw_pose
+from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp, transform_points, yaw_pose
+from kimera_multi_py.frontend.loop_closure import DescriptorSpec, constellation_descriptor, similarity, verify
 
 SPEC = DescriptorSpec(num_classes=8)
 

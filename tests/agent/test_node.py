@@ -10,11 +10,12 @@ from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode, NodeParams
 from kimera_multi_py.comms import LoopbackNetwork
 from kimera_multi_py.comms.messages import AgentState, PgoEpoch, PgoStatus
-from kimera_multi_py.consensus.pgo import PgoParams
-from kimera_multi_py.consensus.team_pgo import EPOCH_ROUNDS, ScheduleParams
 from kimera_multi_py.eval.metrics import ate_rmse
+from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.pgo.team import EPOCH_ROUNDS, ScheduleParams
 from kimera_multi_py.sim import Simulation, load_scenario
-from kimera_multi_py.sim.runner import agent_params, keyframe_input
+from kimera_multi_py.sim.source import keyframe_input
+from kimera_multi_py.team.build import agent_params
 
 from ..sim.helpers import SMALL, TINY
 
@@ -106,7 +107,7 @@ def test_epoch_tags_keep_other_epochs_out():
 def test_closures_accepted_after_the_final_epoch_get_a_final_epoch_of_their_own():
     """A closure the team accepts once its final epoch opened (verified during it, or answered
     late) is optimised: the leader runs one more final epoch, and only when there is something new."""
-    from kimera_multi_py.consensus.team_pgo import TeamPgo
+    from kimera_multi_py.pgo.team import TeamPgo
 
     sim = Simulation(load_scenario(TINY), seed=0)
     agent = Agent(0, None, agent_params(sim.cfg))

@@ -1,4 +1,4 @@
-"""The frame a node reports follows where its poses are (issue 11): a robot kept out of the team
+"""The frame a node reports follows where its poses are: a robot kept out of the team
 frame reports its own id as ``frame`` (and its map and objects go out in that frame), in both
 modes, and gets the team frame back once it is admitted again."""
 
@@ -7,15 +7,16 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from kimera_multi_py.agent.agent import Agent, AgentParams, KeyframeInput
+from kimera_multi_py.agent.agent import Agent, AgentParams
 from kimera_multi_py.agent.node import AgentNode, NodeParams
 from kimera_multi_py.agent.outputs import outcome_of
 from kimera_multi_py.comms import LoopbackNetwork
 from kimera_multi_py.comms.messages import PublicPoses
-from kimera_multi_py.consensus.server_node import SERVER_ID
+from kimera_multi_py.core.geometry import yaw_pose
+from kimera_multi_py.core.keyframe import KeyframeInput
+from kimera_multi_py.core.posegraph import robot_key
 from kimera_multi_py.eval.team import excluded_robots
-from kimera_multi_py.geometry import yaw_pose
-from kimera_multi_py.io.pose_graph import robot_key
+from kimera_multi_py.server.node import SERVER_ID
 
 KEYFRAMES = 3
 

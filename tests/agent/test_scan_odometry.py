@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.agent.agent import Agent, AgentParams
-from kimera_multi_py.agent.sources import keyframe_input
 from kimera_multi_py.eval.metrics import ate_rmse
 from kimera_multi_py.sim import Simulation, load_scenario
-from kimera_multi_py.sim.runner import SimRunner, agent_params
+from kimera_multi_py.sim.source import keyframe_input
+from kimera_multi_py.team.build import agent_params
+from kimera_multi_py.workflow.simulate import SimRunner
 
 from ..sim.helpers import REPO, TINY
 

@@ -6,19 +6,12 @@ import json
 import numpy as np
 import pytest
 
-from kimera_multi_py.agent.sources import (
-    RecordedSource,
-    RecordingWriter,
-    SimSource,
-    keyframe_input,
-    read_ground_truth,
-    read_manifest,
-    source_from_spec,
-    write_recording,
-)
-from kimera_multi_py.errors import ConfigError, DatasetError
+from kimera_multi_py.core.errors import ConfigError, DatasetError
+from kimera_multi_py.io.sources import RecordedSource, RecordingWriter, read_ground_truth, read_manifest
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.scenario import with_team_size
+from kimera_multi_py.sim.source import SimSource, keyframe_input, recorded_scenario, write_recording
+from kimera_multi_py.team.build import source_from_spec
 
 from ..sim.helpers import TINY
 
@@ -98,7 +91,7 @@ def test_recording_round_trip_equals_the_simulator(recording, truth, cfg):
     sim = Simulation(cfg, 0)
     for r in (0, 1):
         assert np.array_equal(gt.poses[r], sim.plans[r].poses) and np.array_equal(gt.stamps[r], sim.plans[r].stamps)
-    assert gt.info["seed"] == 0 and gt.info["scenario_path"] == str(TINY) and gt.scenario() == cfg
+    assert gt.info["seed"] == 0 and gt.info["scenario_path"] == str(TINY) and recorded_scenario(gt) == cfg
 
 
 def test_writer_from_plain_numpy_arrays(tmp_path):

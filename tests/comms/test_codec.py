@@ -11,11 +11,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from kimera_multi_py.comms import codec
+from kimera_multi_py.comms import codec, wire
 from kimera_multi_py.comms.codec import Codec, CodecError, Envelope
 from kimera_multi_py.comms.messages import MESSAGE_TYPES, Heartbeat, Message, PublicPoses
 from kimera_multi_py.comms.samples import all_random_messages, random_message
-from kimera_multi_py.errors import MessageError
+from kimera_multi_py.core.errors import MessageError
 
 ROBOTS = frozenset(range(4))
 SEEDS = [codec.encode(m, team="t0", src=1, seq=i, stamp=1.0)
@@ -79,7 +79,7 @@ def test_wire_types_are_strict() -> None:
     poses = PublicPoses(robot=1, round=0, keys=[1], poses=np.eye(4)[None])
     body = poses.to_wire()
     body["keys"] = np.array([1], np.int32)  # right values, wrong dtype: refused on the wire
-    data = _raw(poses, body={k: codec._pack_array(v) if isinstance(v, np.ndarray) else v
+    data = _raw(poses, body={k: wire._pack_array(v) if isinstance(v, np.ndarray) else v
                              for k, v in body.items()})
     with pytest.raises(MessageError, match=r"PublicPoses\.keys: expected dtype int64"):
         codec.decode(data)
@@ -94,7 +94,7 @@ def test_array_ext_violations() -> None:
         (b"\x0b\x01\x01\x00\x00\x00\x07", "boolean"),
     ]:
         with pytest.raises(CodecError, match=what):
-            codec._unpack_array(blob)
+            wire._unpack_array(blob)
 
 
 def test_size_limit_and_non_bytes() -> None:

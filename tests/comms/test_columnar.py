@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from kimera_multi_py.comms import codec, columnar, keys
+from kimera_multi_py.comms import codec, columnar, keys, wire
 from kimera_multi_py.comms.bus import BusBase, Subscription, share, share_range
 from kimera_multi_py.comms.codec import MAX_BATCH, Codec, CodecError, Envelope, Group
 from kimera_multi_py.comms.messages import (
@@ -36,7 +36,7 @@ from kimera_multi_py.comms.messages import (
     Str,
 )
 from kimera_multi_py.comms.samples import _random_array, random_message
-from kimera_multi_py.errors import MessageError
+from kimera_multi_py.core.errors import MessageError
 
 TEAM = "t0"
 ROBOTS = frozenset(range(4))
@@ -74,7 +74,7 @@ def envelope(body: Any, **fields: Any) -> dict[str, Any]:
 
 
 def pack(env: dict[str, Any]) -> bytes:
-    return codec._packb(env)
+    return wire._packb(env)
 
 
 def wrap(parts: list[bytes]) -> bytes:
@@ -864,7 +864,7 @@ _scalars = st.one_of(
 )
 _values = st.recursive(_scalars, lambda inner: st.one_of(
     st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=6), inner, max_size=4)), max_leaves=10)
-_dtypes = st.sampled_from(list(codec._DTYPES.values()))
+_dtypes = st.sampled_from(list(wire._DTYPES.values()))
 _arrays = st.builds(
     lambda dt, shape, seed: np.random.default_rng(seed).integers(0, 256, int(np.prod(shape)) * dt.itemsize,
                                                                dtype=np.uint8).view(dt).reshape(shape)

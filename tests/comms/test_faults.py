@@ -9,7 +9,7 @@ from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.faults import boundaries, check_robots, cut_links, parse_partition, sim_faults
 from kimera_multi_py.comms.loopback import LoopbackNetwork
 from kimera_multi_py.comms.messages import Heartbeat
-from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.core.errors import ConfigError
 
 
 def test_a_partition_spec_names_its_groups_and_window():

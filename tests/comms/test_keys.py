@@ -7,7 +7,7 @@ import pytest
 import zenoh
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.errors import MessageError
+from kimera_multi_py.core.errors import MessageError
 
 
 def test_builders_follow_the_design_layout() -> None:

@@ -1,5 +1,5 @@
-"""largemsg: ``pack`` is byte-identical to ``codec._packb``; ``unpack`` returns what
-``msgpack.unpackb(..., ext_hook=codec._ext_hook)`` returns (arrays as read-only views into the
+"""largemsg: ``pack`` is byte-identical to ``wire._packb``; ``unpack`` returns what
+``msgpack.unpackb(..., ext_hook=wire._ext_hook)`` returns (arrays as read-only views into the
 message), or None, or the very MessageError msgpack's hook raises — whatever the bytes."""
 
 from __future__ import annotations
@@ -19,13 +19,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from kimera_multi_py.comms import codec, largemsg
+from kimera_multi_py.comms import codec, largemsg, wire
 from kimera_multi_py.comms.codec import Codec, CodecError
 from kimera_multi_py.comms.messages import MESSAGE_TYPES, Message, Ping
 from kimera_multi_py.comms.samples import all_random_messages, random_message
-from kimera_multi_py.errors import MessageError
+from kimera_multi_py.core.errors import MessageError
 
-DTYPES = [codec._DTYPES[c] for c in sorted(codec._DTYPES)]
+DTYPES = [wire._DTYPES[c] for c in sorted(wire._DTYPES)]
 LENGTHS = [0, 1, 15, 16, 31, 32, 127, 128, 255, 256, 65535, 65536]
 INTS = [0, 1, 127, 128, 255, 256, 65535, 65536, 2**31 - 1, 2**31, 2**32 - 1, 2**32, 2**63 - 1, 2**63,
         2**64 - 1, -1, -31, -32, -33, -127, -128, -129, -(2**15) + 1, -(2**15), -(2**15) - 1,
@@ -36,7 +36,7 @@ SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=[Heal
 
 
 def ref_unpack(data: bytes) -> Any:
-    return msgpack.unpackb(data, raw=False, ext_hook=codec._ext_hook, strict_map_key=True)
+    return msgpack.unpackb(data, raw=False, ext_hook=wire._ext_hook, strict_map_key=True)
 
 
 def same(a: Any, b: Any) -> bool:
@@ -73,9 +73,9 @@ def is_view_of(a: np.ndarray, data: bytes) -> bool:
 
 
 def check_same_pack(obj: Any) -> bytes | None:
-    """pack(obj) and codec._packb(obj): the same bytes, or the same exception."""
+    """pack(obj) and wire._packb(obj): the same bytes, or the same exception."""
     try:
-        want = codec._packb(obj)
+        want = wire._packb(obj)
     except Exception as exc:  # noqa: BLE001 - compared below
         with pytest.raises(type(exc)) as info:
             largemsg.pack(obj)
@@ -132,15 +132,15 @@ def sample_messages() -> list[Message]:
 
 
 MESSAGES = sample_messages()
-ENVELOPES = [codec._packb(envelope(m, wire=True, seq=i * 977)) for i, m in enumerate(MESSAGES)]
+ENVELOPES = [wire._packb(envelope(m, wire=True, seq=i * 977)) for i, m in enumerate(MESSAGES)]
 
 
 @pytest.mark.parametrize("msg", MESSAGES, ids=lambda m: f"{m.TYPE}")
 def test_pack_envelopes_byte_identical(msg: Message) -> None:
-    want = codec._packb(envelope(msg, wire=True))
+    want = wire._packb(envelope(msg, wire=True))
     assert largemsg.pack(envelope(msg, wire=False)) == want
     assert largemsg.pack(envelope(msg, wire=True)) == want
-    assert codec._packb(envelope(msg, wire=False)) == want
+    assert wire._packb(envelope(msg, wire=False)) == want
 
 
 def test_pack_matches_codec_encode() -> None:
@@ -238,7 +238,7 @@ def test_pack_arrays_every_dtype(dt: np.dtype) -> None:
             data = check_same_pack(obj)
             assert data is not None
             check_unpack(data, supported=True)
-        assert largemsg.pack(a) == codec._packb(a)
+        assert largemsg.pack(a) == wire._packb(a)
         assert msgpack.unpackb(largemsg.pack(a)) == codec.ext_of(a)
 
 
@@ -427,7 +427,7 @@ def fuzz_bases() -> list[bytes]:
                "t": True, "n": None, "m": {"k": {"q": [1]}}}
     return [
         ENVELOPES[0], ENVELOPES[3], ENVELOPES[len(ENVELOPES) // 2],
-        *(codec._packb(envelope(m, wire=True)) for m in MESSAGES if m.TYPE == "Ping"),
+        *(wire._packb(envelope(m, wire=True)) for m in MESSAGES if m.TYPE == "Ping"),
         largemsg.pack(big), largemsg.pack(scalars),
     ]
 

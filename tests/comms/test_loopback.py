@@ -14,7 +14,7 @@ from kimera_multi_py.comms.bus import Bus, BusClosedError
 from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.loopback import Faults, LoopbackNetwork, Partition
 from kimera_multi_py.comms.messages import Heartbeat, LoopClosureReply, Ping, PublicPoses
-from kimera_multi_py.errors import ConfigError, MessageError
+from kimera_multi_py.core.errors import ConfigError, MessageError
 
 
 def ping(robot: int, nonce: int) -> Ping:

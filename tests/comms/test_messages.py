@@ -18,7 +18,7 @@ from kimera_multi_py.comms.messages import (
     PublicPoses,
 )
 from kimera_multi_py.comms.samples import random_message
-from kimera_multi_py.errors import MessageError
+from kimera_multi_py.core.errors import MessageError
 
 
 @pytest.mark.parametrize("type_name", sorted(MESSAGE_TYPES))

@@ -9,7 +9,7 @@ import pytest
 
 from kimera_multi_py.comms import codec
 from kimera_multi_py.comms.messages import PcgState
-from kimera_multi_py.errors import MessageError
+from kimera_multi_py.core.errors import MessageError
 
 
 def _fields(**over: Any) -> dict[str, Any]:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kimera_multi_py.consensus.alignment import align_frames, gnc_rotation_average, supported_edges
-from kimera_multi_py.geometry import inverse, make_pose, se3_exp, so3_exp
+from kimera_multi_py.alignment.frames import align_frames, gnc_rotation_average, supported_edges
+from kimera_multi_py.core.geometry import inverse, make_pose, se3_exp, so3_exp
 
 
 def scene(k: int, outlier_fraction: float, seed: int = 0):

@@ -17,11 +17,12 @@ import asyncio
 import numpy as np
 
 from kimera_multi_py.comms.loopback import LoopbackNetwork
-from kimera_multi_py.consensus.pgo import PgoAgent, split_local
-from kimera_multi_py.consensus.pgo_params import team_params
-from kimera_multi_py.consensus.runner import run_team
-from kimera_multi_py.geometry import inverse, make_pose
-from kimera_multi_py.io.pose_graph import PoseGraph, robot_key
+from kimera_multi_py.core.geometry import inverse, make_pose
+from kimera_multi_py.core.posegraph import PoseGraph, robot_key
+from kimera_multi_py.pgo.agent import PgoAgent
+from kimera_multi_py.pgo.local_graph import split_local
+from kimera_multi_py.pgo.params import team_params
+from kimera_multi_py.pgo.runtime import run_team
 from tests.consensus.test_pgo_aliased import CLOSURE_SIGMA, OFFSET, ROOM_A, ROOM_B, _noisy, _ring_pose
 
 # the simulator's odometry noise per keyframe (0.15 deg, 2 cm per axis)

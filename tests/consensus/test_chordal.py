@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kimera_multi_py.consensus.chordal import chordal_block, chordal_poses, edge_weights
-from kimera_multi_py.geometry import inverse, make_pose, so3_exp
+from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp
+from kimera_multi_py.pgo.chordal import chordal_block, chordal_poses, edge_weights
 
 
 def fake_graph(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

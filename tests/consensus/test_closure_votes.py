@@ -1,4 +1,4 @@
-"""Correlated loop closures split one vote in the robust cost (issue 11, office seed 9 with 5
+"""Correlated loop closures split one vote in the robust cost (office seed 9 with 5
 robots): a keyframe that also matches a place shifted by the pitch of a repeated structure
 registers that way against every keyframe of the other robot there, and the group of such
 closures outvotes the odometry segment that would have to bend to fit them."""
@@ -9,11 +9,11 @@ import asyncio
 
 import numpy as np
 
-from kimera_multi_py.consensus.pgo import PgoParams
-from kimera_multi_py.consensus.robust import correlated_votes
-from kimera_multi_py.consensus.server import solve_centralized
-from kimera_multi_py.geometry import inverse, make_pose, so3_exp
-from kimera_multi_py.io.pose_graph import PoseGraph
+from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp
+from kimera_multi_py.core.posegraph import PoseGraph
+from kimera_multi_py.core.robust import correlated_votes
+from kimera_multi_py.pgo.centralised import solve_centralized
+from kimera_multi_py.pgo.params import PgoParams
 from tests.consensus.test_pgo_aliased import distributed
 
 N, SLID = 60, 5  # poses per robot; slid closures from robot 0's keyframe 2

@@ -6,8 +6,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from kimera_multi_py.consensus.factors import between, fixed_neighbour
-from kimera_multi_py.geometry import make_pose, so3_exp, to_gtsam
+from kimera_multi_py.core.geometry import make_pose, so3_exp, to_gtsam
+from kimera_multi_py.pgo.factors import between, fixed_neighbour
 
 
 @pytest.mark.parametrize("kind", ["full", "diagonal", "singular"])

@@ -1,4 +1,4 @@
-"""Frame decisions over a row of identical rooms (:func:`.alignment.decide`, issue 11).
+"""Frame decisions over a row of identical rooms (:func:`.alignment.decide`).
 
 A robot meets its peers in a row of four identical rooms, 6 m apart, and (sometimes) at one place
 that looks like no other. Every room it shares with a peer also yields aliased closures to the
@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kimera_multi_py.consensus.alignment import FrameHypothesis, decide, frame_hypotheses, settled_decision
-from kimera_multi_py.geometry import inverse, make_pose, se3_exp
+from kimera_multi_py.alignment.frames import FrameHypothesis, decide, frame_hypotheses, settled_decision
+from kimera_multi_py.core.geometry import inverse, make_pose, se3_exp
 
 ROOM = 6.0
 T_TRUE = make_pose(np.eye(3), np.array([-12.0, 2.5, 0.0]))  # team <- own frame

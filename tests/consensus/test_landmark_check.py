@@ -1,4 +1,4 @@
-"""Landmark agreement of frame hypotheses (:mod:`kimera_multi_py.consensus.landmark_check`).
+"""Landmark agreement of frame hypotheses (:mod:`kimera_multi_py.alignment.landmark_check`).
 
 A row of three identical rooms 6 m apart (same objects, same classes) and a few objects that look
 like nothing else. The robot's landmarks, moved by the true frame, land on the team's wherever
@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kimera_multi_py.consensus.landmark_check import LandmarkScore, landmark_lead, landmark_scores
-from kimera_multi_py.geometry import make_pose, so3_exp
+from kimera_multi_py.alignment.landmark_check import LandmarkScore, landmark_lead, landmark_scores
+from kimera_multi_py.core.geometry import make_pose, so3_exp
 
 ROOM = np.array([[-1.0, -1.5, 0.4], [1.0, -1.5, 0.4], [0.0, -2.5, 0.8], [1.5, -0.5, 0.4]])
 ROOM_CLASSES = np.array([3, 4, 5, 3])

@@ -7,15 +7,15 @@ import pytest
 
 from kimera_multi_py.comms.comm_range import neighbours_within
 from kimera_multi_py.comms.messages import SubmapEvidence, SubmapPoses
-from kimera_multi_py.consensus.map_consensus import MapConsensus, MapConsensusParams
-from kimera_multi_py.consensus.map_exchange import MapExchange, full_links
-from kimera_multi_py.consensus.map_fusion import centralised_team_map, octree_cells
-from kimera_multi_py.consensus.map_metrics import agreement, occupancy_logodds, phi
-from kimera_multi_py.consensus.map_wire import pack_cells, unpack_cells
-from kimera_multi_py.errors import MessageError
-from kimera_multi_py.geometry import inverse, make_pose, so3_exp, transform_points
+from kimera_multi_py.core.errors import MessageError
+from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp, transform_points
+from kimera_multi_py.eval.map_metrics import agreement, occupancy_logodds, phi
 from kimera_multi_py.mapping import SemanticOctree, SubmapMap
 from kimera_multi_py.mapping.semantic_octree import SCALE
+from kimera_multi_py.mapshare.consensus import MapConsensus, MapConsensusParams
+from kimera_multi_py.mapshare.exchange import MapExchange, full_links
+from kimera_multi_py.mapshare.fusion import centralised_team_map, octree_cells
+from kimera_multi_py.mapshare.wire import pack_cells, unpack_cells
 
 from ..mapping.helpers import K, room_scan
 

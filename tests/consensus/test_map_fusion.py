@@ -7,9 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from kimera_multi_py.consensus.map_consensus import MapConsensus
-from kimera_multi_py.consensus.map_exchange import MapExchange
-from kimera_multi_py.consensus.map_fusion import (
+from kimera_multi_py.core.errors import MessageError
+from kimera_multi_py.core.geometry import make_pose, so3_exp
+from kimera_multi_py.mapping.octree_io import export_team_map
+from kimera_multi_py.mapshare.consensus import MapConsensus
+from kimera_multi_py.mapshare.exchange import MapExchange
+from kimera_multi_py.mapshare.fusion import (
     EvidenceMap,
     centralised_team_map,
     fuse_records,
@@ -17,11 +20,8 @@ from kimera_multi_py.consensus.map_fusion import (
     records_of,
     union_sorted,
 )
-from kimera_multi_py.consensus.map_laplacian import LaplacianState
-from kimera_multi_py.consensus.map_wire import pack_cells, pack_leaves, unpack_cells, unpack_leaves
-from kimera_multi_py.errors import MessageError
-from kimera_multi_py.geometry import make_pose, so3_exp
-from kimera_multi_py.mapping.octree_io import export_team_map
+from kimera_multi_py.mapshare.laplacian import LaplacianState
+from kimera_multi_py.mapshare.wire import pack_cells, pack_leaves, unpack_cells, unpack_leaves
 
 from ..mapping.helpers import K
 from .test_map_consensus import robot_map, same, snapshot

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.comms.messages import ObjectUpdate, SubmapPoses
-from kimera_multi_py.consensus.object_exchange import ObjectExchange
-from kimera_multi_py.errors import MessageError
-from kimera_multi_py.geometry import make_pose
+from kimera_multi_py.core.errors import MessageError
+from kimera_multi_py.core.geometry import make_pose
 from kimera_multi_py.mapping import ObjectMap
 from kimera_multi_py.mapping.object_fusion import fuse_objects, object_groups, team_id
+from kimera_multi_py.mapshare.objects import ObjectExchange
 
 from ..mapping.helpers import CHAIR, TABLE, K
 from ..mapping.test_objects import OBJECT_CLASSES, box_points

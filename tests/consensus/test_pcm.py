@@ -1,7 +1,7 @@
 import numpy as np
 
-from kimera_multi_py.consensus.pcm import PcmNoise, consistency_errors, pcm
-from kimera_multi_py.geometry import inverse, make_pose, se3_exp, so3_exp, yaw_pose
+from kimera_multi_py.core.geometry import inverse, make_pose, se3_exp, so3_exp, yaw_pose
+from kimera_multi_py.frontend.pcm import PcmNoise, consistency_errors, pcm
 
 # the drift() model below: 0.003 rad and 0.01 m per 0.5 m step
 NOISE = PcmNoise(odom_rot_per_m=0.005, odom_trans_per_m=0.015)

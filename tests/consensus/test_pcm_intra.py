@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kimera_multi_py.consensus.pcm import PcmNoise, odometry_consistent_path
-from kimera_multi_py.geometry import inverse, make_pose, so3_exp
+from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp
+from kimera_multi_py.frontend.pcm import PcmNoise, odometry_consistent_path
 
 STEP = 0.5  # m per keyframe
 ROT, TRANS = np.deg2rad(0.15), 0.02  # odometry noise per keyframe, per axis

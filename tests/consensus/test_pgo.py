@@ -10,14 +10,16 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from kimera_multi_py.consensus.cli_pgo import register
-from kimera_multi_py.consensus.evaluation import evaluate_robust, jaccard
-from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, colour_robots, split_local
-from kimera_multi_py.consensus.robust import tls_threshold
-from kimera_multi_py.consensus.workflow import load_graph, run_pgo
+from kimera_multi_py.cli.pgo import register
+from kimera_multi_py.core.posegraph import ODOMETRY
+from kimera_multi_py.core.robust import tls_threshold
+from kimera_multi_py.eval.pgo import evaluate_robust, jaccard
 from kimera_multi_py.io.g2o import read_g2o
-from kimera_multi_py.io.pose_graph import ODOMETRY
 from kimera_multi_py.io.tum import read_tum
+from kimera_multi_py.pgo.agent import PgoAgent
+from kimera_multi_py.pgo.local_graph import colour_robots, split_local
+from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.workflow.pgo_benchmark import load_graph, run_pgo
 
 
 def pgo(datasets_dir: Path, name: str) -> Path:

@@ -13,12 +13,14 @@ import asyncio
 import numpy as np
 
 from kimera_multi_py.comms.loopback import LoopbackNetwork
-from kimera_multi_py.consensus.factors import graph_cost
-from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, split_local
-from kimera_multi_py.consensus.runner import run_team
-from kimera_multi_py.consensus.server import solve_centralized
-from kimera_multi_py.geometry import inverse, make_pose, so3_exp
-from kimera_multi_py.io.pose_graph import PoseGraph, robot_key
+from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp
+from kimera_multi_py.core.posegraph import PoseGraph, robot_key
+from kimera_multi_py.pgo.agent import PgoAgent
+from kimera_multi_py.pgo.centralised import solve_centralized
+from kimera_multi_py.pgo.factors import graph_cost
+from kimera_multi_py.pgo.local_graph import split_local
+from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.pgo.runtime import run_team
 
 ROOM_A, ROOM_B, OFFSET = 4.0, 10.0, 6.0  # room centres along x; the rooms look identical
 # the simulator's noise: odometry stiff in translation, closures loose (σ [rot rad, trans m])

@@ -8,20 +8,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kimera_multi_py.consensus.cli_pgo import CLI_METHOD
-from kimera_multi_py.consensus.factors import graph_cost
-from kimera_multi_py.consensus.pgo import PgoAgent, PgoParams, split_local
-from kimera_multi_py.consensus.pgo_coarse import RECYCLE, CoarseSolver
-from kimera_multi_py.consensus.pgo_gn import GnPcgAgent, make_agent
-from kimera_multi_py.consensus.pgo_linear import LocalSystem, linearise_edges, se3_expmap
-from kimera_multi_py.consensus.workflow import (
+from kimera_multi_py.cli.pgo import CLI_METHOD
+from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.pgo.agent import PgoAgent
+from kimera_multi_py.pgo.coarse import RECYCLE, CoarseSolver
+from kimera_multi_py.pgo.factors import graph_cost
+from kimera_multi_py.pgo.gn import GnPcgAgent, make_agent
+from kimera_multi_py.pgo.linear import LocalSystem, linearise_edges, se3_expmap
+from kimera_multi_py.pgo.local_graph import split_local
+from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.workflow.pgo_benchmark import (
     _distributed,
     distributed_weights,
     inject_outliers,
     load_graph,
     run_pgo,
 )
-from kimera_multi_py.errors import ConfigError
 
 
 def pgo(datasets_dir: Path, name: str) -> Path:

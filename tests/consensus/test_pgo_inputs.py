@@ -13,10 +13,10 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from kimera_multi_py.consensus.cli_pgo import register
-from kimera_multi_py.consensus.workflow import inject_outliers, load_graph, run_pgo
+from kimera_multi_py.cli.pgo import register
 from kimera_multi_py.io.g2o import read_g2o, write_g2o
 from kimera_multi_py.io.tum import read_tum
+from kimera_multi_py.workflow.pgo_benchmark import inject_outliers, load_graph, run_pgo
 
 GTSAM_DATA = Path(os.path.dirname(gtsam.__file__)) / "Data"
 

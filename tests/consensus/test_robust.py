@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kimera_multi_py.consensus.robust import (
+from kimera_multi_py.core.robust import (
     MU_STEP,
     GncSchedule,
     initial_mu,

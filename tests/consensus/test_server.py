@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kimera_multi_py.consensus.factors import CostEvaluator, graph_cost, residuals_sq
-from kimera_multi_py.consensus.server import components, solve_centralized
-from kimera_multi_py.consensus.workflow import inject_outliers, load_graph
+from kimera_multi_py.core.posegraph import INTER_ROBOT
 from kimera_multi_py.io.g2o import read_g2o
-from kimera_multi_py.io.pose_graph import INTER_ROBOT
+from kimera_multi_py.pgo.centralised import components, solve_centralized
+from kimera_multi_py.pgo.factors import CostEvaluator, graph_cost, residuals_sq
+from kimera_multi_py.workflow.pgo_benchmark import inject_outliers, load_graph
 
 
 @pytest.mark.parametrize(("name", "cost"), [("tinyGrid3D", 9.31391), ("smallGrid3D", 517.925)])

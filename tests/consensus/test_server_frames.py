@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from kimera_multi_py.alignment.server_frames import screen_frames
 from kimera_multi_py.comms.messages import KeyframeOdometry, LoopClosures
-from kimera_multi_py.consensus.server_frames import screen_frames
-from kimera_multi_py.consensus.server_node import Server
-from kimera_multi_py.geometry import inverse
-from kimera_multi_py.io.pose_graph import robot_key
+from kimera_multi_py.core.geometry import inverse
+from kimera_multi_py.core.posegraph import robot_key
+from kimera_multi_py.server.node import Server
 from tests.consensus.test_alignment_switch import CORNER, _closures, _graph, _odometry_start, _team
 from tests.consensus.test_pgo_aliased import ROOM_A, ROOM_B
 

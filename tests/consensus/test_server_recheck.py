@@ -5,10 +5,10 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from kimera_multi_py.consensus.factors import to_values
-from kimera_multi_py.consensus.robust import tls_threshold
-from kimera_multi_py.consensus.server import components, recheck, solve_centralized
-from kimera_multi_py.geometry import to_gtsam
+from kimera_multi_py.core.geometry import to_gtsam
+from kimera_multi_py.core.robust import tls_threshold
+from kimera_multi_py.pgo.centralised import components, recheck, solve_centralized
+from kimera_multi_py.pgo.factors import to_values
 from tests.consensus.test_pgo_aliased import aliased_ring
 
 

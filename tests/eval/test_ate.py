@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
+from kimera_multi_py.core.geometry import make_pose, so3_exp
 from kimera_multi_py.eval.metrics import align_se3, ate_rmse
-from kimera_multi_py.geometry import make_pose, so3_exp
 
 
 def fake_trajectory(n, rng):

@@ -4,8 +4,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from kimera_multi_py.core.geometry import yaw_pose
 from kimera_multi_py.eval.team import excluded_robots, team_frame_estimates, team_frame_robots
-from kimera_multi_py.geometry import yaw_pose
 
 
 def outcome(robot, **alignment):
@@ -43,7 +43,8 @@ def test_the_team_frame_robots_are_the_root_and_every_robot_not_kept_out():
 
 def _mapped_agent(robot):
     """An agent that mapped six synthetic keyframes (its own evidence: points around x = 10 robot)."""
-    from kimera_multi_py.agent.agent import Agent, KeyframeInput
+    from kimera_multi_py.agent.agent import Agent
+    from kimera_multi_py.core.keyframe import KeyframeInput
 
     agent = Agent(robot)
     rng = np.random.default_rng(robot)
@@ -55,9 +56,9 @@ def _mapped_agent(robot):
 
 
 def test_the_reference_team_map_leaves_out_a_robot_kept_out_of_the_team_frame():
-    from kimera_multi_py.consensus.map_fusion import centralised_team_map, octree_cells
+    from kimera_multi_py.mapshare.fusion import centralised_team_map, octree_cells
     from kimera_multi_py.sim import load_scenario
-    from kimera_multi_py.sim.runner import SimRunner
+    from kimera_multi_py.workflow.simulate import SimRunner
 
     from ..sim.helpers import TINY
 

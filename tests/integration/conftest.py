@@ -113,7 +113,7 @@ class Pki:
 
 
 def make_pki(folder: Path, name: str) -> Pki:
-    """An EC P-256 CA and a leaf with SAN localhost and 127.0.0.1 (DESIGN §7)."""
+    """An EC P-256 CA and a leaf with SAN localhost and 127.0.0.1 (docs/deployment.md)."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec

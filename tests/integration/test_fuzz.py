@@ -1,4 +1,4 @@
-"""Strangers on the wire (issue 16): 10,000 fuzzed and mutated payloads into a live agent's topics,
+"""Strangers on the wire: 10,000 fuzzed and mutated payloads into a live agent's topics,
 and a second team on the same network, over real Zenoh sessions on 127.0.0.1.
 
 The agent is a real :class:`AgentNode` (with keyframes of its own) on a ZenohBus, draining and
@@ -25,7 +25,8 @@ from kimera_multi_py.comms.fuzz import fuzz_payloads, stranger_traffic
 from kimera_multi_py.comms.messages import AgentState
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.sim import Simulation, load_scenario
-from kimera_multi_py.sim.runner import agent_params, keyframe_input
+from kimera_multi_py.sim.source import keyframe_input
+from kimera_multi_py.team.build import agent_params
 
 pytestmark = pytest.mark.integration
 TEAM = "t0"

@@ -1,4 +1,4 @@
-"""Faults on the team as OS processes (issue 16): mutual TLS, a router restart and a link partition
+"""Faults on the team as OS processes: mutual TLS, a router restart and a link partition
 in one launch. Kill + resume, with every keyframe, closure and submap of the last checkpoint
 checked, is ``test_team_processes.py::test_a_killed_agent_resumes_and_loses_no_keyframe``."""
 
@@ -23,7 +23,7 @@ def test_over_mutual_tls_a_router_restart_and_a_partition_the_team_completes(tmp
     """One launch for three cases (CI time): ``--tls``, ``--restart-router 25`` and a partition
     that cuts robot 1's link from 20 s to 45 s of team stream time (TLS passes through the relay)."""
     out = tmp_path / "run"
-    res = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli", "launch", str(TINY), "--robots", "2",
+    res = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli.main", "launch", str(TINY), "--robots", "2",
                           "--out", str(out), "--rate", "4", "--tls", "--restart-router", "25",
                           "--partition", "0|1@20:45"],
                          capture_output=True, text=True, timeout=900, cwd=REPO)

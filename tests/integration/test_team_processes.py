@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kimera_multi_py.consensus.zenoh_team import free_ports
+from kimera_multi_py.comms.team import free_ports
 from kimera_multi_py.io.tum import read_tum
 from kimera_multi_py.sim import Simulation, load_scenario
-from kimera_multi_py.sim.runner import SimRunner
+from kimera_multi_py.workflow.simulate import SimRunner
 
 REPO = Path(__file__).resolve().parents[2]
 FAULTS = REPO / "sims" / "faults.toml"
@@ -27,7 +27,7 @@ pytestmark = pytest.mark.integration
 
 
 def cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "kimera_multi_py.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "kimera_multi_py.cli.main", *args], capture_output=True, text=True,
                           timeout=timeout, cwd=REPO)
 
 

@@ -10,7 +10,7 @@ import pytest
 from cryptography import x509
 from typer.testing import CliRunner
 
-from kimera_multi_py.cli import app
+from kimera_multi_py.cli.main import app
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = REPO / "sims" / "tiny.toml"

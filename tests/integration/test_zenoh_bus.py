@@ -16,7 +16,7 @@ from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.messages import Heartbeat, LoopClosureReply, Ping
 from kimera_multi_py.comms.samples import all_random_messages
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
-from kimera_multi_py.errors import ConfigError, MessageError
+from kimera_multi_py.core.errors import ConfigError, MessageError
 
 pytestmark = pytest.mark.integration
 TEAM = "t0"

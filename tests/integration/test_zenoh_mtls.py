@@ -1,4 +1,4 @@
-"""Mutual TLS between ZenohBus sessions (issue 17): both ends present a certificate of the team CA.
+"""Mutual TLS between ZenohBus sessions: both ends present a certificate of the team CA.
 
 A process that trusts the team CA but presents no certificate, or one signed by another CA,
 cannot join: it sees no peer, receives nothing, and the team does not see it.
@@ -13,7 +13,7 @@ import pytest
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.messages import Heartbeat
 from kimera_multi_py.comms.zenoh_bus import Tls, ZenohBus, tls_settings
-from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.team.certs import make_certs
 
 pytestmark = pytest.mark.integration

@@ -11,7 +11,7 @@ import pytest
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.messages import Heartbeat
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
-from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.core.errors import ConfigError
 
 pytestmark = pytest.mark.integration
 TEAM = "t0"

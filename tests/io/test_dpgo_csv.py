@@ -9,18 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kimera_multi_py.consensus.factors import graph_cost
-from kimera_multi_py.errors import DatasetError
-from kimera_multi_py.geometry import inverse
-from kimera_multi_py.io.dpgo_csv import COLUMNS, read_dpgo_csv, write_dpgo_csv
-from kimera_multi_py.io.g2o import read_g2o
-from kimera_multi_py.io.pose_graph import (
+from kimera_multi_py.core.errors import DatasetError
+from kimera_multi_py.core.geometry import inverse
+from kimera_multi_py.core.posegraph import (
     INTER_ROBOT,
     LOOP_CLOSURE,
     ODOMETRY,
     PoseGraph,
     split_contiguous,
 )
+from kimera_multi_py.io.dpgo_csv import COLUMNS, read_dpgo_csv, write_dpgo_csv
+from kimera_multi_py.io.g2o import read_g2o
+from kimera_multi_py.pgo.factors import graph_cost
 
 HEADER = ",".join(COLUMNS)
 ROW = "{},{},{},{},0,0,0,1,1,0,0,50,100,1,1"

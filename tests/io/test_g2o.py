@@ -9,9 +9,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from kimera_multi_py.errors import DatasetError
-from kimera_multi_py.io.g2o import read_g2o, write_g2o
-from kimera_multi_py.io.pose_graph import (
+from kimera_multi_py.core.errors import DatasetError
+from kimera_multi_py.core.posegraph import (
     INTER_ROBOT,
     LOOP_CLOSURE,
     ODOMETRY,
@@ -20,6 +19,7 @@ from kimera_multi_py.io.pose_graph import (
     split_contiguous,
     split_key,
 )
+from kimera_multi_py.io.g2o import read_g2o, write_g2o
 
 VERTEX = "VERTEX_SE3:QUAT {} {} 0 0 0 0 0 1"
 INFO = " ".join(["100 0 0 0 0 0", "100 0 0 0 0", "100 0 0 0", "400 0 0", "400 0", "400"])
@@ -42,7 +42,7 @@ def test_reads_tiny_grid_like_gtsam(datasets_dir: Path) -> None:
     assert (g.num_poses, g.num_edges, g.num_robots) == (9, 11, 1)
     fg, values = gtsam.readG2o(str(path), True)
     ours = gtsam.NonlinearFactorGraph()
-    from kimera_multi_py.consensus.factors import between, to_values
+    from kimera_multi_py.pgo.factors import between, to_values
 
     for e in range(g.num_edges):
         ours.add(between(int(g.ids[g.edge_i[e]]), int(g.ids[g.edge_j[e]]), g.measurement[e],

@@ -10,13 +10,13 @@ import gtsam
 import numpy as np
 import pytest
 
-from kimera_multi_py.consensus.factors import graph_cost
-from kimera_multi_py.consensus.server import solve_centralized
-from kimera_multi_py.errors import DatasetError
-from kimera_multi_py.geometry import from_gtsam
+from kimera_multi_py.core.errors import DatasetError
+from kimera_multi_py.core.geometry import from_gtsam
+from kimera_multi_py.core.posegraph import PoseGraph
 from kimera_multi_py.io.g2o import read_g2o, write_g2o
 from kimera_multi_py.io.planar import pose_to_se2
-from kimera_multi_py.io.pose_graph import PoseGraph
+from kimera_multi_py.pgo.centralised import solve_centralized
+from kimera_multi_py.pgo.factors import graph_cost
 
 GTSAM_DATA = Path(os.path.dirname(gtsam.__file__)) / "Data"
 

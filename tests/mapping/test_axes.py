@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from kimera_multi_py.geometry import make_pose, so3_exp, transform_points
+from kimera_multi_py.core.geometry import make_pose, so3_exp, transform_points
 from kimera_multi_py.mapping import ObjectMap
 from kimera_multi_py.mapping.axes import StructureAxes
 

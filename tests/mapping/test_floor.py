@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from kimera_multi_py.geometry import inverse, se3_exp, yaw_pose
+from kimera_multi_py.core.geometry import inverse, se3_exp, yaw_pose
+from kimera_multi_py.core.semantics import class_id
 from kimera_multi_py.mapping.floor import FloorReference, Plane, fit_plane
 from kimera_multi_py.mapping.registration import ScanRegistration
 from kimera_multi_py.mapping.scan_odometry import ScanOdometry
-from kimera_multi_py.semantics import class_id
 from kimera_multi_py.sim import load_scenario
 from kimera_multi_py.sim.sensors import RangeCategorySensor, flip_confusion, ray_pattern
 from kimera_multi_py.sim.world import World

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from kimera_multi_py.geometry import inverse, transform_points
+from kimera_multi_py.core.geometry import inverse, transform_points
 from kimera_multi_py.mapping.axes import heading
 from kimera_multi_py.mapping.heading import HeadingReference, rotate_yaw
 

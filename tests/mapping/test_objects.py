@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from kimera_multi_py.geometry import make_pose, so3_exp, transform_points
+from kimera_multi_py.core.geometry import make_pose, so3_exp, transform_points
 from kimera_multi_py.mapping import ObjectMap, detect_objects
 
 from .helpers import CHAIR, FLOOR, HUMAN, TABLE, WALL, K

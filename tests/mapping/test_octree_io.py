@@ -7,13 +7,17 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from kimera_multi_py.errors import MapError
+from kimera_multi_py.core.errors import MapError
 from kimera_multi_py.mapping import SemanticOctree
 from kimera_multi_py.mapping.octree_io import (
     FORMAT_VERSION,
     MAGIC,
+    export_bt,
+    export_ply,
+    load_octree,
     octree_from_bytes,
     octree_to_bytes,
+    save_octree,
 )
 
 from .helpers import HUMAN, K, room_scan
@@ -44,8 +48,8 @@ def blob_holder(blob):
 
 def test_save_load_round_trip_is_exact(tree, tmp_path):
     path = tmp_path / "map.kmo"
-    tree.save(path)
-    back = SemanticOctree.load(path)
+    save_octree(tree, path)
+    back = load_octree(path)
     assert np.array_equal(back.codes, tree.codes)
     assert np.array_equal(back.levels, tree.levels)
     assert np.array_equal(back.values, tree.values)
@@ -214,12 +218,12 @@ def test_fuzzed_contents_with_a_valid_checksum_raise_map_error_only():
 
 def test_missing_file_raises_map_error(tmp_path):
     with pytest.raises(MapError):
-        SemanticOctree.load(tmp_path / "nope.kmo")
+        load_octree(tmp_path / "nope.kmo")
 
 
 def test_export_ply(tree, tmp_path):
     path = tmp_path / "map.ply"
-    n = tree.export_ply(path)
+    n = export_ply(tree, path)
     data = path.read_bytes()
     head, body = data.split(b"end_header\n", 1)
     assert f"element vertex {n}".encode() in head
@@ -247,7 +251,7 @@ def test_export_bt_reads_back_in_octomap(tree, tmp_path):
     import pyoctomap
 
     path = tmp_path / "map.bt"
-    size = tree.export_bt(path)
+    size = export_bt(tree, path)
     assert size == tree.num_nodes
     ot = pyoctomap.OcTree(0.1)
     assert ot.readBinary(str(path))
@@ -264,5 +268,5 @@ def test_export_bt_reads_back_in_octomap(tree, tmp_path):
         seen += 1
     assert seen == tree.num_leaves
     empty = SemanticOctree(0.1, K)
-    assert empty.export_bt(tmp_path / "empty.bt") == 0
+    assert export_bt(empty, tmp_path / "empty.bt") == 0
     assert pyoctomap.OcTree(0.1).readBinary(str(tmp_path / "empty.bt"))

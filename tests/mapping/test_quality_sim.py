@@ -13,16 +13,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from kimera_multi_py.core.geometry import transform_points
+from kimera_multi_py.core.semantics import CLASS_IDS, CLASS_NAMES
 from kimera_multi_py.eval.metrics import (
     object_precision_recall,
     occupancy_precision_recall,
     semantic_iou_per_class,
     semantic_miou,
 )
-from kimera_multi_py.geometry import transform_points
 from kimera_multi_py.mapping import ObjectMap, SemanticOctree
 from kimera_multi_py.mapping.config import get_object_map, get_octree, mapping_config
-from kimera_multi_py.semantics import CLASS_IDS, CLASS_NAMES
 from kimera_multi_py.sim import Simulation, load_scenario
 
 OFFICE = Path(__file__).resolve().parents[2] / "sims" / "office.toml"

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from kimera_multi_py.geometry import inverse, se3_exp, se3_log, so3_log, yaw_pose
+from kimera_multi_py.core.geometry import inverse, se3_exp, se3_log, so3_log, yaw_pose
 from kimera_multi_py.mapping.registration import ScanRegistration, constrained_information, fuse
 from kimera_multi_py.mapping.scan_odometry import ScanOdometry
 from kimera_multi_py.sim import load_scenario

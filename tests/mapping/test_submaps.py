@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from kimera_multi_py.geometry import inverse, make_pose, so3_exp, transform_points
+from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp, transform_points
 from kimera_multi_py.mapping import SemanticOctree, SubmapMap
 
 from .helpers import HUMAN, TABLE, WALL, K, room_scan

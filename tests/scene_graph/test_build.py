@@ -159,9 +159,9 @@ def test_freespace_edges_join_components_through_free_space_only() -> None:
 def _tilted(c: np.ndarray, free: np.ndarray, R: np.ndarray, t: np.ndarray) -> object:
     """The floor plan seen in a tilted frame ``p_map = R p + t`` (floor, ceiling and walls labelled),
     binned into the map's grid (occupied wins where two cells land in one)."""
+    from kimera_multi_py.core.semantics import CLASS_IDS
     from kimera_multi_py.mapping import morton
     from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
-    from kimera_multi_py.semantics import CLASS_IDS
     from tests.scene_graph.helpers import HEIGHT, RES, WALL, K
 
     cls = np.where(c[:, 2] < 0.0, CLASS_IDS["floor"], np.where(c[:, 2] > HEIGHT, CLASS_IDS["ceiling"], WALL))
@@ -179,7 +179,7 @@ def _tilted(c: np.ndarray, free: np.ndarray, R: np.ndarray, t: np.ndarray) -> ob
 
 
 def test_a_tilted_map_is_built_level_and_answers_in_its_own_frame() -> None:
-    from kimera_multi_py.geometry import so3_exp
+    from kimera_multi_py.core.geometry import so3_exp
 
     c, free = box_world(*TWO_ROOMS)
     R = so3_exp(np.array([np.radians(25.0), np.radians(-10.0), np.radians(40.0)]))

@@ -10,7 +10,7 @@ import pytest
 import spark_dsg as dsg
 from typer.testing import CliRunner
 
-from kimera_multi_py.cli import app
+from kimera_multi_py.cli.main import app
 from kimera_multi_py.scene_graph import (
     SceneGraphError,
     build_scene_graph,

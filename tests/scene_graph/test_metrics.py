@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kimera_multi_py.scene_graph import build_scene_graph, scene_graph_metrics, true_rooms
-from kimera_multi_py.scene_graph.truth import perfect_octree
+from kimera_multi_py.eval.scene_graph_metrics import scene_graph_metrics
+from kimera_multi_py.eval.scene_graph_truth import perfect_octree, true_rooms
+from kimera_multi_py.scene_graph import build_scene_graph
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.world import World
 

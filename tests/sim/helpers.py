@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from kimera_multi_py.config import validate
+from kimera_multi_py.core.config import validate
 from kimera_multi_py.sim.scenario import ScenarioConfig, check_references
 
 REPO = Path(__file__).resolve().parents[2]

@@ -1,4 +1,4 @@
-"""The team under loopback link faults (issue 16): 20 % message loss, and a partition that heals.
+"""The team under loopback link faults: 20 % message loss, and a partition that heals.
 
 Each case is compared with the clean run of the same scenario and seed (measured here, once per
 module, and checked by a test of its own so that no test carries two runs). ``sims/faults.toml``
@@ -16,7 +16,7 @@ import pytest
 
 from kimera_multi_py.comms.faults import sim_faults
 from kimera_multi_py.sim import load_scenario
-from kimera_multi_py.sim.runner import SimRunner
+from kimera_multi_py.workflow.simulate import SimRunner
 
 from .helpers import REPO
 
@@ -102,7 +102,7 @@ def test_a_healed_partition_ends_as_accurate_as_clean(partitioned, clean):
 def test_bad_fault_flags_are_one_line_errors(tmp_path, args, needle):
     from typer.testing import CliRunner
 
-    from kimera_multi_py.cli import app
+    from kimera_multi_py.cli.main import app
 
     res = CliRunner().invoke(app, ["sim", str(SMALL), "--mode", "distributed", "--no-rerun", "--out",
                                    str(tmp_path), *args])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.sim import load_scenario
-from kimera_multi_py.sim.runner import SimRunner
+from kimera_multi_py.workflow.simulate import SimRunner
 
 from .helpers import REPO
 

@@ -1,5 +1,5 @@
 """The robustness benchmark's quick sweep (2 seeds x 3 robots on office): team ATE at most half
-of dead reckoning's, no robot in an aliased frame, no false closure accepted (issue 11's
+of dead reckoning's, no robot in an aliased frame, no false closure accepted (the safety
 targets, on the quick subset)."""
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ import pytest
 
 from kimera_multi_py.io.tum import read_tum
 from kimera_multi_py.sim import Simulation, load_scenario
-from kimera_multi_py.sim.runner import SimRunner
+from kimera_multi_py.workflow.simulate import SimRunner
 
 from .helpers import OFFICE, TINY
 

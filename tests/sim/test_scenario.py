@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from kimera_multi_py.errors import ConfigError
+from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.world import World
 

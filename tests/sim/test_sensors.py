@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from kimera_multi_py.geometry import relative, se3_log, yaw_pose
-from kimera_multi_py.semantics import NUM_CLASSES
+from kimera_multi_py.core.geometry import relative, se3_log, yaw_pose
+from kimera_multi_py.core.semantics import NUM_CLASSES
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.scenario import HumanConfig
 from kimera_multi_py.sim.sensors import OdometryModel, RangeCategorySensor, flip_confusion, ray_pattern

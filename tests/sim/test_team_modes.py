@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.comms.messages import KeyframeOdometry, LoopClosures
-from kimera_multi_py.consensus.server_node import Server
-from kimera_multi_py.geometry import inverse, yaw_pose
-from kimera_multi_py.io.pose_graph import robot_key
+from kimera_multi_py.core.geometry import inverse, yaw_pose
+from kimera_multi_py.core.posegraph import robot_key
 from kimera_multi_py.io.tum import read_tum
+from kimera_multi_py.server.node import Server
 from kimera_multi_py.sim import load_scenario
-from kimera_multi_py.sim.runner import SimRunner
+from kimera_multi_py.workflow.simulate import SimRunner
 
 from .helpers import REPO, SMALL, TINY
 
@@ -284,10 +284,10 @@ def test_the_server_team_map_is_in_its_joint_graph_roots_frame():
     import asyncio
 
     from kimera_multi_py.comms import LoopbackNetwork
-    from kimera_multi_py.consensus.server_node import SERVER_ID, ServerNode
-    from kimera_multi_py.consensus.team_pgo import ScheduleParams
     from kimera_multi_py.mapping.config import get_submap_map
-    from kimera_multi_py.sim.runner import agent_params
+    from kimera_multi_py.pgo.team import ScheduleParams
+    from kimera_multi_py.server.node import SERVER_ID, ServerNode
+    from kimera_multi_py.team.build import agent_params
 
     async def main() -> list[tuple[int | None, int, int]]:
         net = LoopbackNetwork(team="t0", seed=0)

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from kimera_multi_py.semantics import CLASS_IDS
+from kimera_multi_py.core.semantics import CLASS_IDS
 from kimera_multi_py.sim.world import World, cast_rays
 
 from .helpers import one_room, scenario
@@ -128,7 +128,7 @@ def test_gt_voxel_grid_labels_at_probe_points():
 
 
 def test_gt_voxel_grid_rejects_bad_resolution():
-    from kimera_multi_py.errors import ConfigError
+    from kimera_multi_py.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="resolution"):
         world_with().gt_voxel_grid(-0.1)

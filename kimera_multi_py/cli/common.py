@@ -1,0 +1,68 @@
+"""What every command shares: the consoles, logging set-up, one-line errors and the result tables."""
+
+from __future__ import annotations
+
+import logging
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from kimera_multi_py.core.errors import ConfigError, KimeraMultiError
+
+console = Console()
+err_console = Console(stderr=True)
+
+
+def setup_logging(verbose: bool) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.WARNING,
+                        format="%(asctime)s %(levelname)s [%(robot)s] %(name)s: %(message)s")
+
+    def default_robot(record: logging.LogRecord) -> bool:
+        if not hasattr(record, "robot"):  # records logged without extra={"robot": ...}
+            record.robot = "-"
+        return True
+
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(default_robot)
+
+
+def fail(exc: KimeraMultiError) -> typer.Exit:
+    """Print one line for a library error and return the exit to raise."""
+    err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+    return typer.Exit(code=1)
+
+
+def results_table(res: dict) -> Table:
+    table = Table(title=f"{res['scenario']} - mode {res['mode']} - seed {res['seed']}")
+    for col in ("robot", "keyframes", "length [m]", "ATE RMSE [m]"):
+        table.add_column(col, justify="right")
+    for r in res["robots"]:
+        table.add_row(str(r["id"]), str(r["keyframes"]), f"{r['trajectory_length_m']:.1f}", f"{r['ate_rmse_m']:.3f}")
+    team = res["team"]
+    table.add_row("team", str(team["keyframes"]), f"{team['trajectory_length_m']:.1f}", f"{team['ate_rmse_m']:.3f}",
+                  style="bold")
+    return table
+
+
+def robot_at(spec: str, option: str) -> tuple[int, float]:
+    """``I@T`` as ``(robot, seconds)``."""
+    try:
+        robot, at = spec.split("@")
+        return int(robot), float(at)
+    except ValueError:
+        raise ConfigError(option, f"expected I@T (robot@seconds), got {spec!r}") from None
+
+
+def summary(res: dict) -> None:
+    """Loop closures, objects and bytes of a team run, in two lines."""
+    if "loop_closures" not in res:
+        return
+    lc, ob = res["loop_closures"], res["objects"]
+    console.print(
+        f"loop closures: {lc['candidates']} candidates, {lc['verified']} verified, "
+        f"{lc['accepted_inter']} inter-robot accepted ({lc['true_accepted_inter']} true, "
+        f"{lc['false_accepted_inter']} false; PCM rejected {lc['rejected_pcm_false_inter']} false, "
+        f"GNC rejected {lc['rejected_gnc_false_inter']} false)")
+    console.print(f"objects: precision {ob['precision']:.2f}, recall {ob['recall']:.2f}, "
+                  f"centroid error {ob['mean_error']:.2f} m; bytes sent {res['bytes_sent']['total']:,}")

@@ -1,0 +1,204 @@
+"""CLI commands that run the team as processes: ``agent``, ``server``, ``router``, ``launch``, ``record``."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.live import Live
+from rich.table import Table
+
+from kimera_multi_py.core.errors import KimeraMultiError
+
+Connect = Annotated[list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to (repeatable).")]
+Listen = Annotated[list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on (repeatable).")]
+ZenohConfig = Annotated[Path | None, typer.Option("--zenoh-config", help="Zenoh JSON5 config (TLS, auth, ...).")]
+Team = Annotated[str, typer.Option("--team", help="Team id: teams on one network never mix.")]
+Verbose = Annotated[bool, typer.Option("--verbose", "-v")]
+MapMode = Annotated[str, typer.Option("--map-consensus", help="off, roam, exact or laplacian.")]
+
+
+def _rate(value: str) -> float:
+    try:
+        rate = float(value)
+    except ValueError:
+        raise typer.BadParameter(f"not a number: {value!r}") from None
+    if not rate > 0:
+        raise typer.BadParameter("must be > 0 (inf: as fast as possible)")
+    return rate
+
+
+def _connection(team: str, connect: list[str] | None, listen: list[str] | None, zenoh_config: Path | None,
+                mode: str | None = None):  # noqa: ANN202 - keeps zenoh out of the CLI's import time
+    from kimera_multi_py.team.process import Connection
+
+    if not connect and not listen and zenoh_config is None:
+        raise typer.BadParameter("give --connect, --listen or --zenoh-config (multicast scouting is off)")
+    return Connection(team, tuple(connect or ()), tuple(listen or ()), str(zenoh_config) if zenoh_config else None,
+                      mode)
+
+
+def register(app: typer.Typer) -> None:
+    from kimera_multi_py.cli.common import console, fail, setup_logging
+
+    @app.command()
+    def agent(
+        robot: Annotated[int, typer.Option("--robot", help="This robot's id (0..25).")],
+        source: Annotated[str, typer.Option("--source", help="sim:SCENARIO[:SEED] or a recorded folder.")],
+        out: Annotated[Path, typer.Option("--out", help="Run folder; outputs go to OUT/robotI/.")],
+        connect: Connect = None, listen: Listen = None, zenoh_config: ZenohConfig = None, team: Team = "t0",
+        rate: Annotated[str, typer.Option(help="Pace keyframes at RATE x their stamps; inf: no pacing.")] = "inf",
+        checkpoint_every: Annotated[float, typer.Option(help="Seconds between checkpoints.")] = 10.0,
+        resume: Annotated[bool, typer.Option("--resume", help="Restore OUT/robotI/checkpoint.kmc.")] = False,
+        centralized: Annotated[bool, typer.Option("--centralized", help="A server optimises the team.")] = False,
+        pgo_period: Annotated[float, typer.Option(help="Team-time seconds between PGO epochs.")] = 60.0,
+        map_consensus: MapMode = "exact",
+        verbose: Verbose = False,
+    ) -> None:
+        """Run one robot: its keyframes, loop closures, distributed PGO, team map and outputs."""
+        from kimera_multi_py.team.process import AgentJob, run_agent
+
+        setup_logging(verbose)
+        try:
+            conn = _connection(team, connect, listen, zenoh_config, "client" if connect and not listen else None)
+            summary = run_agent(AgentJob(robot, source, out, conn, _rate(rate), checkpoint_every, resume,
+                                         centralized, pgo_period, map_consensus))
+        except KimeraMultiError as exc:
+            raise fail(exc) from None
+        console.print(f"robot {summary['robot']}: {summary['keyframes']} keyframes, {summary['epochs']} PGO epochs, "
+                      f"{summary['wall_s']:.1f} s; wrote {out / f'robot{robot}'}")
+
+    @app.command()
+    def server(
+        out: Annotated[Path, typer.Option("--out", help="Run folder; the server writes OUT/server/.")],
+        connect: Connect = None, listen: Listen = None, zenoh_config: ZenohConfig = None, team: Team = "t0",
+        pgo_period: Annotated[float, typer.Option(help="Team-time seconds between solves.")] = 60.0,
+        verbose: Verbose = False,
+    ) -> None:
+        """Centralised mode: optimise the whole team's graph and send each robot its poses."""
+        from kimera_multi_py.team.process import ServerJob, run_server
+
+        setup_logging(verbose)
+        try:
+            conn = _connection(team, connect, listen, zenoh_config, "client" if connect and not listen else None)
+            summary = run_server(ServerJob(out, conn, pgo_period))
+        except KimeraMultiError as exc:
+            raise fail(exc) from None
+        console.print(f"server: {summary['solves']} solves over {summary['poses']} poses")
+
+    @app.command()
+    def router(
+        listen: Annotated[list[str], typer.Option("--listen", help="Endpoint to listen on (repeatable).")],
+        zenoh_config: ZenohConfig = None, verbose: Verbose = False,
+    ) -> None:
+        """A Zenoh router in this process (no zenohd needed), until interrupted."""
+        from kimera_multi_py.team.process import run_router
+
+        setup_logging(verbose)
+        try:
+            run_router(listen, str(zenoh_config) if zenoh_config else None)
+        except KimeraMultiError as exc:
+            raise fail(exc) from None
+
+    @app.command()
+    def launch(
+        scenario: Annotated[Path, typer.Argument(help="Scenario TOML file.")] = Path("sims/office.toml"),
+        robots: Annotated[int, typer.Option("--robots", "-n")] = 3,
+        seed: Annotated[int, typer.Option()] = 0,
+        mode: Annotated[str, typer.Option(help="distributed or centralized.")] = "distributed",
+        out: Annotated[Path, typer.Option()] = Path("runs/launch"),
+        rate: Annotated[str, typer.Option(help="Pace keyframes at RATE x their stamps; inf: no pacing.")] = "inf",
+        kill: Annotated[list[str] | None, typer.Option("--kill", help="I@T: SIGKILL agent I at stream time T, "
+                                                                       "then restart it with --resume.")] = None,
+        join: Annotated[list[str] | None, typer.Option("--join", help="I@T: start agent I once the team's "
+                                                                       "stream reaches T s.")] = None,
+        checkpoint_every: Annotated[float, typer.Option(help="Seconds between agent checkpoints.")] = 5.0,
+        pgo_period: Annotated[float, typer.Option(help="Team-time seconds between PGO epochs.")] = 60.0,
+        timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 1800.0,
+        map_consensus: MapMode = "exact",
+        restart_router: Annotated[list[str] | None, typer.Option("--restart-router", help="T: SIGKILL the router "
+                                                                  "at team stream time T and start it again "
+                                                                  "(repeatable).")] = None,
+        partition: Annotated[list[str] | None, typer.Option("--partition", help="'A,B|C@T0:T1': cut the router "
+                                                             "links of the robots outside robot 0's group "
+                                                             "from team stream time T0 to T1 (repeatable).")]
+        = None,
+        tls: Annotated[bool, typer.Option("--tls", help="Mutual TLS: a new team CA and certificates in "
+                                                        "OUT/certs; no process without one can join.")] = False,
+        verbose: Verbose = False,
+    ) -> None:
+        """Start a router and N agent processes (and the server) on 127.0.0.1, then evaluate."""
+        from kimera_multi_py.cli.common import results_table, robot_at, summary
+        from kimera_multi_py.comms.faults import parse_partition
+        from kimera_multi_py.team.launcher import LaunchJob, launch, parse_kill, parse_restart
+
+        setup_logging(verbose)
+        try:
+            job = LaunchJob(scenario, robots, seed, mode, out, _rate(rate), [parse_kill(k) for k in kill or []],
+                            dict(robot_at(j, "join") for j in join or []), checkpoint_every, pgo_period=pgo_period,
+                            timeout=timeout,
+                            verbose=verbose, map_consensus=map_consensus, tls=tls,
+                            router_restarts=[parse_restart(t) for t in restart_router or []],
+                            partitions=[parse_partition(p) for p in partition or []])
+            with Live(_table({}), console=console, refresh_per_second=4, transient=False) as live:
+                results = launch(job, lambda views: live.update(_table(views)))
+        except KimeraMultiError as exc:
+            raise fail(exc) from None
+        res = results.to_dict()
+        console.print(results_table(res))
+        summary(res)
+        console.print(f"launch wall {res['wall_s']:.1f} s; wrote {out / 'results.json'}")
+
+    @app.command()
+    def certs(
+        folder: Annotated[Path, typer.Argument(help="Folder for ca.pem, ca.key and NAME.pem + NAME.key.")],
+        robots: Annotated[int, typer.Option("--robots", "-n", help="Certificates for robot0..robotN-1.")] = 3,
+        days: Annotated[int, typer.Option(help="Days the certificates are valid.")] = 365,
+    ) -> None:
+        """Make a team CA and a certificate per robot (plus server, router, observer) for mutual TLS."""
+        from kimera_multi_py.team.certs import make_certs, team_names, write_zenoh_config
+
+        try:
+            idents = make_certs(folder, team_names(robots), days)
+            for name, ident in idents.items():
+                write_zenoh_config(folder / f"{name}.json5", ident)
+        except KimeraMultiError as exc:
+            raise fail(exc) from None
+        console.print(f"wrote a team CA and {len(idents)} certificates to {folder} (ca.key signs new ones: keep "
+                      f"it off the robots); give each process --zenoh-config {folder}/NAME.json5 and "
+                      f"tls/HOST:PORT endpoints")
+
+    @app.command()
+    def record(
+        scenario: Annotated[Path, typer.Argument(help="Scenario TOML file.")] = Path("sims/office.toml"),
+        robots: Annotated[int | None, typer.Option("--robots", "-n")] = None,
+        seed: Annotated[int | None, typer.Option()] = None,
+        out: Annotated[Path, typer.Option(help="The recorded folder to write.")] = Path("runs/recording"),
+    ) -> None:
+        """Write the simulator's keyframe streams as a recorded folder (ground truth apart)."""
+        from kimera_multi_py.sim.scenario import load_scenario
+        from kimera_multi_py.sim.source import write_recording
+
+        try:
+            cfg = load_scenario(scenario, robots=robots)
+            write_recording(out, cfg, robots=len(cfg.robots), seed=seed, scenario_path=scenario)
+        except KimeraMultiError as exc:
+            raise fail(exc) from None
+        console.print(f"wrote {out}")
+
+
+def _table(views: dict) -> Table:  # type: ignore[type-arg]
+    table = Table(title="team")
+    for col in ("process", "keyframes", "stream [s]", "closures", "PGO epochs", "rounds", "bytes sent", "alive",
+                "restarts"):
+        table.add_column(col, justify="right")
+    for name, v in views.items():
+        table.add_row(name, str(v.keyframes), f"{v.stamp:.0f}", str(v.closures), str(v.epochs), str(v.rounds),
+                      f"{v.bytes_sent:,}", "yes" if v.alive else ("done" if v.exit_code == 0 else "no"),
+                      str(v.restarts))
+    return table
+
+
+__all__ = ["register", "math"]

@@ -1,0 +1,424 @@
+"""Map consensus: one robot's pure step towards a team map (docs/algorithms/map_consensus.md).
+
+A :class:`MapConsensus` reads the robot's own :class:`~kimera_multi_py.mapping.submaps.SubmapMap`
+(never changes it), absorbs its neighbours' messages with :meth:`MapConsensus.handle` and returns
+what to publish from :meth:`MapConsensus.step`; it touches no network, clock or file. Its result
+is :attr:`MapConsensus.team_map`, the robot's belief about the whole team's space. Three modes:
+
+``exact`` (ours)
+    Robots share their own *evidence*: per submap, the integer sums of ``l(z)`` on the submap's
+    reference grid. A :class:`SubmapEvidence` carries the cells of ``(source, submap)`` changed
+    after version ``base`` with their values at ``version`` (absolute values): a robot at a
+    version in ``[base, version)`` applies it, any other ignores it, so duplicates and reordering
+    are harmless and nothing is ever counted twice. A :class:`SubmapPoses` carries a source's
+    pose table (versioned, with the frame it is in): after a PGO correction only it travels and
+    the submaps move exactly. Every robot relays what a neighbour lacks, so evidence crosses the
+    team one hop at a time. A :class:`MapVersions` summary (sent when it changes and every
+    ``summary_every`` periods) tells the neighbours what the robot holds; a neighbour re-sends
+    what a summary newer than its last send still lacks, which recovers lost messages and
+    partitions. The team map is ``clamp(prior + sum T_s dh_s)`` over every held submap whose
+    source is in the robot's frame (:class:`~.map_fusion.EvidenceMap`): it equals the
+    centralised fusion (:func:`~.map_fusion.fuse_records`) cell for cell once all has arrived.
+``roam`` (the baseline, :mod:`.roam`)
+    ROAM's rule as its code does it; every period the full tree, at most one fusion per period.
+``laplacian`` (:mod:`.map_laplacian`)
+    The paper's consensus step on evidence with Metropolis-Hastings weights, scaled by N.
+
+Frames: the node calls :meth:`MapConsensus.set_frame` with the root robot of the world frame
+the robot's submap poses are in (its own id until it is aligned); a peer's evidence is applied
+only while the peer's poses are in the same frame, and kept (not dropped) until then.
+Neighbours: :meth:`MapConsensus.set_neighbours`; messages from any other robot are ignored.
+Whatever the mode, ``roam_bytes`` counts what ROAM would have sent: 36 B per node of the robot's
+tree every ``roam_period`` (its ROAM tree in ``roam`` mode, its team map otherwise).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from kimera_multi_py.comms.messages import (
+    MapState,
+    MapVersions,
+    Message,
+    RoamMap,
+    SubmapEvidence,
+    SubmapPoses,
+)
+from kimera_multi_py.core.errors import MessageError
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
+from kimera_multi_py.mapping.submaps import SubmapMap
+from kimera_multi_py.mapshare.fusion import EvidenceMap, Key, octree_cells, view_rows
+from kimera_multi_py.mapshare.laplacian import LaplacianState
+from kimera_multi_py.mapshare.roam import ROAM_NODE_BYTES, RoamFusion
+from kimera_multi_py.mapshare.wire import pack_cells, unpack_cells
+
+log = logging.getLogger(__name__)
+
+MODES = ("roam", "exact", "laplacian")
+MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)  # what a MapConsensus handles
+
+
+@dataclass
+class MapConsensusParams:
+    mode: str = "exact"
+    period: float = 1.0  # seconds between steps that publish
+    summary_every: int = 5  # periods between unchanged MapVersions summaries
+    roam_period: float = 5.0  # ROAM's publishing period (demo branch), also for roam_bytes
+    roam_weight: float = 0.2  # w of h_i <- clip(h_i + w h_j) (demo branch)
+    roam_top_k: int = 3
+    roam_clamp: float = 5.0
+    epsilon: float = 1.0  # laplacian step size
+    refresh_every: int = 10  # laplacian: a full state every this many rounds
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"map consensus mode must be one of {MODES}, got {self.mode!r}")
+        if not (self.period > 0 and self.roam_period > 0):
+            raise ValueError("map consensus periods must be positive")
+
+
+@dataclass
+class _Held:
+    """A submap's evidence as held: reference-grid cells, rows and the version each last changed."""
+
+    version: int
+    codes: np.ndarray
+    rows: np.ndarray  # (n, K+1) int32
+    marks: np.ndarray  # (n,) int64
+    got: float  # local time the current version arrived
+
+
+class MapConsensus:
+    """One robot's map consensus (see the module docstring)."""
+
+    def __init__(self, robot: int, local: SubmapMap, params: MapConsensusParams | None = None,
+                 team_size: int = 1) -> None:
+        self.robot = int(robot)
+        self.local = local
+        self.params = params or MapConsensusParams()
+        self.mode = self.params.mode
+        self.frame = self.robot
+        self.neighbours: set[int] = set()
+        self.team_size = int(team_size)
+        self.k = local.num_classes
+        self.roam_bytes = 0
+        self.rounds = 0
+        self.ignored: Counter[str] = Counter()
+        self._now = -np.inf
+        self._next = -np.inf
+        self._next_roam = -np.inf
+        # exact
+        self.team = EvidenceMap(local.octree)
+        self.held: dict[Key, _Held] = {}
+        self.poses: dict[int, tuple[SubmapPoses, float]] = {}  # source -> (latest table, got)
+        self._own_table: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._pose_version = 0
+        self._nbr: dict[int, tuple[dict[Key, int], dict[int, int], float]] = {}
+        self._sent: dict[Key, tuple[int, float]] = {}
+        self._sent_poses: dict[int, tuple[int, float]] = {}
+        self._summary: tuple[bytes, int] | None = None  # last content, periods since sent
+        # roam / laplacian
+        self.roam = RoamFusion(local.octree, self.params.roam_weight, self.params.roam_top_k,
+                               self.params.roam_clamp) if self.mode == "roam" else None
+        self._roam_fused_this_period = False
+        self.lap = LaplacianState(self.k + 1, self.params.epsilon,
+                                  self.params.refresh_every) if self.mode == "laplacian" else None
+        self._lap_frames: dict[int, int] = {}
+        self._team_cache: SemanticOctree | None = None
+
+    # ---- what the node tells us ------------------------------------------------------------
+    def set_neighbours(self, ids: set[int] | list[int] | tuple[int, ...]) -> None:
+        """The robots this one can hear and reach directly (its one-hop neighbours)."""
+        self.neighbours = {int(i) for i in ids} - {self.robot}
+
+    def set_frame(self, frame: int) -> None:
+        """The root robot of the world frame the robot's submap poses are now in."""
+        frame = int(frame)
+        if frame == self.frame:
+            return
+        self.frame = frame
+        if self.mode == "exact":
+            for src in self.poses:
+                self._activate(src)
+        elif self.lap is not None:
+            self.lap.reset()
+
+    def set_team_size(self, n: int) -> None:
+        """N, the number of robots whose evidence is averaged (laplacian mode's scale)."""
+        self.team_size = max(1, int(n))
+
+    # ---- messages in -----------------------------------------------------------------------
+    def handle(self, msg: Message) -> None:
+        """Absorb one message; raises :class:`MessageError` on inconsistent content."""
+        if msg.robot == self.robot:
+            return
+        if msg.robot not in self.neighbours:
+            self.ignored["not_neighbour"] += 1
+            return
+        if isinstance(msg, SubmapEvidence) and self.mode == "exact":
+            self._on_evidence(msg)
+        elif isinstance(msg, SubmapPoses) and self.mode == "exact":
+            self._on_poses(msg)
+        elif isinstance(msg, MapVersions) and self.mode == "exact":
+            self._on_versions(msg)
+        elif isinstance(msg, RoamMap) and self.roam is not None:
+            if msg.frame != self.frame or self._roam_fused_this_period:
+                self.ignored["roam_dropped"] += 1
+                return
+            self.roam.fuse(msg)
+            self._roam_fused_this_period = True
+            self._team_cache = None
+        elif isinstance(msg, MapState) and self.lap is not None:
+            if msg.frame != self.frame:
+                self.ignored["other_frame"] += 1
+                return
+            self.lap.handle(msg)
+
+    def _on_evidence(self, msg: SubmapEvidence) -> None:
+        if msg.classes != self.k:
+            raise MessageError(f"SubmapEvidence.classes: expected {self.k} classes, got {msg.classes}")
+        if msg.base >= msg.version:
+            raise MessageError(f"SubmapEvidence: base {msg.base} not below version {msg.version}")
+        if msg.source == self.robot:
+            return
+        key = (msg.source, msg.submap)
+        h = self.held.get(key)
+        have = h.version if h is not None else 0
+        if msg.version <= have:
+            self.ignored["evidence_duplicate"] += 1
+            return
+        if msg.base > have:
+            self.ignored["evidence_gap"] += 1  # the summary asks for it again
+            return
+        codes, values = unpack_cells(msg.payload, msg.cells, msg.classes, "SubmapEvidence.payload")
+        rows = np.zeros((len(codes), self.k + 1), np.int32)
+        rows[:, 1:] = values
+        if h is None:
+            h = self.held[key] = _Held(0, np.zeros(0, np.int64), np.zeros((0, self.k + 1), np.int32),
+                                       np.zeros(0, np.int64), self._now)
+        self._merge(h, codes, rows, msg.version)
+        h.version, h.got = msg.version, self._now
+        self.team.set_cells(key, codes, rows)
+
+    def _on_poses(self, msg: SubmapPoses) -> None:
+        if msg.source == self.robot:
+            return
+        old = self.poses.get(msg.source)
+        if old is not None and msg.version <= old[0].version:
+            self.ignored["poses_duplicate"] += 1
+            return
+        self.poses[msg.source] = (msg, self._now)
+        active = msg.frame == self.frame
+        for sid, T_ref, T in zip(msg.submaps.tolist(), msg.T_ref, msg.T, strict=True):
+            key = (msg.source, sid)
+            if not active:
+                self.team.set_active(key, False)
+            self.team.set_pose(key, T_ref, T)
+        self._activate(msg.source)
+
+    def _activate(self, src: int) -> None:
+        entry = self.poses.get(src)
+        if entry is None:
+            return
+        active = entry[0].frame == self.frame
+        for sid in entry[0].submaps.tolist():
+            self.team.set_active((src, sid), active)
+
+    def _on_versions(self, msg: MapVersions) -> None:
+        versions = {(int(s), int(m)): int(v) for s, m, v in
+                    zip(msg.sources.tolist(), msg.submaps.tolist(), msg.versions.tolist(), strict=True)}
+        pose_versions = dict(zip(msg.pose_sources.tolist(), msg.pose_versions.tolist(), strict=True))
+        self._nbr[msg.robot] = (versions, pose_versions, self._now)
+
+    # ---- the step --------------------------------------------------------------------------
+    def step(self, now: float) -> list[Message]:
+        """Publish what is due at time ``now`` (seconds); nothing between periods."""
+        self._now = float(now)
+        out: list[Message] = []
+        if self._now >= self._next_roam:
+            self._next_roam = self._now + self.params.roam_period
+            self._roam_fused_this_period = False
+            if self.roam is not None:
+                self.roam.absorb_own(self.local)
+                msg = self.roam.message(self.robot, self.rounds, self.frame)
+                self.roam_bytes += ROAM_NODE_BYTES * msg.nodes
+                out.append(msg)
+            else:
+                self.roam_bytes += ROAM_NODE_BYTES * self.team_map.num_nodes
+        if self._now < self._next:
+            return out
+        self._next = self._now + self.params.period
+        self.rounds += 1
+        self._team_cache = None
+        if self.mode == "exact":
+            self._snapshot_own()
+            out += self._exact_messages()
+        elif self.lap is not None:
+            self.lap.mix(sorted(self.neighbours))
+            self.lap.absorb_own(self.local)
+            out += self.lap.message(self.robot, self.frame, len(self.neighbours))
+        elif self.roam is not None:
+            self.roam.absorb_own(self.local)
+        return out
+
+    def _snapshot_own(self) -> None:
+        """Take new versions of the own submaps (version = scans integrated) and the pose table."""
+        for sid, s in sorted(self.local.submaps.items()):
+            key = (self.robot, sid)
+            h = self.held.get(key)
+            if h is None:
+                h = self.held[key] = _Held(0, np.zeros(0, np.int64), np.zeros((0, self.k + 1), np.int32),
+                                           np.zeros(0, np.int64), self._now)
+            if s.num_scans > h.version:
+                pos = np.searchsorted(h.codes, s.codes).clip(max=max(len(h.codes) - 1, 0))
+                old = np.zeros(len(s.codes), np.bool_)
+                if len(h.codes):
+                    old = h.codes[pos] == s.codes
+                changed = ~old
+                changed[old] = np.any(h.rows[pos[old]] != s.rows[old], axis=1)
+                codes, rows = s.codes[changed], s.rows[changed]
+                self._merge(h, codes, rows, s.num_scans)
+                h.version, h.got = s.num_scans, self._now
+                self.team.set_cells(key, codes, rows)
+            self.team.set_pose(key, s.T_ref, s.T)
+            self.team.set_active(key, True)
+        sids = np.array(sorted(self.local.submaps), dtype=np.int64)
+        T_ref = np.array([self.local.submaps[i].T_ref for i in sids.tolist()]).reshape(-1, 4, 4)
+        T = np.array([self.local.submaps[i].T for i in sids.tolist()]).reshape(-1, 4, 4)
+        old_t = self._own_table
+        if old_t is None or old_t[0] != self.frame or not (
+                np.array_equal(old_t[1], sids) and np.array_equal(old_t[2], T_ref) and np.array_equal(old_t[3], T)):
+            self._own_table = (self.frame, sids, T_ref, T)
+            self._pose_version += 1
+            msg = SubmapPoses(robot=self.robot, source=self.robot, version=self._pose_version, frame=self.frame,
+                              submaps=sids, T_ref=T_ref, T=T)
+            self.poses[self.robot] = (msg, self._now)
+
+    @staticmethod
+    def _merge(h: _Held, codes: np.ndarray, rows: np.ndarray, version: int) -> None:
+        if len(codes) == 0:
+            return
+        pos = np.searchsorted(h.codes, codes)
+        known = pos < len(h.codes)
+        known[known] = h.codes[pos[known]] == codes[known]
+        h.rows[pos[known]] = rows[known]
+        h.marks[pos[known]] = version
+        new = ~known
+        if new.any():
+            h.codes = np.insert(h.codes, pos[new], codes[new])
+            h.rows = np.insert(h.rows, pos[new], rows[new], axis=0)
+            h.marks = np.insert(h.marks, pos[new], version)
+
+    @staticmethod
+    def _belief(reported: int, summary_time: float, sent: tuple[int, float] | None) -> int:
+        """The version a neighbour holds as far as we know: its summary, or what we sent since."""
+        if sent is not None and sent[1] >= summary_time:
+            return max(reported, sent[0])
+        return reported
+
+    def _bases(self, nbrs: list[int], source: int, want: int, got: float, sent: tuple[int, float] | None,
+               reported: Callable[[int], int]) -> list[int]:
+        """The versions of the neighbours that should be sent version ``want`` of a source's data.
+
+        A robot's own data goes out at once to whoever lacks it; a relay waits until the
+        neighbour's summary, newer than our copy, says it still lacks it (it may have got it
+        from the source directly). Lost messages show up as a newer summary that still lacks
+        what we sent, and are sent again.
+        """
+        out = []
+        for k in nbrs:
+            if k == source:
+                continue
+            t = self._nbr[k][2] if k in self._nbr else -np.inf
+            have = self._belief(reported(k), t, sent)
+            if have < want and (source == self.robot or t > got):
+                out.append(have)
+        return out
+
+    def _reported(self, key: Key) -> Callable[[int], int]:
+        return lambda k: self._nbr[k][0].get(key, 0) if k in self._nbr else 0
+
+    def _reported_poses(self, src: int) -> Callable[[int], int]:
+        return lambda k: self._nbr[k][1].get(src, 0) if k in self._nbr else 0
+
+    def _exact_messages(self) -> list[Message]:
+        out: list[Message] = []
+        nbrs = sorted(self.neighbours)
+        for src, (table, got) in sorted(self.poses.items()):
+            sent = self._sent_poses.get(src)
+            if self._bases(nbrs, src, table.version, got, sent, self._reported_poses(src)):
+                out.append(SubmapPoses(robot=self.robot, source=table.source, version=table.version,
+                                       frame=table.frame, submaps=table.submaps, T_ref=table.T_ref, T=table.T))
+                self._sent_poses[src] = (table.version, self._now)
+        for key, h in sorted(self.held.items()):
+            if h.version == 0:
+                continue
+            bases = self._bases(nbrs, key[0], h.version, h.got, self._sent.get(key), self._reported(key))
+            if bases:
+                base = min(bases)
+                sel = h.marks > base
+                out.append(SubmapEvidence(robot=self.robot, source=key[0], submap=key[1], base=base,
+                                          version=h.version, cells=int(sel.sum()), classes=self.k,
+                                          payload=pack_cells(h.codes[sel], h.rows[sel, 1:].astype(np.int16))))
+                self._sent[key] = (h.version, self._now)
+        summary = self._versions()
+        content = summary.sources.tobytes() + summary.submaps.tobytes() + summary.versions.tobytes() + \
+            summary.pose_sources.tobytes() + summary.pose_versions.tobytes() + bytes([self.frame % 256])
+        if self._summary is None or self._summary[0] != content or self._summary[1] + 1 >= self.params.summary_every:
+            self._summary = (content, 0)
+            if nbrs:
+                out.append(summary)
+        else:
+            self._summary = (content, self._summary[1] + 1)
+        return out
+
+    def _versions(self) -> MapVersions:
+        keys = sorted(k for k, h in self.held.items() if h.version > 0)
+        srcs = sorted(self.poses)
+        return MapVersions(
+            robot=self.robot, frame=self.frame,
+            sources=np.array([k[0] for k in keys], np.int32), submaps=np.array([k[1] for k in keys], np.int64),
+            versions=np.array([self.held[k].version for k in keys], np.int64),
+            pose_sources=np.array(srcs, np.int32),
+            pose_versions=np.array([self.poses[s][0].version for s in srcs], np.int64))
+
+    # ---- results ---------------------------------------------------------------------------
+    @property
+    def team_map(self) -> SemanticOctree:
+        """The robot's team map (an octree; do not change it)."""
+        if self.mode == "exact":
+            return self.team.octree
+        if self.roam is not None:
+            return self.roam.tree
+        if self._team_cache is None:
+            codes, rows = self.team_cells()
+            tree = self.local.octree.empty_like()
+            tree.set_cells(codes, rows)
+            self._team_cache = tree
+        return self._team_cache
+
+    def team_cells(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every finest-level cell of the team map: sorted codes and int16 rows (as the tree holds them)."""
+        if self.mode == "exact":
+            codes, rows, _ = self.team.evidence()
+            return codes, _compressed(self.team.template, view_rows(self.team.template, rows))
+        if self.roam is not None:
+            return octree_cells(self.roam.tree)
+        assert self.lap is not None
+        codes, rows, _ = self.lap.team_rows(self.team_size)
+        return codes, _compressed(self.local.octree, view_rows(self.local.octree, rows))
+
+
+def _compressed(tree: SemanticOctree, rows: np.ndarray) -> np.ndarray:
+    return tree._compress(rows) if tree.top_k is not None else rows
+
+
+def get_map_consensus(robot: int, local: SubmapMap, mode: str = "exact", team_size: int = 1,
+                      **params: float | int | str) -> MapConsensus:
+    """A robot's map consensus in ``mode`` (``roam``, ``exact`` or ``laplacian``)."""
+    return MapConsensus(robot, local, MapConsensusParams(mode=mode, **params), team_size)  # type: ignore[arg-type]

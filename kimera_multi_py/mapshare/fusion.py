@@ -1,0 +1,272 @@
+"""Fusion of submap evidence into a team map: incremental (per robot) and centralised (docs/algorithms/map_consensus.md).
+
+A *record* is one submap of one robot: its reference pose ``T_ref`` (where its voxel grid was
+laid down), its current pose ``T`` and its integer evidence ``dh`` (fixed-point rows, column 0
+free = 0) on the reference grid. The team map of a set of records is
+
+    clamp(prior + sum_records map_codes(dh, T T_ref^-1))
+
+with the cells that no record reaches left unknown, exactly as a robot's own
+:class:`~kimera_multi_py.mapping.submaps.SubmapMap` builds its map from its own submaps. Since
+the sums are integers, the order in which records, cells and poses arrive does not matter:
+:class:`EvidenceMap` (updated incrementally by a robot's map consensus) and
+:func:`fuse_records` (the centralised fusion, in one batch) give the same cells bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
+from kimera_multi_py.mapping.submaps import SubmapMap, _CellStore, _group_sum, correction, map_codes
+
+Key = tuple[int, int]  # (robot, submap)
+
+
+@dataclass
+class SubmapRecord:
+    """One robot's submap evidence: reference and current pose, reference-grid cells and rows."""
+
+    robot: int
+    submap: int
+    T_ref: np.ndarray  # (4, 4)
+    T: np.ndarray  # (4, 4)
+    codes: np.ndarray  # (n,) int64, sorted unique, on the reference grid
+    rows: np.ndarray  # (n, K+1) int32
+
+    @property
+    def key(self) -> Key:
+        return (self.robot, self.submap)
+
+
+def records_of(robot: int, local: SubmapMap) -> list[SubmapRecord]:
+    """The records of a robot's own map (its submaps at their applied poses)."""
+    return [
+        SubmapRecord(robot, sid, s.T_ref.copy(), s.T.copy(), s.codes.copy(), s.rows.copy())
+        for sid, s in sorted(local.submaps.items())
+    ]
+
+
+def union_sorted(*arrays: np.ndarray) -> np.ndarray:
+    """The sorted union of int64 code arrays (faster than ``np.union1d`` for large inputs)."""
+    parts = [np.asarray(x, dtype=np.int64) for x in arrays]
+    if not parts:
+        return np.zeros(0, np.int64)
+    base = max(parts, key=len)
+    if all(_subset(p, base) for p in parts if p is not base):
+        return base.copy()  # the common case once maps agree: no sort
+    a = np.concatenate(parts)
+    a.sort()
+    keep = np.empty(len(a), np.bool_)
+    keep[0] = True
+    np.not_equal(a[1:], a[:-1], out=keep[1:])
+    return a[keep]
+
+
+def _subset(small: np.ndarray, big: np.ndarray) -> bool:
+    """Whether the sorted codes ``small`` all occur in the sorted codes ``big``."""
+    if len(small) == 0:
+        return True
+    if len(small) > len(big):
+        return False
+    pos = np.searchsorted(big, small).clip(max=len(big) - 1)
+    return bool(np.all(big[pos] == small))
+
+
+def view_rows(tree: SemanticOctree, summed: np.ndarray) -> np.ndarray:
+    """``clamp(prior + evidence)`` with column 0 = 0, as int16 rows of the octree view."""
+    m = tree.model
+    vals = summed.astype(np.int32) + m.prior_row.astype(np.int32)
+    np.clip(vals, m.lo, m.hi, out=vals)
+    vals[:, 0] = 0
+    return vals.astype(np.int16)
+
+
+def fuse_records(records: Iterable[SubmapRecord], template: SemanticOctree) -> SemanticOctree:
+    """The centralised fusion: one batch sum of every record's world contribution.
+
+    ``template`` gives resolution, classes, clamping, prior and top-K of the result.
+    """
+    tree = template.empty_like()
+    k1 = tree.num_classes + 1
+    codes, rows = [], []
+    for r in records:
+        if len(r.codes) == 0:
+            continue
+        codes.append(map_codes(r.codes, correction(r.T, r.T_ref), tree.resolution))
+        rows.append(np.asarray(r.rows, dtype=np.int32))
+    if not codes:
+        return tree
+    uniq, summed, _ = _group_sum(np.concatenate(codes), np.concatenate(rows).reshape(-1, k1))
+    tree.set_cells(uniq, view_rows(tree, summed))
+    return tree
+
+
+def centralised_team_map(
+    maps: Mapping[int, SubmapMap], robots: Iterable[int] | None = None
+) -> SemanticOctree:
+    """The reference team map: every robot's submap evidence fused centrally (``robots``: whose)."""
+    ids = sorted(maps) if robots is None else sorted(set(robots))
+    if not ids:
+        raise ValueError("centralised_team_map needs at least one robot")
+    template = maps[ids[0]].octree
+    return fuse_records((r for i in ids for r in records_of(i, maps[i])), template)
+
+
+def octree_cells(tree: SemanticOctree) -> tuple[np.ndarray, np.ndarray]:
+    """Every known finest-level cell of a tree (pruned leaves expanded): codes and int16 rows."""
+    codes, levels, values = tree.codes, tree.levels, tree.values
+    if len(codes) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, tree.num_classes + 1), np.int16)
+    span = np.left_shift(np.int64(1), 3 * levels.astype(np.int64))
+    total = int(span.sum())
+    starts = np.repeat(codes, span)
+    offset = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(span) - span, span)
+    return starts + offset, np.repeat(values, span, axis=0)
+
+
+class _Entry:
+    __slots__ = ("T_ref", "T", "codes", "rows", "world", "active")
+
+    def __init__(self, k1: int) -> None:
+        self.T_ref: np.ndarray | None = None
+        self.T: np.ndarray | None = None
+        self.codes = np.zeros(0, np.int64)
+        self.rows = np.zeros((0, k1), np.int32)
+        self.world: np.ndarray | None = None  # world codes while the entry is in the map
+        self.active = False
+
+
+class EvidenceMap:
+    """An incrementally maintained team map over keyed submap records (see the module docs).
+
+    An entry contributes once it has a pose and is *active* (its robot is aligned into the team
+    frame); until then its cells are kept but not in the map. Every change adds or subtracts
+    exact integer contributions, so the result never depends on the order of updates.
+
+    The evidence is what is kept up to date; the octree view (:attr:`octree`) is built from it
+    when asked for after a change. Robots exchange and compare evidence, and only an export or a
+    viewer needs the tree: keeping a tree current through every small update cost more than
+    the whole rest of the map consensus.
+    """
+
+    def __init__(self, template: SemanticOctree) -> None:
+        self.template = template.empty_like()  # resolution, classes, clamping, prior and top-K
+        self.resolution = self.template.resolution
+        self.k1 = self.template.num_classes + 1
+        self.entries: dict[Key, _Entry] = {}
+        self._fused = _CellStore(self.k1)
+        self._tree: SemanticOctree | None = None  # the octree view while no change came since
+
+    @property
+    def octree(self) -> SemanticOctree:
+        """The team map as an octree (built on first use after a change; do not change it)."""
+        if self._tree is None:
+            tree = self.template.empty_like()
+            codes, rows, _ = self._fused.arrays()
+            if len(codes):
+                tree.set_cells(codes, view_rows(tree, rows))
+            self._tree = tree
+        return self._tree
+
+    def _entry(self, key: Key) -> _Entry:
+        e = self.entries.get(key)
+        if e is None:
+            e = self.entries[key] = _Entry(self.k1)
+        return e
+
+    def keys(self) -> list[Key]:
+        return sorted(self.entries)
+
+    def set_cells(self, key: Key, codes: np.ndarray, rows: np.ndarray) -> None:
+        """Set (absolute values) reference-grid cells of a record; ``codes`` sorted unique."""
+        codes = np.asarray(codes, dtype=np.int64)
+        rows = np.asarray(rows, dtype=np.int32).reshape(len(codes), self.k1)
+        if len(codes) == 0:
+            return
+        e = self._entry(key)
+        pos = np.searchsorted(e.codes, codes)
+        known = pos < len(e.codes)
+        known[known] = e.codes[pos[known]] == codes[known]
+        before = np.zeros_like(rows)
+        before[known] = e.rows[pos[known]]
+        change = rows - before
+        e.rows[pos[known]] = rows[known]
+        new = ~known
+        if new.any():
+            e.codes = np.insert(e.codes, pos[new], codes[new])
+            e.rows = np.insert(e.rows, pos[new], rows[new], axis=0)
+            if e.world is not None:
+                assert e.T is not None and e.T_ref is not None
+                w_new = map_codes(codes[new], correction(e.T, e.T_ref), self.resolution)
+                e.world = np.insert(e.world, pos[new], w_new)
+        if e.world is not None:
+            idx = np.searchsorted(e.codes, codes)
+            self._apply(e.world[idx], change, new.astype(np.int32))
+
+    def set_pose(self, key: Key, T_ref: np.ndarray, T: np.ndarray) -> None:
+        """Place a record at pose ``T`` (reference ``T_ref``); moves its contribution exactly."""
+        e = self._entry(key)
+        T_ref = np.asarray(T_ref, dtype=np.float64)
+        T = np.asarray(T, dtype=np.float64)
+        if e.T is not None and e.T_ref is not None and np.array_equal(e.T, T) and np.array_equal(e.T_ref, T_ref):
+            return
+        old = e.world
+        e.T_ref, e.T = T_ref.copy(), T.copy()
+        if old is None:
+            if e.active:
+                self._deposit(e)
+            return
+        # only the cells that change world cell move: a small correction moves few of them
+        e.world = map_codes(e.codes, correction(T, T_ref), self.resolution)
+        moved = np.flatnonzero(old != e.world)
+        if len(moved):
+            ones = np.ones(len(moved), np.int32)
+            self._apply(np.concatenate([old[moved], e.world[moved]]),
+                        np.concatenate([-e.rows[moved], e.rows[moved]]), np.concatenate([-ones, ones]))
+
+    def set_active(self, key: Key, active: bool) -> None:
+        """Let a record contribute (its robot is in the team frame) or withdraw it."""
+        e = self._entry(key)
+        e.active = bool(active)
+        if e.active and e.world is None and e.T is not None:
+            self._deposit(e)
+        elif not e.active and e.world is not None:
+            self._withdraw(e)
+
+    def remove(self, key: Key) -> None:
+        e = self.entries.pop(key, None)
+        if e is not None and e.world is not None:
+            self._withdraw(e)
+
+    def record(self, key: Key) -> tuple[np.ndarray, np.ndarray]:
+        """Reference-grid codes and rows held for a record."""
+        e = self.entries[key]
+        return e.codes, e.rows
+
+    def evidence(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The fused evidence: sorted world codes, int32 rows and support counts."""
+        return self._fused.arrays()
+
+    # ---- internals -------------------------------------------------------------------------
+    def _deposit(self, e: _Entry) -> None:
+        assert e.T is not None and e.T_ref is not None
+        e.world = map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
+        self._apply(e.world, e.rows, np.ones(len(e.codes), np.int32))
+
+    def _withdraw(self, e: _Entry) -> None:
+        assert e.world is not None
+        self._apply(e.world, -e.rows, -np.ones(len(e.codes), np.int32))
+        e.world = None
+
+    def _apply(self, codes: np.ndarray, rows: np.ndarray, support: np.ndarray) -> None:
+        if len(codes) == 0:
+            return
+        uniq, summed, _ = _group_sum(codes, rows.astype(np.int32))
+        sup = np.zeros(len(uniq), dtype=np.int32)
+        np.add.at(sup, np.searchsorted(uniq, codes), support)
+        self._fused.add(uniq, summed, sup)
+        self._tree = None

@@ -1,0 +1,168 @@
+"""Object sharing: one robot's pure step towards the team's object map (docs/algorithms/map_consensus.md, objects).
+
+Every robot publishes a versioned table of its confirmed object landmarks
+(:class:`~kimera_multi_py.comms.messages.ObjectUpdate`), each object anchored in one of its
+submaps with its box in that submap's reference frame. Where a submap is comes from the map
+consensus's pose tables (:class:`~kimera_multi_py.comms.messages.SubmapPoses`), so a PGO
+correction moves every robot's copy of the objects exactly, and only a changed table travels.
+
+Tables spread by flooding: a robot publishes a table (its own, or a neighbour's newer one) once
+per version, and every ``refresh_every`` periods all it holds again, which recovers lost messages
+and partitions. A table is small (about 130 B per object), so this costs little beside the map.
+
+The team object map (:meth:`ObjectExchange.team_objects`) fuses every held table whose source's
+poses are in the robot's frame with :func:`~kimera_multi_py.mapping.object_fusion.fuse_objects`:
+robots that hold the same tables and pose tables get the same objects with the same ids, which
+is what makes their scene graphs agree. The robot's own objects enter through its own published
+table, exactly as the others see them.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import numpy as np
+
+from kimera_multi_py.comms.messages import Message, ObjectUpdate, SubmapPoses
+from kimera_multi_py.core.errors import MessageError
+from kimera_multi_py.core.geometry import inverse, transform_points
+from kimera_multi_py.mapping.object_fusion import fuse_objects, team_id
+from kimera_multi_py.mapping.objects import Landmark
+
+OBJECT_MESSAGES = (ObjectUpdate,)
+
+
+def own_table(robot: int, version: int, frame: int, landmarks: Iterable[Landmark], num_classes: int,
+              poses: SubmapPoses | None) -> ObjectUpdate:
+    """The table of ``landmarks`` (confirmed ones), each box expressed in its submap's reference
+    frame as the pose table ``poses`` has it (the landmark's own reference frame without one)."""
+    rows = []
+    where = {} if poses is None else {int(s): (poses.T_ref[k], poses.T[k]) for k, s in enumerate(poses.submaps)}
+    for lm in landmarks:
+        centre, size, R = lm.box()  # world now
+        M = inverse(lm.T_world_ref)  # back into the landmark's reference frame
+        if lm.submap in where:  # or into the submap's reference frame as the table has it
+            T_ref, T = where[lm.submap]
+            M = T_ref @ inverse(T)
+        centre, half = transform_points(M, centre[None])[0], np.abs(M[:3, :3] @ R) @ (size / 2)
+        counts = lm.class_counts[:num_classes]
+        rows.append((lm.id, lm.submap, int(np.argmax(counts[1:])) + 1, counts / counts.sum(), centre, half,
+                     lm.num_observations))
+    rows.sort(key=lambda r: r[0])
+    n = len(rows)
+    return ObjectUpdate(robot=robot, source=robot, version=version, frame=frame,
+                        ids=np.array([r[0] for r in rows], np.int64), submaps=np.array([r[1] for r in rows], np.int64),
+                        classes=np.array([r[2] for r in rows], np.int32),
+                        probs=np.array([r[3] for r in rows], np.float32).reshape(n, num_classes),
+                        centroids=np.array([r[4] for r in rows], np.float64).reshape(n, 3),
+                        extents=np.array([r[5] for r in rows], np.float64).reshape(n, 3),
+                        sightings=np.array([r[6] for r in rows], np.int32))
+
+
+def _content(t: ObjectUpdate) -> bytes:
+    return b"".join(a.tobytes() for a in (t.ids, t.submaps, t.classes, t.probs, t.centroids, t.extents, t.sightings))
+
+
+class ObjectExchange:
+    """One robot's object sharing (see the module docstring).
+
+    ``landmarks`` gives the robot's confirmed landmarks; ``poses(source)`` the newest pose table
+    the robot holds for ``source`` (its own included), or None.
+    """
+
+    def __init__(self, robot: int, landmarks: Callable[[], Iterable[Landmark]],
+                 poses: Callable[[int], SubmapPoses | None], num_classes: int, period: float = 5.0,
+                 refresh_every: int = 4) -> None:
+        if period <= 0 or refresh_every < 1:
+            raise ValueError("object sharing: period must be positive and refresh_every at least 1")
+        self.robot = int(robot)
+        self.landmarks = landmarks
+        self.poses = poses
+        self.num_classes = int(num_classes)
+        self.period = float(period)
+        self.refresh_every = int(refresh_every)
+        self.frame = self.robot
+        self.neighbours: set[int] = set()
+        self.tables: dict[int, ObjectUpdate] = {}  # source -> newest table
+        self.ignored: Counter[str] = Counter()
+        self.rounds = 0
+        self._version = 0
+        self._published: dict[int, int] = {}  # source -> version last published
+        self._next = -np.inf
+
+    def set_neighbours(self, ids: Iterable[int]) -> None:
+        self.neighbours = {int(i) for i in ids} - {self.robot}
+
+    def set_frame(self, frame: int) -> None:
+        self.frame = int(frame)
+
+    def handle(self, msg: Message) -> None:
+        """Absorb one table; raises :class:`MessageError` on inconsistent content."""
+        if not isinstance(msg, ObjectUpdate) or msg.robot == self.robot or msg.source == self.robot:
+            return
+        if msg.robot not in self.neighbours:
+            self.ignored["not_neighbour"] += 1
+            return
+        if msg.probs.shape[1] != self.num_classes:
+            raise MessageError(f"ObjectUpdate.probs: expected {self.num_classes} classes, got {msg.probs.shape[1]}")
+        if len(np.unique(msg.ids)) != len(msg.ids):
+            raise MessageError("ObjectUpdate.ids: duplicate object ids")
+        old = self.tables.get(msg.source)
+        if old is not None and msg.version <= old.version:
+            self.ignored["objects_duplicate"] += 1
+            return
+        self.tables[msg.source] = msg
+
+    def step(self, now: float) -> list[Message]:
+        """Publish what is due at time ``now`` (seconds): nothing between periods."""
+        if now < self._next:
+            return []
+        self._next = float(now) + self.period
+        self.rounds += 1
+        table = own_table(self.robot, self._version + 1, self.frame, self.landmarks(), self.num_classes,
+                          self.poses(self.robot))
+        old = self.tables.get(self.robot)
+        if (old is None and len(table.ids)) or (old is not None and _content(old) != _content(table)):
+            self._version += 1
+            self.tables[self.robot] = table
+        if not self.neighbours:
+            return []
+        refresh = self.rounds % self.refresh_every == 0
+        out: list[Message] = []
+        for src, t in sorted(self.tables.items()):
+            if refresh or t.version > self._published.get(src, 0):
+                out.append(ObjectUpdate(robot=self.robot, source=t.source, version=t.version, frame=self.frame,
+                                        ids=t.ids, submaps=t.submaps, classes=t.classes, probs=t.probs,
+                                        centroids=t.centroids, extents=t.extents, sightings=t.sightings))
+                self._published[src] = t.version
+        return out
+
+    def team_objects(self, min_sightings: int = 1) -> list[dict[str, Any]]:
+        """The team object map in the robot's frame: every held table whose source's submap poses
+        are in this frame, fused (``id``, ``class``, ``centroid``, ``lo``, ``hi``, ``sightings``,
+        ``members``); objects seen fewer than ``min_sightings`` times are left out first."""
+        ids, cls, lo, hi, sights, probs = [], [], [], [], [], []
+        for src, t in sorted(self.tables.items()):
+            poses = self.poses(src)
+            if poses is None or poses.frame != self.frame:
+                continue
+            where = {int(s): k for k, s in enumerate(poses.submaps)}
+            for k in range(len(t.ids)):
+                j = where.get(int(t.submaps[k]))
+                if j is None or t.sightings[k] < min_sightings:
+                    continue
+                C = poses.T[j] @ inverse(poses.T_ref[j])
+                c = transform_points(C, t.centroids[k][None])[0]
+                half = np.abs(C[:3, :3]) @ t.extents[k]
+                ids.append(team_id(src, int(t.ids[k])))
+                cls.append(int(t.classes[k]))
+                lo.append(c - half)
+                hi.append(c + half)
+                sights.append(int(t.sightings[k]))
+                probs.append(t.probs[k])
+        if not ids:
+            return []
+        return fuse_objects(np.array(ids), np.array(cls), np.array(lo), np.array(hi), np.array(sights),
+                            np.array(probs))

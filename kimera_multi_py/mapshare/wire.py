@@ -1,0 +1,92 @@
+"""The wire form of map cells: Morton codes and integer rows, losslessly compressed.
+
+Sorted codes travel as differences (small numbers: Morton order keeps neighbours close),
+rows column by column; both are byte-shuffled (all low bytes, then all high bytes, as Blosc
+does) and deflated with zlib. Unpacking checks every size before trusting the payload, so a
+corrupt or hostile payload raises :class:`MessageError` instead of allocating without bound.
+"""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+
+from kimera_multi_py.core.errors import MessageError
+
+LEVEL = 6
+_MAX_CODE = 1 << 48  # three 16-bit keys
+
+
+def _shuffle(a: np.ndarray) -> bytes:
+    b = np.ascontiguousarray(a).view(np.uint8).reshape(-1, a.dtype.itemsize)
+    return np.ascontiguousarray(b.T).tobytes()
+
+
+def _unshuffle(data: bytes, dtype: str, n: int) -> np.ndarray:
+    size = np.dtype(dtype).itemsize
+    b = np.frombuffer(data, np.uint8).reshape(size, n)
+    return np.ascontiguousarray(b.T).view(dtype).reshape(n)
+
+
+def pack_cells(codes: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """A uint8 payload of sorted unique codes ``(n,)`` int64 and rows ``(n, c)`` int16."""
+    codes = np.asarray(codes, dtype="<i8")
+    values = np.asarray(values, dtype="<i2")
+    if len(codes) > 1 and np.any(codes[1:] <= codes[:-1]):
+        raise ValueError("codes must be sorted and unique")
+    steps = np.diff(codes, prepend=np.int64(0))
+    raw = _shuffle(steps) + _shuffle(np.ascontiguousarray(values.T).reshape(-1))
+    return np.frombuffer(zlib.compress(raw, LEVEL), np.uint8).copy()
+
+
+def unpack_cells(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """Codes ``(n,)`` and rows ``(n, c)`` of a payload made by :func:`pack_cells`."""
+    expected = n * (8 + 2 * c)
+    d = zlib.decompressobj()
+    try:
+        raw = d.decompress(np.ascontiguousarray(payload, dtype=np.uint8).tobytes(), expected + 1)
+    except zlib.error as exc:
+        raise MessageError(f"{where}: corrupt payload ({exc})") from None
+    if len(raw) != expected or not d.eof or d.unconsumed_tail:
+        raise MessageError(f"{where}: payload does not hold {n} cells of {c} classes")
+    steps = _unshuffle(raw[: 8 * n], "<i8", n)
+    if n and (steps[0] < 0 or np.any(steps[1:] <= 0) or np.any(steps >= _MAX_CODE)
+              or int(steps.sum(dtype=np.float64)) >= _MAX_CODE):
+        raise MessageError(f"{where}: codes are not sorted and unique")
+    codes = np.cumsum(steps, dtype=np.int64)
+    values = _unshuffle(raw[8 * n:], "<i2", n * c).reshape(c, n).T.astype(np.int16)
+    return codes, np.ascontiguousarray(values)
+
+
+def pack_leaves(codes: np.ndarray, levels: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """A uint8 payload of a tree's leaves: start codes, levels ``(n,)`` int8, rows ``(n, c)`` int16."""
+    cells = pack_cells(codes, values)
+    lev = zlib.compress(np.asarray(levels, dtype=np.int8).tobytes(), LEVEL)
+    head = np.array([len(lev)], dtype="<u4").view(np.uint8)
+    return np.concatenate([head, np.frombuffer(lev, np.uint8), cells])
+
+
+def unpack_leaves(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Start codes, levels and rows of a payload made by :func:`pack_leaves` (levels checked)."""
+    payload = np.ascontiguousarray(payload, dtype=np.uint8)
+    if len(payload) < 4:
+        raise MessageError(f"{where}: payload too short")
+    m = int(payload[:4].view("<u4")[0])
+    if 4 + m > len(payload):
+        raise MessageError(f"{where}: payload too short")
+    d = zlib.decompressobj()
+    try:
+        raw = d.decompress(payload[4:4 + m].tobytes(), n + 1)
+    except zlib.error as exc:
+        raise MessageError(f"{where}: corrupt payload ({exc})") from None
+    if len(raw) != n:
+        raise MessageError(f"{where}: payload does not hold {n} leaves")
+    levels = np.frombuffer(raw, np.int8).copy()
+    if n and (levels.min() < 0 or levels.max() > 16):
+        raise MessageError(f"{where}: leaf levels outside 0..16")
+    codes, values = unpack_cells(payload[4 + m:], n, c, where)
+    span = np.left_shift(np.int64(1), 3 * levels.astype(np.int64))
+    if np.any(codes & (span - 1)) or np.any(codes[:-1] + span[:-1] > codes[1:]):
+        raise MessageError(f"{where}: leaves must be aligned to their level, sorted and disjoint")
+    return codes, levels, values

@@ -1,0 +1,449 @@
+"""Frame decision of one distributed-PGO robot: which team frame it joins, and whether its
+estimate is adopted at the end of the epoch (a mixin of :class:`.pgo.PgoAgent`, whose state it
+reads and writes; docs/algorithms/pgo.md).
+
+Plain alignment: the lowest id of each connected robot graph is the team frame; the others align
+to an aligned neighbour by GNC rotation + translation averaging over the inter-robot edges
+(:mod:`.alignment`). A robot publishes public poses only once aligned.
+
+Robust frame alignment (``align_hypotheses``): the known inter-robot edges are
+clustered into frame hypotheses (:func:`.alignment.frame_hypotheses`), each supported by the
+number of distinct places its closures come from, over every neighbour at once. A robot adopts
+the hypothesis that leads the runner-up by ``align_min_margin`` places (twice the runner-up's
+places, or twice the places only the runner-up explains, when it rests on several:
+:func:`.alignment.decide`) and rests on at least
+``align_min_places``. Settled frames (:class:`.messages.PublicPoses`): the robot decides on
+settled peers' edges first; the rest decide only what those leave open, and evidence that leads
+to two frames (settled peers against the rest, or two settled peers against each other) is
+contested, no decision (:func:`.alignment.settled_decision`). A lone single-place group with no
+competitor (one room seen by both robots, which an alias looks exactly like) is adopted once no
+more edges can arrive, and reported as such (not settled); ``align_lone_place=False`` keeps the
+robot out until a second place agrees. Where closures leave groups of several places competing
+(twin rooms: the truth and the frame one room over rest on as many places, or closures through
+different peers lead to different frames), the team's object
+landmarks may decide (:mod:`.landmark_check`; settled peers publish theirs as
+:class:`.messages.FrameLandmarks` when an epoch opens): adopted when they clearly favour one
+hypothesis, reported as such and not settled. Without such a hypothesis the robot stays out of the team
+frame for the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
+:attr:`PgoAgent.alignment` and the log. A robot already in a settled team frame switches frames
+only once every neighbour's poses are known (or patience ran out): at an epoch's start only the
+root has published. Every epoch builds a fresh agent, so the decision is revisited as closures
+accumulate: a robot aligned into an alias frame switches once the true hypothesis leads. Edges
+outside the adopted hypothesis start at weight 0. At the end of an epoch
+(:meth:`PgoAgent.final_poses`) an estimate that bends away from the robot's own odometry beyond
+its drift model (:func:`.alignment.odometry_disagreement`) is not adopted either.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+import gtsam
+import numpy as np
+from scipy.spatial import cKDTree
+
+from kimera_multi_py.alignment.frames import (
+    Alignment,
+    FrameHypothesis,
+    align_frames,
+    frame_hypotheses,
+    near_identity,
+    odometry_disagreement,
+    settled_decision,
+    supported_edges,
+)
+from kimera_multi_py.alignment.landmark_check import LandmarkScore, landmark_lead, landmark_scores
+from kimera_multi_py.core.geometry import inverse
+from kimera_multi_py.pgo.factors import to_values
+
+if TYPE_CHECKING:
+    from kimera_multi_py.pgo.local_graph import LocalGraph
+    from kimera_multi_py.pgo.params import PgoParams
+
+log = logging.getLogger(__name__)
+
+
+class FrameDecision:
+    """The frame-alignment part of :class:`.pgo.PgoAgent`: align, screen, exclude, settle."""
+
+    # state of the agent (set by PgoAgent.__init__)
+    local: LocalGraph
+    params: PgoParams
+    robot: int
+    root: bool
+    root_robot: int
+    landmark_anchor: np.ndarray | None
+    landmark_offset: np.ndarray
+    landmark_classes: np.ndarray
+    peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]]
+    poses: np.ndarray
+    prev_poses: np.ndarray
+    published: np.ndarray
+    neighbour_poses: dict[int, np.ndarray]
+    inter_weights: np.ndarray
+    intra_weights: np.ndarray
+    aligned: bool
+    excluded: bool
+    in_team_frame: bool
+    settled: bool
+    peer_settled: dict[int, bool]
+    screened: bool
+    alignment: dict[str, object]
+    alignment_inliers: np.ndarray | None
+    wait_rounds: int
+    _no_peer_rounds: int
+    _tried: bytes
+    _values: gtsam.Values
+
+    if TYPE_CHECKING:
+        def _solve_alone(self) -> np.ndarray: ...
+
+    # ---------------------------------------------------------------- alignment
+    def _try_align(self) -> None:
+        """Align to the team frame from inter-robot edges whose other end is known."""
+        lg = self.local
+        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        if not known.any():
+            self._no_peer_rounds += 1
+            if self.params.robust and self.params.align_hypotheses and \
+                    self._no_peer_rounds > 2 * self.params.align_patience:
+                self._exclude("no aligned neighbour", None, 0)
+            return
+        if self.params.robust and self.params.align_hypotheses:
+            self._align_hypothesis(known)
+            return
+        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+                           lg.inter_own_is_i[known])
+        self.wait_rounds += 1
+        everything = bool(known.all())  # no further edge can arrive
+        if not res.ok and not everything and self.wait_rounds < self.params.align_patience:
+            return
+        self._adopt_consensus(known, res)
+        self.settled = True  # without frame hypotheses every aligned frame counts
+
+    def _align_consensus(self, known: np.ndarray) -> None:
+        """Align by the robust consensus of every known edge (:func:`.alignment.align_frames`)."""
+        lg = self.local
+        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known], lg.inter_own_is_i[known])
+        self._adopt_consensus(known, res)
+        self.settled = False
+        self.alignment = {"status": "aligned", "settled": False, "support": int(res.inliers.sum()),
+                          "edges": int(res.inliers.sum()),
+                          "margin": 0, "hypotheses": 0, "peers": sorted(set(lg.inter_peer[known].tolist())),
+                          "hypothesis": np.round(res.T, 4).tolist(), "reason": "consensus of all edges"}
+
+    def _adopt_consensus(self, known: np.ndarray, res: Alignment) -> None:
+        lg = self.local
+        if not res.ok:
+            log.warning("robot %d: aligning with only %d consistent inter-robot edges",
+                        self.robot, int(res.inliers.sum()))
+        inliers = np.zeros(len(lg.inter_edge), dtype=bool)
+        inliers[np.flatnonzero(known)[res.inliers]] = True
+        self._move_into(res.T, inliers)
+        if self.params.robust and self.params.screen != "none":
+            # edges the screen rejects start as outliers; GNC revisits them
+            keep = inliers if self.params.screen == "alignment" else self._supported(known)
+            self.inter_weights = np.where(known & ~keep, 0.0, 1.0)
+        self.screened = bool(known.all())
+        log.info("robot %d aligned with %d/%d inter-robot edges", self.robot,
+                 int(inliers.sum()), int(known.sum()))
+
+    def _move_into(self, T: np.ndarray, inliers: np.ndarray) -> None:
+        """Adopt frame ``T`` (own -> team): move the estimate and restart from it; ``inliers`` (an
+        array the caller may still extend) are the inter-robot edges the frame rests on."""
+        self.poses = T @ self.poses
+        self.prev_poses = self.poses.copy()
+        self.published = self.poses.copy()
+        self._values = to_values(self.local.keys, self.poses)
+        self.alignment_inliers = inliers
+        self.aligned = True
+        self.excluded = False
+
+    def _hypotheses(self, known: np.ndarray) -> list[FrameHypothesis]:
+        """Frame hypotheses of the known inter-robot edges (edge indices into the local graph)."""
+        lg = self.local
+        idx = np.flatnonzero(known)
+        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[idx]])
+        hyps = frame_hypotheses(self.poses[lg.inter_own[idx]], nb, lg.inter_meas[idx], lg.inter_own_is_i[idx],
+                                lg.inter_peer[idx], place_radius=self.params.place_radius)
+        for h in hyps:
+            h.edges = idx[h.edges]
+        return hyps
+
+    def _settled_edges(self) -> np.ndarray:
+        """The inter-robot edges to peers whose frames are settled (:class:`.messages.PublicPoses`)."""
+        return np.array([self.peer_settled.get(int(r), True) for r in self.local.inter_peer], dtype=bool)
+
+    def _evidence(self, known: np.ndarray) -> tuple[list[FrameHypothesis], FrameHypothesis | None, int, str]:
+        """The frame hypotheses over every known edge, the one that clearly leads (or None), its
+        margin, and the verdict of :func:`.alignment.settled_decision` (edges to peers whose own
+        frames are not settled decide only what settled peers' edges do not)."""
+        p = self.params
+        lg = self.local
+        firm = known & self._settled_edges()
+        hyps = self._hypotheses(known)
+        firm_hyps = None if firm[known].all() else (self._hypotheses(firm) if firm.any() else [])
+        peers = np.unique(lg.inter_peer[firm])
+        per_peer = [self._hypotheses(firm & (lg.inter_peer == r)) for r in peers] if len(peers) > 1 else []
+        return (hyps, *settled_decision(firm_hyps, hyps, per_peer, p.align_min_places, p.align_min_margin,
+                                                p.place_radius))
+
+    def _align_hypothesis(self, known: np.ndarray) -> None:
+        """Robust alignment: adopt the frame hypothesis that clearly leads (module docstring)."""
+        p = self.params
+        lg = self.local
+        self.wait_rounds += 1
+        signature = known.tobytes() + self._settled_edges().tobytes()
+        if self.excluded and signature == self._tried:
+            return  # nothing new to decide on
+        self._tried = signature
+        hyps, best, margin, verdict = self._evidence(known)
+        settles = verdict == "settled"
+        contested = verdict == "contested"
+        final = bool(known.all()) or self.wait_rounds >= p.align_patience
+        if best is None and final and (not hyps or hyps[0].size < 3):
+            # no group of mutually consistent edges at all (sparse or noisy edges, not
+            # aliasing): the plain robust consensus of every edge decides
+            self._align_consensus(known)
+            return
+        sole = bool(hyps) and margin == hyps[0].places and hyps[0].size >= 3
+        if best is None and final and sole and p.align_lone_place:
+            # one group and no competitor: nothing to tell an alias from here; adopted, and
+            # reported as resting on one place (the drift check and later epochs revisit it)
+            best = hyps[0]
+        # a tie between groups of single places is aliasing itself (twin rooms): neither staying
+        # nor the consensus of the edges is evidence, so the robot is kept out of the team frame
+        placed = bool(hyps) and hyps[0].places >= p.align_tie_min_places
+        if best is None and final and self.in_team_frame and placed:
+            # a tie, and the robot already sits in the team frame (an earlier epoch aligned it):
+            # it keeps that frame while the hypothesis at the identity is among the leaders;
+            # switching frames takes a clear lead
+            stay = [h for h in hyps if h.places == hyps[0].places and near_identity(h.T)]
+            if stay:
+                best, settles = stay[0], True  # the frame an earlier epoch settled
+        landmarks: list[LandmarkScore] = []
+        if best is None and final and placed:
+            # closures do not decide between groups of several places (a tie, or peers' closures
+            # leading to different frames): the team's object map may (the true frame puts the
+            # robot's landmarks on the team's everywhere they both mapped, an alias only in the
+            # twin rooms); decided so, the frame is not settled
+            lead, landmarks = self._landmark_lead(hyps)
+            if lead is not None:
+                best, settles = lead, False
+        ahead = len(hyps) < 2 or hyps[0].places > hyps[1].places
+        if best is None and final and p.align_tie == "consensus" and placed and ahead and not contested:
+            # competing hypotheses, none clearly ahead but one ahead by places: the robust
+            # consensus of every edge aligns the robot and the team's GNC decides between the
+            # groups; the report says it was a tie. Groups level on places are no evidence
+            # either way: the robot stays out (below)
+            self._align_consensus(known)
+            self.alignment.update(reason="no frame hypothesis leads: consensus of every edge", margin=int(margin),
+                                  competitors=_competitors(hyps))
+            return
+        # a robot already in the team frame switches frames only on every neighbour's evidence:
+        # at the start of an epoch only the root has published, and two of its places that look
+        # like the robot's own outvote the one true place they share (office, 5 robots, seed 5:
+        # an early 2-vs-1 lead moved a robot aligned on 11 places into the twin office, 2.5 m)
+        switch = best is not None and self.in_team_frame and not near_identity(best.T)
+        if best is None or (not final and (margin < p.align_early_margin or switch)):
+            if final:
+                why = "closures through different peers lead to different frames" if contested \
+                    else "no frame hypothesis leads"
+                # out of patience before every neighbour's poses arrived: out for now, and
+                # decided again as they come (only then is the exclusion news for the log)
+                self._exclude(why, hyps[0] if hyps else None, margin, hyps,
+                              level=logging.WARNING if bool(known.all()) else logging.INFO)
+                if landmarks:
+                    self.alignment["landmarks"] = [sc.as_list() for sc in landmarks]
+            return
+        inliers = np.zeros(len(lg.inter_edge), dtype=bool)
+        inliers[best.edges] = True
+        self._move_into(best.T, inliers)
+        # in the new frame, every group at the identity agrees with the chosen hypothesis
+        # (a true group split by drift over long lever arms is re-joined)
+        for h in self._hypotheses(known):
+            if near_identity(h.T):
+                inliers[h.edges] = True
+        # edges outside the hypothesis start as outliers; GNC and its rechecks revisit them
+        self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
+        self.screened = bool(known.all())
+        self.settled = settles
+        self.alignment = self._report("aligned", best, margin, len(hyps))
+        if landmarks:
+            self.alignment.update(reason="closures do not decide: the team's landmarks do",
+                                  competitors=_competitors(hyps), landmarks=[sc.as_list() for sc in landmarks])
+        log.info("robot %d aligned%s: %d edges from %d places (margin %d over %d other hypotheses), origin moved %s",
+                 self.robot, "" if settles else " (not settled)", best.size, best.places, margin, len(hyps) - 1,
+                 np.round(best.T[:3, 3], 2).tolist())
+
+    # ---------------------------------------------------------------- landmarks
+    def set_landmarks(self, classes: np.ndarray, centres: np.ndarray,
+                      peers: dict[int, tuple[int, np.ndarray, np.ndarray]]) -> None:
+        """The robot's object landmarks (MAP classes, centres in the frame of the estimate this
+        solver starts from, :attr:`LocalGraph.poses`), each anchored to its nearest keyframe so
+        it moves with the estimate; ``peers``: robot -> (root of its frame, classes, centres) of
+        settled peers (read when deciding, so landmarks that arrive during the epoch count)."""
+        P = self.local.poses
+        c = np.asarray(centres, dtype=float).reshape(-1, 3)
+        self.peer_landmarks = peers
+        if not len(c) or not len(P):
+            return
+        k = cKDTree(P[:, :3, 3]).query(c)[1]
+        self.landmark_anchor = np.asarray(k)
+        self.landmark_offset = np.einsum("nji,nj->ni", P[k, :3, :3], c - P[k, :3, 3])  # Rᵀ (c − t)
+        self.landmark_classes = np.asarray(classes)
+
+    def _landmark_lead(self, hyps: list[FrameHypothesis]) -> tuple[FrameHypothesis | None, list[LandmarkScore]]:
+        """The hypothesis the team's landmarks clearly favour (:mod:`.landmark_check`), among
+        those resting on ``align_tie_min_places`` places, and every hypothesis's score."""
+        team = [(c, x) for r, (f, c, x) in self.peer_landmarks.items() if f == self.root_robot and r != self.robot]
+        if self.landmark_anchor is None or not team or not hyps:
+            return None, []
+        k = self.landmark_anchor
+        own = np.einsum("nij,nj->ni", self.poses[k, :3, :3], self.landmark_offset) + self.poses[k, :3, 3]
+        scores = landmark_scores(own, self.landmark_classes, np.concatenate([x for _, x in team]),
+                                 np.concatenate([c for c, _ in team]), [h.T for h in hyps],
+                                 place_radius=self.params.place_radius)
+        i = landmark_lead(scores, [h.places >= self.params.align_tie_min_places for h in hyps])
+        return (None if i is None else hyps[i]), scores
+
+    def _report(self, status: str, h: FrameHypothesis | None, margin: int, hypotheses: int,
+                reason: str = "") -> dict[str, object]:
+        out: dict[str, object] = {"status": status, "settled": bool(self.settled and status != "excluded"),
+                                  "support": h.places if h is not None else 0,
+                                  "edges": h.size if h is not None else 0, "margin": int(margin),
+                                  "hypotheses": int(hypotheses),
+                                  "peers": list(h.peers) if h is not None else [],
+                                  "hypothesis": np.round(h.T, 4).tolist() if h is not None else None}
+        if reason:
+            out["reason"] = reason
+        return out
+
+    def _exclude(self, reason: str, h: FrameHypothesis | None, margin: int,
+                 hyps: list[FrameHypothesis] | None = None, level: int = logging.WARNING) -> None:
+        """Stay out of the team frame this epoch: no alignment, inter-robot edges off."""
+        if self.excluded:
+            return
+        self.excluded = True
+        self.inter_weights[:] = 0.0
+        self.alignment = self._report("excluded", h, margin, len(hyps or []), reason)
+        # every competing hypothesis: distinct places, edges, peers, and where it moves the robot's origin
+        self.alignment["competitors"] = _competitors(hyps or [])
+        log.log(level, "robot %d: kept out of the team frame (%s; best support %d places, margin %d)", self.robot,
+                reason, h.places if h is not None else 0, margin)
+
+    def _screen(self) -> None:
+        """Robust mode, aligned robot: start inconsistent inter-robot edges at weight 0.
+
+        The same GNC rotation/translation consensus as the alignment (whose transform should
+        now be the identity) flags the edges that disagree with the majority; GNC revisits them.
+        """
+        lg = self.local
+        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        self.wait_rounds += 1
+        if not known.any() or (not known.all() and self.wait_rounds < self.params.align_patience):
+            return
+        hyps = self._hypotheses(known) if self.params.align_hypotheses else []
+        here = [h for h in hyps if near_identity(h.T)]
+        if here:
+            # already in the team frame: keep the hypothesis at the identity, the rest start at 0
+            keep = np.zeros(len(lg.inter_edge), dtype=bool)
+            for h in here:
+                keep[h.edges] = True
+            self.inter_weights = np.where(known & ~keep, 0.0, 1.0)
+            self.screened = True
+            if self.root and here:
+                others = [h.places for h in hyps if not near_identity(h.T)]
+                self.alignment = self._report("root", here[0], here[0].places - max(others, default=0), len(hyps))
+            return
+        if self.params.screen == "support":
+            self.inter_weights = np.where(known & ~self._supported(known), 0.0, 1.0)
+            self.screened = True
+            return
+        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+                           lg.inter_own_is_i[known])
+        if res.ok:
+            inliers = np.zeros(len(lg.inter_edge), dtype=bool)
+            inliers[np.flatnonzero(known)[res.inliers]] = True
+            self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
+            self.alignment_inliers = inliers
+        self.screened = True
+
+    def _supported(self, known: np.ndarray) -> np.ndarray:
+        """The known inter-robot edges some other known edge agrees with (own poses in the team
+        frame), see :func:`.alignment.supported_edges`."""
+        lg = self.local
+        out = np.zeros(len(lg.inter_edge), dtype=bool)
+        if known.any():
+            nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+            out[known] = supported_edges(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+                                         lg.inter_own_is_i[known])
+        return out
+
+    # ---------------------------------------------------------------- end of the epoch
+    def final_poses(self) -> np.ndarray:
+        """The poses to adopt at the end of the epoch.
+
+        Robust mode also settles the safety property here: a robot that never aligned (or that
+        was excluded) returns its estimate in its own frame (first pose at the identity) with
+        every inter-robot weight 0; an estimate that disagrees with the robot's own odometry
+        beyond its drift model is not adopted either (the robot's own solution is).
+        """
+        if not self.params.robust:
+            return self.poses
+        lg = self.local
+        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        self.inter_weights[~known] = 0.0
+        if not self.aligned and not self.excluded:
+            self._exclude("not aligned when the epoch ended", None, 0)
+        if self.params.drift_check and not self.excluded:
+            ratio = self._odometry_disagreement()
+            self.alignment["drift_ratio"] = round(ratio, 3)
+            if ratio > 1.0:
+                log.warning("robot %d: estimate disagrees with its odometry (%.2f x its drift model)",
+                            self.robot, ratio)
+                self._exclude(f"estimate disagrees with odometry ({ratio:.2f} x drift model)", None, 0)
+                self.alignment["drift_ratio"] = round(ratio, 3)
+                self.poses = self._own_solution()
+        if self.excluded:
+            return inverse(self.poses[0]) @ self.poses
+        return self.poses
+
+    def _odometry_chain(self) -> tuple[np.ndarray, float, float]:
+        """Dead reckoning from the odometry edges (first pose at the identity) and its sigmas."""
+        lg = self.local
+        n = len(lg.keys)
+        D = np.tile(np.eye(4), (n, 1, 1))
+        odo = np.flatnonzero(lg.intra_odometry)
+        steps = {int(lg.intra_i[e]): e for e in odo if int(lg.intra_j[e]) == int(lg.intra_i[e]) + 1}
+        for k in range(1, n):
+            e = steps.get(k - 1)
+            D[k] = D[k - 1] @ (lg.intra_meas[e] if e is not None else inverse(lg.poses[k - 1]) @ lg.poses[k])
+        if len(odo):
+            info = lg.intra_info[odo[0]]
+            return D, float(1.0 / np.sqrt(info[0, 0])), float(1.0 / np.sqrt(info[3, 3]))
+        return D, 0.0, 0.0
+
+    def _odometry_disagreement(self) -> float:
+        D, s_rot, s_trans = self._odometry_chain()
+        return odometry_disagreement(self.poses, D, s_rot, s_trans, self.params.drift_z, self.params.drift_floor)
+
+    def _own_solution(self) -> np.ndarray:
+        """The robot's own graph alone (odometry and the intra-robot closures GNC kept), or its
+        dead reckoning when its own closures bend it away from the odometry too."""
+        lg = self.local
+        own = self._solve_alone()
+        D, s_rot, s_trans = self._odometry_chain()
+        if odometry_disagreement(own, D, s_rot, s_trans, self.params.drift_z, self.params.drift_floor) > 1.0:
+            self.intra_weights[~lg.intra_odometry] = 0.0  # its own closures bend it too: dead reckoning
+            return self.poses[0] @ D
+        return own
+
+
+def _competitors(hyps: list[FrameHypothesis]) -> list[list[object]]:
+    """JSON-ready summary of frame hypotheses: ``[places, edges, peers, translation]`` each."""
+    return [[h.places, h.size, list(h.peers), np.round(h.T[:3, 3], 2).tolist()] for h in hyps]

@@ -1,0 +1,220 @@
+"""Robust weights of one distributed Levenberg–Marquardt robot: GNC-TLS in the lock-step outer
+loop (a mixin of :class:`.pgo_gn.GnPcgAgent`, whose state it reads and writes; docs/algorithms/pgo.md).
+
+The robust schedule is the block-SOR solver's (:mod:`.pgo_weights`): one team ``μ`` (the
+smallest ``μ₀`` any robot proposes, floored at ``gnc_mu0_min``), ``μ ← 1.4 μ`` per weight
+update, then re-checks of every closure at the settled solution (first with
+``recheck_factor`` slack, then the plain threshold). What differs is the timing and the
+bookkeeping, which ride on the lock-step:
+
+- **Start.** The frame decision and the screen are the block-SOR robot's. The lower-id robot
+  of each inter-robot edge owns its screened weight and sends it (:class:`GncWeights`) with the
+  first step; the first step's scalars also carry each robot's ``μ₀`` proposal and whether it
+  is excluded from the team frame (its edges are then off on both sides for the epoch).
+- **Weight updates** happen between outer steps: after ``gn_weight_every`` accepted steps, or
+  one that lowered the team cost by less than ``gn_weight_tol`` (relative: the solve at this
+  ``μ`` has settled), or a converged one, at the same step on every robot, since every decision of the outer
+  loop is team-wide. A TLS weight is a function of the edge's residual alone, and both robots
+  of an inter-robot edge hold the same two poses (a neighbour's poses are tracked from its own
+  float32 steps), so both compute the same weight and no weight message is needed.
+- **End of GNC**: when every weight of the team is binary after an update (the count of
+  non-binary weights travels with the linearisation) or after ``gnc_max_steps``; then the
+  ``gnc_rechecks`` re-checks, each once a step lowered the team cost by less than
+  ``gn_recheck_tol`` (or at convergence), and more (plain threshold, up to
+  ``gnc_max_rechecks``) while the last one flipped a decision anywhere in the team (that count
+  travels with the linearisation too), as the centralised reference does; then the solve stops
+  when converged.
+
+The team cost is re-summed at every linearisation (each robot's share travels with it), so a
+weight change never corrupts the accept/reject test of the line search.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from kimera_multi_py.comms.messages import GncWeights, Message, PcgState
+from kimera_multi_py.core.robust import GncSchedule
+from kimera_multi_py.pgo.linear import edge_costs
+
+if TYPE_CHECKING:
+    from kimera_multi_py.pgo.local_graph import LocalGraph
+    from kimera_multi_py.pgo.params import PgoParams
+
+
+class GnRobust:
+    """The robust-weights part of :class:`.pgo_gn.GnPcgAgent` (see module)."""
+
+    # state of the agent (set by PgoAgent.__init__ / GnPcgAgent.__init__)
+    local: LocalGraph
+    params: PgoParams
+    robot: int
+    team: tuple[int, ...]
+    root: bool
+    poses: np.ndarray
+    peer_X: np.ndarray | None
+    inter_weights: np.ndarray
+    intra_weights: np.ndarray
+    excluded: bool
+    gnc: GncSchedule
+    rechecks: int
+
+    def _robust_setup(self) -> None:
+        self.phase = "gnc" if self.params.robust else "off"  # "gnc" -> "recheck" -> "final"
+        self.off_peers: set[int] = set()  # excluded neighbours: their edges stay off
+        self.weights_from: set[int] = set()  # owners whose start weights arrived
+        self.start_weights: list[GncWeights] = []
+        self.team_mu0 = self.mu0_proposal = self.params.gnc_mu0_max
+        self.accepted_since_weights = 0
+        self.weights_outer = 0  # the outer step of the last weight change
+        self.team_nonbinary = 0
+        self.flipped = 0  # inlier decisions the last weight change flipped (own)
+        self.team_flipped = 0
+        self._refresh_info()
+
+    # ---------------------------------------------------------------- weighted information
+    def _refresh_info(self) -> None:
+        """Information matrices scaled by the current weights (odometry keeps weight 1)."""
+        lg = self.local
+        self.w_intra_info = lg.intra_info * self.intra_weights[:, None, None]
+        self.w_inter_info = lg.inter_info * self.inter_weights[:, None, None]
+
+    def _anchored(self) -> bool:
+        """The robot holds its first pose: it is a frame root, or no inter-robot edge binds it."""
+        return self.root or not bool(np.any(self.inter_weights > 0))
+
+    def _nonbinary(self) -> int:
+        w = np.concatenate([self.intra_weights[~self.local.intra_odometry], self.inter_weights])
+        return int(np.count_nonzero((w > 1e-4) & (w < 1.0 - 1e-4)))
+
+    # ---------------------------------------------------------------- start
+    def _start_scalars(self) -> list[float]:
+        """The first step's scalars: ``[μ₀ proposal, excluded]`` (robust; none otherwise)."""
+        if not self.params.robust:
+            return []
+        r2_loop, r2_inter = self._robust_r2_all()
+        r2 = np.concatenate([r2_loop, r2_inter])
+        trusted = np.concatenate([self.intra_weights[~self.local.intra_odometry] > 0.5,
+                                  self.inter_weights > 0.5])
+        p = self.params
+        self.mu0_proposal = self.gnc.initial_mu(r2, trusted if p.gnc_mu0_trusted else None,
+                                                p.gnc_mu0_min, p.gnc_mu0_max)
+        return [self.mu0_proposal, float(self.excluded)]
+
+    def _start_weight_messages(self, rnd: int) -> list[GncWeights]:
+        """The screened weights of the inter-robot edges this robot owns, one message per peer."""
+        if not self.params.robust:
+            return []
+        lg = self.local
+        out = []
+        for peer in lg.neighbours:
+            if peer < self.robot:
+                continue
+            sel = np.flatnonzero(lg.inter_peer == peer)
+            out.append(GncWeights(robot=self.robot, peer=int(peer), round=rnd,
+                                  keys_a=lg.keys[lg.inter_own[sel]], keys_b=lg.inter_peer_key[sel],
+                                  weights=self.inter_weights[sel], mu=0.0))
+        self.start_weights = out
+        return out
+
+    def _absorb_start_weights(self, msg: GncWeights) -> None:
+        if msg.peer == self.robot and msg.robot < self.robot and msg.robot not in self.weights_from:
+            self.weights_from.add(msg.robot)
+            lg = self.local
+            lookup = {(int(a), int(b)): float(w)
+                      for a, b, w in zip(msg.keys_b, msg.keys_a, msg.weights, strict=True)}
+            for e, (a, b) in enumerate(zip(lg.keys[lg.inter_own], lg.inter_peer_key, strict=True)):
+                w = lookup.get((int(a), int(b)))
+                if w is not None:
+                    self.inter_weights[e] = w
+
+    def _start_weights_in(self) -> bool:
+        """Every lower-id neighbour's start weights have arrived (robust; always true otherwise)."""
+        if not self.params.robust:
+            return True
+        return all(r in self.weights_from for r in self.local.neighbours if r < self.robot)
+
+    def _apply_start(self, got: dict[int, PcgState]) -> None:
+        """The team's ``μ₀`` and the excluded robots, from the first step's scalars."""
+        if not self.params.robust:
+            return
+        self.team_mu0 = min([float(m.scalars[0]) for m in got.values()] + [self.mu0_proposal])
+        self.off_peers = {r for r, m in got.items() if m.scalars[1] > 0.5}
+        self._force_off()
+        self._refresh_info()
+
+    def _force_off(self) -> None:
+        lg = self.local
+        if self.excluded:
+            self.inter_weights[:] = 0.0
+        elif self.off_peers:
+            self.inter_weights[np.isin(lg.inter_peer, list(self.off_peers))] = 0.0
+
+    # ---------------------------------------------------------------- between outer steps
+    def _robust_r2_all(self) -> tuple[np.ndarray, np.ndarray]:
+        """Squared residuals of the robot's loop closures and of all its inter-robot edges."""
+        lg = self.local
+        loop = ~lg.intra_odometry
+        r2_loop = 2.0 * edge_costs(self.poses[lg.intra_i[loop]], self.poses[lg.intra_j[loop]],
+                                   lg.intra_meas[loop], lg.intra_info[loop]) if loop.any() else np.zeros(0)
+        r2_inter = np.zeros(0)
+        if len(lg.inter_own) and self.peer_X is not None:
+            own = self.poses[lg.inter_own]
+            sel = lg.inter_own_is_i[:, None, None]
+            Ti, Tj = np.where(sel, own, self.peer_X), np.where(sel, self.peer_X, own)
+            r2_inter = 2.0 * edge_costs(Ti, Tj, lg.inter_meas, lg.inter_info) / np.asarray(lg.inter_vote)
+        return r2_loop / np.asarray(lg.intra_vote)[loop], r2_inter  # the TLS test at Ω (votes)
+
+    def _set_weights(self, w: np.ndarray, outer: int) -> None:
+        loop = np.flatnonzero(~self.local.intra_odometry)
+        before = np.concatenate([self.intra_weights[loop], self.inter_weights]) > 0.5
+        self.intra_weights[loop] = w[: len(loop)]
+        self.inter_weights[:] = w[len(loop):]
+        self._force_off()
+        self._refresh_info()
+        after = np.concatenate([self.intra_weights[loop], self.inter_weights]) > 0.5
+        self.flipped = int(np.count_nonzero(before != after))
+        self.weights_outer = outer
+        self.accepted_since_weights = 0
+
+    def _robust_after_step(self, accepted: bool, converged: bool, outer: int, decrease: float) -> bool:
+        """Between outer steps: update the weights when due; True when the solve is done."""
+        p = self.params
+        if self.phase == "off":
+            return converged
+        if self.phase == "gnc":
+            self.accepted_since_weights += int(accepted)
+            over = (self.gnc.steps > 0 and self.team_nonbinary == 0) or self.gnc.steps >= p.gnc_max_steps
+            if over:
+                self.phase = "recheck"
+            elif (converged or self.accepted_since_weights >= p.gn_weight_every
+                  or (accepted and decrease < p.gn_weight_tol)):
+                r2 = np.concatenate(self._robust_r2_all())
+                self._set_weights(self.gnc.update(r2, mu0=self.team_mu0), outer)
+                return False
+            else:
+                return False
+        # a re-check needs the solve at the current weights settled, not converged to the
+        # last digit: its χ² decisions move with the residuals, not with a 1e-6 of the cost
+        if not (converged or (accepted and decrease < p.gn_recheck_tol)):
+            return False
+        # re-checks until the decisions are stable (at most gnc_max_rechecks): a closure dropped
+        # at the last one may fit the re-converged solution, and TLS keeps what fits
+        unstable = self.rechecks < p.gnc_rechecks or (self.team_flipped > 0 and self.rechecks < p.gnc_max_rechecks)
+        if self.phase == "recheck" and unstable:
+            # the TLS decision at the converged solution, first with slack (see .pgo_weights)
+            last = self.rechecks + 1 >= p.gnc_rechecks
+            factor = 1.0 if last else p.recheck_factor
+            r2 = np.concatenate(self._robust_r2_all())
+            self._set_weights((r2 <= factor * self.gnc.barc2).astype(float), outer)
+            self.rechecks += 1
+            return False
+        if not converged:
+            return False
+        self.phase = "final"
+        return True
+
+    if TYPE_CHECKING:
+        def handle(self, msg: Message) -> None: ...

@@ -1,0 +1,167 @@
+"""Async runtime for distributed PGO: moves :class:`PgoAgent` messages over one Bus per robot.
+
+Each robot runs rounds. Before round ``r`` it waits (up to ``round_timeout``) for the status of
+round ``r − 1`` from every robot it depends on (its neighbours; the leader waits for all), so
+adjacent robots are never more than one round apart and the colour schedule holds. A lost
+message costs one timeout; the agent then uses the latest values it has (stale by a round).
+The runtime records every robot's poses per round so the caller can score convergence.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kimera_multi_py.comms import keys
+from kimera_multi_py.comms.bus import Bus, BusClosedError, Subscription
+from kimera_multi_py.comms.messages import Message, PgoCommand, PgoStatus
+from kimera_multi_py.pgo.agent import PgoAgent
+
+log = logging.getLogger(__name__)
+
+RoundCallback = Callable[[int, dict[int, np.ndarray]], None]
+
+
+@dataclass
+class RunStats:
+    """What the runtime observed: rounds run, bytes on the wire and wall time."""
+
+    rounds: int = 0
+    bytes_sent: int = 0
+    bytes_by_robot: dict[int, int] = field(default_factory=dict)
+    bytes_by_topic: dict[str, int] = field(default_factory=dict)
+    timeouts: int = 0
+    wall_s: float = 0.0
+    dropped: int = 0  # messages lost on the way (filled in by a caller that can count them)
+
+
+class _RoundLog:
+    """Collects per-robot poses per round; calls back when every robot has reported a round."""
+
+    def __init__(self, robots: Sequence[int], callback: RoundCallback | None) -> None:
+        self.robots = set(robots)
+        self.callback = callback
+        self.pending: dict[int, dict[int, np.ndarray]] = {}
+        self.latest: dict[int, np.ndarray] = {}
+        self.finished: set[int] = set()
+
+    def report(self, robot: int, rnd: int, poses: np.ndarray) -> None:
+        self.latest[robot] = poses
+        self.pending.setdefault(rnd, {})[robot] = poses
+        self._flush()
+
+    def finish(self, robot: int) -> None:
+        self.finished.add(robot)
+        self._flush()
+
+    def _flush(self) -> None:
+        for rnd in sorted(self.pending):
+            got = self.pending[rnd]
+            missing = self.robots - set(got) - self.finished
+            if missing:
+                break
+            for r in self.robots - set(got):
+                got[r] = self.latest[r]
+            del self.pending[rnd]
+            if self.callback is not None:
+                self.callback(rnd, got)
+
+
+async def run_team(agents: Sequence[PgoAgent], buses: Sequence[Bus], max_rounds: int,
+                   round_timeout: float = 0.5, on_round: RoundCallback | None = None,
+                   start_round: dict[int, int] | None = None) -> RunStats:
+    """Run every agent on its own bus until all stop or ``max_rounds``.
+
+    ``start_round`` lets a robot join late: it sits out (silent) until that round.
+    """
+    t0 = time.perf_counter()
+    stats = RunStats()
+    robots = [a.robot for a in agents]
+    log_ = _RoundLog(robots, on_round)
+    subs = [bus.subscribe(keys.team_all(bus.team)) for bus in buses]
+    for bus in buses:
+        await bus.announce()
+    start_round = start_round or {}
+    tasks = [
+        asyncio.create_task(_robot(agent, bus, sub, max_rounds, round_timeout, log_, stats,
+                                   start_round.get(agent.robot, 0)))
+        for agent, bus, sub in zip(agents, buses, subs, strict=True)
+    ]
+    try:
+        stats.rounds = max(await asyncio.gather(*tasks)) + 1
+    finally:
+        for sub in subs:
+            sub.close()
+    for bus in buses:
+        snap = bus.counters.snapshot()["sent"]
+        total = sum(v["bytes"] for v in snap.values())
+        stats.bytes_by_robot[bus.robot] = total
+        stats.bytes_sent += total
+        for topic, v in snap.items():
+            stats.bytes_by_topic[topic] = stats.bytes_by_topic.get(topic, 0) + v["bytes"]
+    stats.wall_s = time.perf_counter() - t0
+    return stats
+
+
+async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, timeout: float,
+                 round_log: _RoundLog, stats: RunStats, start: int) -> int:
+    depends = agent.dependencies()
+    seen: dict[int, int] = {}  # robot -> latest status round
+    stopped: set[int] = set()
+    rnd = 0
+
+    def absorb(msg: Message) -> None:
+        if isinstance(msg, PgoStatus):
+            seen[msg.robot] = max(seen.get(msg.robot, -1), msg.round)
+        if isinstance(msg, PgoCommand) and msg.command == "stop":
+            stopped.add(msg.robot)
+        agent.handle(msg)
+
+    async def drain() -> None:
+        while (msg := sub.try_recv()) is not None:
+            absorb(msg)
+
+    try:
+        for rnd in range(max_rounds):
+            if rnd < start:
+                await asyncio.sleep(0)
+                await drain()
+                round_log.report(agent.robot, rnd, agent.poses)
+                continue
+            # wait for the statuses of round rnd-1 from the robots this one depends on
+            deadline = time.perf_counter() + timeout
+            while True:
+                await drain()
+                waiting = [r for r in depends if seen.get(r, -1) < rnd - 1 and r not in stopped]
+                if not waiting or agent.done or rnd == start:
+                    break
+                left = deadline - time.perf_counter()
+                if left <= 0:
+                    stats.timeouts += 1
+                    break
+                try:
+                    absorb(await sub.recv(timeout=left))
+                except TimeoutError:
+                    stats.timeouts += 1
+                    break
+            if agent.done:
+                break
+            for msg in agent.step(rnd):
+                await bus.publish(bus.key(msg.TOPIC), msg)
+            round_log.report(agent.robot, rnd, agent.poses)
+            await asyncio.sleep(0)
+            if agent.done:
+                break
+        if agent.done:
+            # echo the stop so a robot that lost the leader's copy still hears it
+            await bus.publish(bus.key(PgoCommand.TOPIC), PgoCommand(
+                robot=agent.robot, round=rnd, command="stop", active=np.zeros(0, np.int64)))
+    except BusClosedError:
+        log.info("robot %d: bus closed at round %d", agent.robot, rnd)
+    round_log.finish(agent.robot)
+    return rnd

@@ -1,0 +1,499 @@
+"""SimRunner: feeds a team of robot nodes from the simulator and evaluates them against truth.
+
+``run()`` reads as its stages: spawn the robots, stream every keyframe to them, evaluate against
+ground truth, write the outputs. The runner is only a sensor feed, a clock and an evaluator:
+every robot is an :class:`AgentNode` that runs its own loop closures, distributed PGO (opened
+and closed by the team's leader) and outputs, exactly as in ``kimera-multi agent``. Modes:
+
+* ``odometry`` -- dead reckoning: each robot chains its noisy keyframe odometry from identity.
+  For the team figure each robot's odometry frame is anchored at its true start pose (the
+  frames are otherwise unknown without inter-robot loop closures), then one SE(3) alignment
+  over all robots is applied.
+* ``distributed`` -- one node per robot, each on its own bus (in-process loopback, or one Zenoh
+  session per robot). Estimates end in the team frame (robot 0's), which one SE(3) alignment
+  places in the world for evaluation.
+* ``centralized`` -- the same nodes plus a :class:`ServerNode` on its own bus: agents stream
+  keyframe odometry and their accepted loop closures; the server runs gtsam GNC on the joint
+  graph on its own schedule and publishes corrected poses back.
+
+The clock is simulated: keyframes arrive in stamp order, and after each one the nodes run until
+the network is quiet. Over loopback a PGO round's wait ends when nothing more can arrive, so a
+seed always gives the same results, whatever the machine's load.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import json
+import math
+import time
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kimera_multi_py.agent.agent import Agent, AgentParams
+from kimera_multi_py.agent.node import AgentNode, NodeParams
+from kimera_multi_py.agent.outputs import RobotOutcome, outcome_of, own_graph, write_outcome
+from kimera_multi_py.agent.team_graph import joint_graph
+from kimera_multi_py.comms.bus import Bus
+from kimera_multi_py.comms.comm_range import neighbours_within
+from kimera_multi_py.comms.faults import check_robots, cut_links
+from kimera_multi_py.comms.loopback import Faults, LoopbackBus, LoopbackNetwork
+from kimera_multi_py.comms.team import TRANSPORTS, open_buses
+from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.core.geometry import transform_points
+from kimera_multi_py.eval.accuracy import ScanRecord, accuracy_results
+from kimera_multi_py.eval.map_metrics import TeamMapReport, phi, team_map_report
+from kimera_multi_py.eval.results import Results
+from kimera_multi_py.eval.slam import map_quality, score_closures
+from kimera_multi_py.eval.team import (
+    excluded_robots,
+    scene_graph_results,
+    team_frame_robots,
+    team_results,
+    trajectory_results,
+)
+from kimera_multi_py.io.g2o import write_g2o
+from kimera_multi_py.io.tum import write_tum
+from kimera_multi_py.mapping.config import get_submap_map
+from kimera_multi_py.mapping.octree_io import export_team_map
+from kimera_multi_py.mapshare.consensus import MAP_MESSAGES
+from kimera_multi_py.mapshare.fusion import centralised_team_map, octree_cells
+from kimera_multi_py.pgo.params import PgoParams, team_params
+from kimera_multi_py.pgo.team import ScheduleParams
+from kimera_multi_py.server.node import SERVER_ID, Server, ServerNode
+from kimera_multi_py.sim.scenario import ScenarioConfig
+from kimera_multi_py.sim.simulation import Keyframe, Simulation
+from kimera_multi_py.sim.source import keyframe_input
+from kimera_multi_py.team.build import agent_params
+from kimera_multi_py.viz.rerun_viz import NullViz, Viz
+
+MODES = ("odometry", "distributed", "centralized")
+MAP_SETTLE_S = 15.0  # sim seconds the team keeps exchanging maps after its final optimisation
+PHI_EVERY_S = 10.0  # sim seconds between two records of the team maps' disagreement
+Progress = Callable[[int, int], None]
+
+
+@dataclass
+class _Track:
+    """One robot's estimated (own odometry frame) and true (world) keyframe poses."""
+
+    stamps: list[float] = field(default_factory=list)
+    est: list[np.ndarray] = field(default_factory=list)
+    true: list[np.ndarray] = field(default_factory=list)
+    scans: list[ScanRecord] = field(default_factory=list)  # for the team map (evaluation only)
+
+    def add(self, kf: Keyframe) -> np.ndarray:
+        pose = kf.odometry.copy() if not self.est else self.est[-1] @ kf.odometry
+        self.scans.append(ScanRecord(kf.scan.points().astype(np.float32), kf.scan.labels, kf.scan.max_range))
+        self.stamps.append(kf.stamp)
+        self.est.append(pose)
+        self.true.append(kf.true_pose)
+        return pose
+
+
+class _SimClock:
+    """The simulated clock the nodes read (seconds of scenario time)."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def now(self) -> float:
+        return self.t
+
+
+class SimRunner:
+    """Runs one scenario for one seed and mode; returns :class:`Results`."""
+
+    def __init__(self, cfg: ScenarioConfig, seed: int | None = None, mode: str = "odometry",
+                 out_dir: str | Path | None = None, viz: Viz | None = None,
+                 on_progress: Progress | None = None, transport: str = "loopback",
+                 pgo_period: float = 60.0, params: AgentParams | None = None,
+                 pgo_params: PgoParams | None = None, join: dict[int, float] | None = None,
+                 leave: dict[int, float] | None = None, map_consensus: str = "exact",
+                 comm_range: float | None = None, drop: float = 0.0, faults: Faults | None = None,
+                 quality: bool = True) -> None:
+        if mode not in MODES:
+            raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
+        if transport not in TRANSPORTS:
+            raise ConfigError("transport", f"unknown transport {transport!r} (available: {', '.join(TRANSPORTS)})")
+        self.cfg = cfg
+        self.mode = mode
+        self.transport = transport
+        self.sim = Simulation(cfg, seed)
+        self.out_dir = Path(out_dir) if out_dir is not None else None
+        self.viz: Viz = viz or NullViz()
+        self.on_progress = on_progress
+        self.params = params or agent_params(cfg)
+        self.pgo_params = pgo_params or team_params()
+        # over Zenoh a round waits on the wall clock; over loopback until the network is quiet
+        self.schedule = ScheduleParams(period=pgo_period, round_timeout=0.5 if transport == "zenoh" else None)
+        self.clock = _SimClock()
+        self.map_mode = map_consensus
+        # score the maps and the scene graph against truth (off: team ATE, closures, map agreement only)
+        self.quality = quality
+        # loopback link faults (``faults`` wins over ``drop``); partitions run on the simulated clock
+        self.faults = faults if faults is not None else Faults(drop=drop)
+        check_robots(self.faults.partitions, range(self.sim.num_robots))
+        if transport != "loopback" and self.faults != Faults(drop=self.faults.drop):
+            raise ConfigError("transport", "delay, jitter, duplicates and partitions need the loopback transport")
+        self.drop = self.faults.drop
+        self._cut: frozenset[tuple[int, int]] = frozenset()
+        self.comm_range = comm_range
+        self.map_report: TeamMapReport | None = None
+        self._next_phi = 0.0
+        self._phi_s = 0.0  # wall time spent recording φ (evaluation, not part of wall_s)
+        self._reference: Any = None
+        # robot -> seconds after the others that it joins (its whole stream is shifted by that)
+        self.join = {int(r): float(t) for r, t in (join or {}).items()}
+        # robot -> time at which it leaves for good (its node closes; the rest of its stream is dropped)
+        self.leave = {int(r): float(t) for r, t in (leave or {}).items()}
+        for what, table in (("join", self.join), ("leave", self.leave)):
+            for r, t in table.items():
+                if not 0 <= r < self.sim.num_robots or not (math.isfinite(t) and t >= 0):
+                    raise ConfigError(what, f"robot {r} at {t} s: needs a robot of the team and a time >= 0")
+        self.tracks: list[_Track] = []
+        self.nodes: list[AgentNode] = []
+        self.server: ServerNode | None = None
+        self.outcomes: list[RobotOutcome] = []
+        self.rays = 0
+
+    @property
+    def agents(self) -> list[Agent]:
+        return [n.agent for n in self.nodes]
+
+    @property
+    def total_keyframes(self) -> int:
+        return self.sim.num_keyframes
+
+    def run(self) -> Results:
+        t0 = time.perf_counter()
+        self._spawn_agents()
+        if self.mode == "odometry":
+            self._run_odometry()
+        else:
+            asyncio.run(self._run_team())
+        # the system's time: the evaluation's records of φ during the run are not the team's work
+        results = self._evaluate(time.perf_counter() - t0 - self._phi_s)
+        self._write_results(results)
+        return results
+
+    def _spawn_agents(self) -> None:
+        self.tracks = [_Track() for _ in range(self.sim.num_robots)]
+        self.viz.log_world(self.sim.world)
+
+    def _step(self, done: int, kf: Keyframe, est: np.ndarray) -> None:
+        self.rays += len(kf.scan)
+        self.viz.log_keyframe(kf.robot, kf.stamp, est, kf.true_pose, kf.scan.points(), kf.scan.labels)
+        if self.on_progress is not None:
+            self.on_progress(done, self.total_keyframes)
+
+    def _run_odometry(self) -> None:
+        for done, kf in enumerate(self.sim.stream(), 1):
+            self._step(done, kf, self.tracks[kf.robot].add(kf))
+        self.viz.close()
+
+    async def _run_team(self) -> None:
+        robots = list(range(self.sim.num_robots))
+        central = self.mode == "centralized"
+        ids = robots + ([SERVER_ID] if central else [])
+        params = replace(self.params, server=SERVER_ID) if central else self.params
+        async with self._buses(ids) as buses:
+            self.nodes = [AgentNode(Agent(r, None, params), buses[r], self.pgo_params, self.schedule,
+                                    NodeParams(server=params.server, map_consensus=self.map_mode),
+                                    clock=self.clock.now) for r in robots]
+            if self.comm_range is not None:
+                for agent_node in self.nodes:
+                    agent_node.map_neighbours = lambda r=agent_node.robot: self._in_range(r)
+            self.map_report = TeamMapReport(self.map_mode, 0) if self.map_mode != "off" else None
+            nodes: list[AgentNode | ServerNode] = list(self.nodes)
+            if central:
+                self.server = ServerNode(Server(SERVER_ID, None, self.params.closure_sigmas, self.params.odom_sigmas),
+                                         buses[-1], self.schedule, clock=self.clock.now)
+                if self.map_mode != "off":
+                    self.server.fuse_maps(get_submap_map(params.mapping), self.map_mode)
+                nodes.append(self.server)
+            for node in nodes:
+                if node.robot not in self.join:
+                    await node.start()
+            epochs = 0
+            for done, kf in enumerate(self._stream(), 1):
+                self.clock.t = kf.stamp
+                self._show_partitions(buses)
+                for r, t in self.leave.items():
+                    if kf.stamp >= t and self.nodes[r] in nodes:
+                        nodes.remove(self.nodes[r])
+                        await self.nodes[r].close()
+                        await buses[r].close()
+                if self.nodes[kf.robot] not in nodes:
+                    continue
+                node = self.nodes[kf.robot]
+                if kf.index == 0 and kf.robot in self.join:
+                    await node.start()
+                await node.process_keyframe(keyframe_input(kf))
+                await self._settle(nodes, buses)
+                self.tracks[kf.robot].add(kf)
+                self._step(done, kf, node.agent.poses[-1])
+                self._record_phi()
+                if self._epochs() > epochs:
+                    epochs = self._epochs()
+                    self._log_team(kf.stamp)
+            for node in self.nodes:
+                if node in nodes:
+                    await node.finish_stream()
+            end = self.clock.t
+            while not all(n.complete for n in nodes):
+                if not await self._settle(nodes, buses):
+                    # quiet but not done: time passes (a robot that left is waited for a while)
+                    if self.clock.t - end > 10 * self.schedule.absent_timeout:
+                        raise RuntimeError("the team stopped before its final optimisation")  # a bug
+                    self.clock.t += 1.0
+                    self._show_partitions(buses)
+            for _ in range(int(MAP_SETTLE_S)):  # map consensus relays what is still missing
+                self.clock.t += 1.0
+                self._show_partitions(buses)
+                await self._settle(nodes, buses)
+            self._record_phi(force=True)
+            self._log_team()
+            weights = self.server.server.stats.weights if self.server is not None else None
+            self.outcomes = [outcome_of(n, weights) for n in self.nodes]
+            for node in nodes:
+                await node.close()
+        self.viz.close()
+
+    @asynccontextmanager
+    async def _buses(self, ids: list[int]) -> AsyncIterator[list[Bus]]:
+        """One bus per robot (and server): over loopback with this run's link faults, whose
+        partitions follow the simulated clock."""
+        if self.transport != "loopback":
+            async with open_buses(ids, self.transport, drop=self.drop, team="sim", seed=self.sim.seed) as zbuses:
+                yield zbuses
+            return
+        self._cut = frozenset()
+        net = LoopbackNetwork(team="sim", seed=self.sim.seed, faults=self.faults, robots=ids, clock=self.clock.now)
+        buses: list[Bus] = [net.bus(r) for r in ids]
+        try:
+            yield buses
+        finally:
+            for b in buses:
+                await b.close()
+
+    def _show_partitions(self, buses: list[Bus]) -> None:
+        """Show partition changes as presence changes, as Zenoh would: a robot cut off from this
+        one leaves, and appears again when the link heals (so catch-up traffic follows)."""
+        if not self.faults.partitions:
+            return
+        net = getattr(buses[0], "network", None)
+        if not isinstance(net, LoopbackNetwork):
+            return
+        by_robot = {b.robot: b for b in buses}
+        cut = cut_links(self.faults.partitions, sorted(by_robot), self.clock.t)
+        for a, b in sorted(cut ^ self._cut):
+            alive = (a, b) not in cut
+            for me, other in ((a, b), (b, a)):
+                bus = by_robot[me]
+                if isinstance(bus, LoopbackBus) and not bus.closed and (not alive or (net.team, other) in net._alive):
+                    bus._set_alive(other, alive)
+        self._cut = cut
+
+    def _stream(self) -> Iterator[Keyframe]:
+        """Every robot's keyframes in time order, a late joiner's shifted by its delay."""
+        if not self.join:
+            return self.sim.stream()
+
+        def shifted(r: int) -> Iterator[Keyframe]:
+            dt = self.join.get(r, 0.0)
+            for kf in self.sim.keyframes(r):
+                yield replace(kf, stamp=kf.stamp + dt)
+
+        return heapq.merge(*(shifted(r) for r in range(self.sim.num_robots)), key=lambda kf: (kf.stamp, kf.robot))
+
+    def _in_range(self, robot: int) -> set[int]:
+        """The robots within radio range of ``robot`` now (by their true positions)."""
+        pos = {n.robot: self.tracks[n.robot].true[-1] for n in self.nodes
+               if self.tracks[n.robot].true and n._sub is not None}
+        if robot not in pos:
+            return set()
+        return neighbours_within(pos, self.comm_range)[robot]
+
+    def _record_phi(self, force: bool = False) -> None:
+        """φ between neighbouring robots' team maps, every ``PHI_EVERY_S`` of sim time."""
+        if self.map_report is None or (not force and (self.clock.t < self._next_phi or not self.quality)):
+            return  # (without quality scores only the end's φ)
+        self._next_phi = self.clock.t + PHI_EVERY_S
+        t0 = time.perf_counter()
+        live = [n for n in self.nodes if n.maps is not None and n._sub is not None]
+        cells = {n.robot: n.maps.team_cells() for n in live if n.maps is not None}
+        pairs = [(a.robot, b.robot) for i, a in enumerate(live) for b in live[i + 1:]]
+        value = phi(cells, pairs, self.nodes[0].agent.map.octree.model.prior_row)
+        self._phi_s += time.perf_counter() - t0
+        self.map_report.record_phi(value)
+        self.map_report.rounds += 1
+        self.viz.log_scalar("map_consensus/phi", self.clock.t, value["phi"])
+        if force and not isinstance(self.viz, NullViz):  # the end: each team map, placed like the team
+            T = self.tracks[0].true[0] if self.tracks[0].true else np.eye(4)
+            for n in live:
+                assert n.maps is not None
+                tm = n.maps.team_map
+                lv, occ = tm.leaves(), tm.occupied_leaves()
+                self.viz.log_voxels(f"team_map/r{n.robot}", self.clock.t, transform_points(T, lv.centers[occ]),
+                                    np.argmax(lv.logodds[occ], axis=1))
+
+    def _epochs(self) -> int:
+        if self.server is not None:
+            return self.server.server.stats.solves
+        return max((n.pgo.stats.epochs for n in self.nodes if n.pgo is not None), default=0)
+
+    async def _settle(self, nodes: list[AgentNode | ServerNode], buses: list[Bus]) -> bool:
+        """Run the nodes until the team is quiet: no message queued or in flight, no timer due.
+
+        Over loopback a PGO round still waiting then can never get its status, so its wait
+        ends (the deterministic equivalent of a timeout). Returns whether anything happened.
+        """
+        net = getattr(buses[0], "network", None)
+        wall = self.clock.now if net is not None else time.monotonic
+        progressed = False
+        while True:
+            handled = 0
+            for node in nodes:
+                handled += await node.drain()
+            for node in nodes:
+                handled += await node.tick(wall())
+            if handled:
+                progressed = True
+                continue
+            await asyncio.sleep(0)
+            if net is not None and net.in_flight:
+                await net.settle()
+                continue
+            if any(n._sub is not None and n._sub.pending() for n in nodes):
+                continue
+            blocked = [n for n in nodes if n.blocked()]
+            if not blocked:
+                return progressed
+            if net is None:  # Zenoh: wait for messages or the round timeout
+                await asyncio.sleep(0.001)
+                continue
+            for node in blocked:
+                await node.tick(wall(), force=True)
+            progressed = True
+
+    def _log_team(self, stamp: float | None = None) -> None:
+        """Send the team's current estimate to the visualiser, placed in the world by the true start
+        of robot 0 (the team frame is robot 0's odometry frame)."""
+        if isinstance(self.viz, NullViz):
+            return
+        agents = self.agents
+        T = self.tracks[0].true[0] if self.tracks[0].true else np.eye(4)
+        trajs = [transform_points(T, np.array(a.poses)[:, :3, 3]) if a.poses else np.zeros((0, 3))
+                 for a in agents]
+        closures = []
+        for a in agents:
+            for peer, group in a.closures.items():
+                for c in group:
+                    if c.own_kf < len(a.poses) and c.peer_kf < len(agents[peer].poses):
+                        closures.append((transform_points(T, a.poses[c.own_kf][None, :3, 3])[0],
+                                         transform_points(T, agents[peer].poses[c.peer_kf][None, :3, 3])[0],
+                                         c.accepted))
+        voxels = []
+        for a in agents:
+            lv, occ = a.map.octree.leaves(), a.map.octree.occupied_leaves()
+            voxels.append((transform_points(T, lv.centers[occ]), np.argmax(lv.logodds[occ], axis=1)))
+        lms = [lm for a in agents for lm in a.objects.confirmed()]
+        objects = (transform_points(T, np.array([lm.position for lm in lms]).reshape(-1, 3)),
+                   np.array([lm.box()[1] for lm in lms]).reshape(-1, 3), np.array([lm.label for lm in lms], dtype=int))
+        self.viz.log_team(stamp if stamp is not None else self.sim.duration, trajs, closures, voxels, objects)
+
+    def _evaluate(self, wall_s: float) -> Results:
+        truth = [np.array(tr.true) for tr in self.tracks]
+        team_mode = bool(self.outcomes)
+        est = [o.poses for o in self.outcomes] if team_mode else [np.array(tr.est) for tr in self.tracks]
+        robots, team, T_world_team = trajectory_results(truth, est, anchored=not team_mode,
+                                                        own_frame=excluded_robots(self.outcomes))
+        extra: dict[str, object] = {"rays": self.rays, "rays_per_s": self.rays / wall_s if wall_s > 0 else 0.0,
+                                    "phi_records_s": self._phi_s}
+        if team_mode:
+            extra.update(team_results(self.sim.world, truth, self.outcomes, T_world_team,
+                                      self.params.team_object_sightings))
+            extra["pgo_runs"] = self._epochs()
+            if self.quality:
+                extra.update(accuracy_results(self.sim.world, self.params.mapping, truth,
+                                              [tr.scans for tr in self.tracks], self.agents, self.outcomes,
+                                              T_world_team, excluded_robots(self.outcomes)))
+            extra["transport"] = self.transport
+            team_maps = None
+            if self.map_report is not None:
+                extra["map_consensus"], team_maps = self._map_results(T_world_team)
+            if self.quality:
+                extra["scene_graph"] = scene_graph_results(self.sim.world, self.outcomes, T_world_team, self.out_dir,
+                                                           team_maps, self._reference_map())
+        return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
+                       sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
+
+    def _reference_map(self) -> Any:
+        """The reference team map: the centralised fusion of the evidence of every robot in the
+        team frame (:func:`~kimera_multi_py.eval.team.team_frame_robots`; a robot kept out of it
+        has its poses in its own frame: its evidence has no place in the team's map)."""
+        if not self.nodes:
+            return None
+        if self._reference is None:
+            robots = team_frame_robots(self.outcomes) if self.outcomes else [n.robot for n in self.nodes]
+            self._reference = centralised_team_map({n.robot: n.agent.map for n in self.nodes}, robots)
+        return self._reference
+
+    def _map_results(self, T_world_team: np.ndarray) -> tuple[dict[str, Any], dict[int, Any]]:
+        """``results.json["map_consensus"]`` and each robot's team map."""
+        assert self.map_report is not None
+        ref = self._reference_map()
+        live = [n for n in self.nodes if n.maps is not None]
+        cells = {n.robot: n.maps.team_cells() for n in live if n.maps is not None}
+        map_topics = {m.TOPIC for m in MAP_MESSAGES}
+        sent = {n.robot: {t: int(v["bytes"]) for t, v in n.bus.counters.snapshot()["sent"].items()
+                          if t in map_topics} for n in live}
+        rep = team_map_report(self.map_mode, self.map_report.rounds, cells, octree_cells(ref),
+                              (ref.model.lo, ref.model.hi), sent,
+                              {n.robot: n.maps.roam_bytes for n in live if n.maps is not None}, self.map_report)
+        out = rep.to_dict()
+        maps = {n.robot: n.maps.team_map for n in live if n.maps is not None}
+        if self.quality:
+            grid = self.sim.world.gt_voxel_grid(ref.resolution)
+            centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
+            out["team_map"] = {str(r): map_quality(t, T_world_team, centers, gt) for r, t in maps.items()}
+            out["centralised_fusion"] = map_quality(ref, T_world_team, centers, gt)
+        out["comm_range"] = self.comm_range
+        if self.out_dir is not None:
+            for r, t in maps.items():
+                export_team_map(t, self.out_dir / f"robot{r}")
+        return out, maps
+
+    def _write_results(self, results: Results) -> None:
+        if self.out_dir is None:
+            return
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        for i, tr in enumerate(self.tracks):
+            est = self.outcomes[i].poses if self.outcomes else np.array(tr.est)
+            write_tum(self.out_dir / f"robot{i}_est.tum", np.array(tr.stamps), est)
+            write_tum(self.out_dir / f"robot{i}_gt.tum", np.array(tr.stamps), np.array(tr.true))
+        for node, outcome in zip(self.nodes, self.outcomes, strict=True):
+            write_outcome(self.out_dir, outcome, own_graph(node.agent))
+        if self.nodes:  # the team's joint graph, for `kimera-multi pgo` and offline study
+            write_team_graph(self.out_dir, self.agents, [np.array(tr.true) for tr in self.tracks])
+        results.write_json(self.out_dir / "results.json")
+
+
+def write_team_graph(out_dir: Path, agents: list[Agent], truth: list[np.ndarray]) -> None:
+    """``team_graph.g2o`` (the joint graph) and ``team_graph_truth.json`` (which inter-robot
+    edges are true)."""
+    graph, inter = joint_graph(agents)
+    write_g2o(out_dir / "team_graph.g2o", graph)
+    Z = np.array([agents[a].inter_edges[(ka, b, kb)][0] for a, ka, b, kb in inter]).reshape(-1, 4, 4)
+    ok = score_closures(Z, np.array([truth[a][ka] for a, ka, _, _ in inter]).reshape(-1, 4, 4),
+                        np.array([truth[b][kb] for _, _, b, kb in inter]).reshape(-1, 4, 4))
+    (out_dir / "team_graph_truth.json").write_text(json.dumps(
+        {"inter_robot_edges": [list(e) for e in inter], "true": ok.tolist(),
+         "note": "inter-robot edges follow the odometry and intra-robot edges in team_graph.g2o"}))
