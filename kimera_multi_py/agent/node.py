@@ -48,8 +48,10 @@ from kimera_multi_py.comms.messages import (
 from kimera_multi_py.core.errors import KimeraMultiError
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.core.posegraph import split_key
+from kimera_multi_py.mapshare.agreement import MapView, frame_check, map_view
 from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
 from kimera_multi_py.mapshare.objects import OBJECT_MESSAGES, ObjectExchange
+from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.params import PgoParams, team_params
 from kimera_multi_py.pgo.team import ScheduleParams, TeamPgo
 
@@ -91,10 +93,12 @@ class AgentNode:
         self.finished = False  # our stream ended
         self.complete = False  # the team's final optimisation reached us
         self.pgo: TeamPgo | None = None
+        self.pgo_params = pgo_params or team_params()
         if self.params.server is None:
-            self.pgo = TeamPgo(agent.robot, pgo_params or team_params(),
+            self.pgo = TeamPgo(agent.robot, self.pgo_params,
                                self.schedule, agent.local_graph, agent.apply_poses,
-                               lambda: agent.robot_graph, self._accepted_inter, agent.objects.centres)
+                               lambda: agent.robot_graph, self._accepted_inter, agent.objects.centres,
+                               self._map_view)
         if self.params.map_consensus not in MAP_MODES:
             raise KimeraMultiError(f"map consensus: unknown mode {self.params.map_consensus!r} "
                                    f"(available: {', '.join(MAP_MODES)})")
@@ -316,6 +320,7 @@ class AgentNode:
                     self.frame = self.robot
                 elif last is not None and last.aligned:
                     self.frame = self._component_root(last.local.robot_graph)
+                    self._safety_net(last)
                 out.append(self._state())
                 if self.pgo.final_done and self.finished:
                     self.complete = True
@@ -323,6 +328,33 @@ class AgentNode:
         for m in out:
             await self._publish(m)
         return len(out)
+
+    def _map_view(self, frame: int) -> MapView | None:
+        """How our map agrees with the other robots' evidence in the frame rooted at ``frame``."""
+        if not self.pgo_params.map_check:
+            return None
+        return map_view(self.maps, self.agent.map, frame, self.pgo_params.map_coarse, self.pgo_params.map_occupancy)
+
+    def _safety_net(self, last: PgoAgent) -> None:
+        """After an epoch that left us in a team frame: if our map contradicts the team's there,
+        leave the frame (our evidence then leaves every team map, which keys it by frame) and say
+        so; the next epoch decides again, and the maps refute this frame there too."""
+        p = self.pgo_params
+        if self.frame == self.robot or not p.map_check:  # the root of its own frame has nothing to check
+            return
+        check = frame_check(self.maps, self.agent.map, self.frame, p.map_min_conflicts, p.map_conflict_ratio,
+                            p.map_coarse, p.map_occupancy)
+        if check is None:
+            return
+        last.alignment = {**last.alignment, "safety_net": check.as_dict()}
+        if not check.refuted:
+            return
+        log.warning("robot %d: leaves team frame %d: its map contradicts robots %s there (agrees with %s)",
+                    self.robot, self.frame, check.conflicting, check.agreeing, extra={"robot": self.robot})
+        last.excluded = True
+        last.alignment.update(status="excluded", settled=False,
+                              reason=f"safety net: its map contradicts the team's in frame {self.frame}")
+        self.frame = self.robot
 
     def _map_step(self, now: float) -> list[Message]:
         if self.maps is None:

@@ -402,6 +402,23 @@ class MapConsensus:
             self._team_cache = tree
         return self._team_cache
 
+    def frame_sources(self, frame: int) -> list[int]:
+        """The other robots whose latest pose table is in the frame rooted at ``frame`` (exact mode)."""
+        if self.mode != "exact":
+            return []
+        return sorted(src for src, (table, _) in self.poses.items() if table.frame == frame and src != self.robot)
+
+    def frame_cells(self, frame: int, sources: list[int] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """The evidence of ``sources`` (default: every other robot whose poses are in the frame
+        rooted at ``frame``), fused: finest-level codes and clamped int16 rows, as a tree holds
+        them. None outside exact mode, where evidence is not kept per source."""
+        if self.mode != "exact":
+            return None
+        chosen = self.frame_sources(frame) if sources is None else sources
+        keys = [(src, sid) for src in chosen if src in self.poses for sid in self.poses[src][0].submaps.tolist()]
+        codes, rows = self.team.fused(keys)
+        return codes, view_rows(self.team.template, rows)
+
     def team_cells(self) -> tuple[np.ndarray, np.ndarray]:
         """Every finest-level cell of the team map: sorted codes and int16 rows (as the tree holds them)."""
         if self.mode == "exact":

@@ -1,4 +1,5 @@
-"""Fusion of submap evidence into a team map: incremental (per robot) and centralised (docs/algorithms/map_consensus.md).
+"""Fusion of submap evidence into a team map, incremental (per robot) and centralised
+(docs/algorithms/map_consensus.md).
 
 A *record* is one submap of one robot: its reference pose ``T_ref`` (where its voxel grid was
 laid down), its current pose ``T`` and its integer evidence ``dh`` (fixed-point rows, column 0
@@ -250,6 +251,22 @@ class EvidenceMap:
     def evidence(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The fused evidence: sorted world codes, int32 rows and support counts."""
         return self._fused.arrays()
+
+    def fused(self, keys: Iterable[Key]) -> tuple[np.ndarray, np.ndarray]:
+        """The evidence of just these records (placed at their poses, active or not): sorted
+        world codes and int32 rows. Records without a pose are left out."""
+        codes, rows = [], []
+        for key in keys:
+            e = self.entries.get(key)
+            if e is None or e.T is None or e.T_ref is None or not len(e.codes):
+                continue
+            world = e.world if e.world is not None else map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
+            codes.append(world)
+            rows.append(e.rows)
+        if not codes:
+            return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int32)
+        uniq, summed, _ = _group_sum(np.concatenate(codes), np.concatenate(rows))
+        return uniq, summed
 
     # ---- internals -------------------------------------------------------------------------
     def _deposit(self, e: _Entry) -> None:

@@ -34,10 +34,12 @@ sends ``stop`` when the team is done.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
 
+from kimera_multi_py.alignment.map_check import MapAgreement
 from kimera_multi_py.comms.messages import GncWeights, Message, PgoCommand, PgoStatus, PublicPoses
 from kimera_multi_py.core.geometry import to_gtsam
 from kimera_multi_py.core.robust import GncSchedule, tls_threshold
@@ -128,6 +130,10 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         self.alignment: dict[str, object] = {"status": "root" if self.root else "unaligned"}
         self._no_peer_rounds = 0
         self._tried = b""  # the known-edge mask of the last alignment attempt
+        # occupancy agreement of a frame hypothesis (set by TeamPgo, :meth:`set_map_view`)
+        self.map_view: Callable[[np.ndarray], MapAgreement | None] | None = None
+        self._map_scores: dict[tuple[int, ...], MapAgreement | None] = {}
+        self.map_refuted: list[dict[str, object]] = []
         self._base: gtsam.NonlinearFactorGraph | None = None
         self._parts: dict[int, tuple[float, tuple[gtsam.Pose3, gtsam.noiseModel.Base]]] = {}
         self._values = to_values(local.keys, self.poses)

@@ -37,6 +37,7 @@ its drift model (:func:`.alignment.odometry_disagreement`) is not adopted either
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import gtsam
@@ -54,7 +55,8 @@ from kimera_multi_py.alignment.frames import (
     supported_edges,
 )
 from kimera_multi_py.alignment.landmark_check import LandmarkScore, landmark_lead, landmark_scores
-from kimera_multi_py.core.geometry import inverse
+from kimera_multi_py.alignment.map_check import MapAgreement
+from kimera_multi_py.core.geometry import inverse, make_pose, so3_log, umeyama
 from kimera_multi_py.pgo.factors import to_values
 
 if TYPE_CHECKING:
@@ -95,6 +97,9 @@ class FrameDecision:
     _no_peer_rounds: int
     _tried: bytes
     _values: gtsam.Values
+    map_view: Callable[[np.ndarray], MapAgreement | None] | None
+    _map_scores: dict[tuple[int, ...], MapAgreement | None]
+    map_refuted: list[dict[str, object]]
 
     if TYPE_CHECKING:
         def _solve_alone(self) -> np.ndarray: ...
@@ -128,6 +133,10 @@ class FrameDecision:
         lg = self.local
         nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
         res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known], lg.inter_own_is_i[known])
+        if self.params.robust and self._map_refutes(res.T):
+            self._exclude("the maps refute the consensus frame of every edge", None, 0)
+            self.alignment["map_refuted"] = self.map_refuted
+            return
         self._adopt_consensus(known, res)
         self.settled = False
         self.alignment = {"status": "aligned", "settled": False, "support": int(res.inliers.sum()),
@@ -171,7 +180,38 @@ class FrameDecision:
                                 lg.inter_peer[idx], place_radius=self.params.place_radius)
         for h in hyps:
             h.edges = idx[h.edges]
-        return hyps
+        return [h for h in hyps if not self._map_refutes(h.T, h)]
+
+    # ---------------------------------------------------------------- maps
+    def set_map_view(self, view: Callable[[np.ndarray], MapAgreement | None] | None) -> None:
+        """How the robot's map agrees with the team's under a frame ``T`` (own estimate -> team
+        frame), or None where the maps cannot tell (:mod:`.map_check`)."""
+        self.map_view = view if self.params.map_check else None
+        self._map_scores.clear()
+
+    def map_agreement(self, T: np.ndarray) -> MapAgreement | None:
+        """The occupancy agreement of frame ``T`` (cached: hypotheses a few cm apart are one)."""
+        if self.map_view is None:
+            return None
+        key = (*np.round(T[:3, 3] / 0.1).astype(int).tolist(),
+               *np.round(so3_log(T[:3, :3]) / 0.02).astype(int).tolist())
+        if key not in self._map_scores:
+            self._map_scores[key] = self.map_view(T)
+        return self._map_scores[key]
+
+    def _map_refutes(self, T: np.ndarray, h: FrameHypothesis | None = None) -> bool:
+        """True when the maps contradict frame ``T``: the robot's walls in the team's clear free
+        space (or the reverse) on enough cells (params ``map_min_conflicts``, ``map_conflict_ratio``)."""
+        ag = self.map_agreement(T)
+        p = self.params
+        refuted = ag is not None and ag.refutes(p.map_min_conflicts, p.map_conflict_ratio)
+        if refuted and ag is not None:
+            entry: dict[str, object] = {"hypothesis": np.round(T[:3, 3], 2).tolist(), **ag.as_dict()}
+            if h is not None:
+                entry.update(places=h.places, edges=h.size, peers=list(h.peers))
+            if entry not in self.map_refuted:
+                self.map_refuted.append(entry)
+        return refuted
 
     def _settled_edges(self) -> np.ndarray:
         """The inter-robot edges to peers whose frames are settled (:class:`.messages.PublicPoses`)."""
@@ -320,6 +360,11 @@ class FrameDecision:
                                   "hypothesis": np.round(h.T, 4).tolist() if h is not None else None}
         if reason:
             out["reason"] = reason
+        if self.map_refuted:
+            out["map_refuted"] = self.map_refuted
+        ag = self.map_agreement(h.T) if h is not None and status == "aligned" else None
+        if ag is not None:
+            out["map"] = ag.as_dict()
         return out
 
     def _exclude(self, reason: str, h: FrameHypothesis | None, margin: int,
@@ -408,6 +453,13 @@ class FrameDecision:
                             self.robot, ratio)
                 self._exclude(f"estimate disagrees with odometry ({ratio:.2f} x drift model)", None, 0)
                 self.alignment["drift_ratio"] = round(ratio, 3)
+                self.poses = self._own_solution()
+        if self.map_view is not None and self.aligned and not self.excluded and not self.root:
+            # the estimate may end in another frame than the one adopted (GNC weighs every edge):
+            # the frame it ended in faces the maps too
+            R, t, _ = umeyama(lg.poses[:, :3, 3], self.poses[:, :3, 3])
+            if self._map_refutes(make_pose(R, t)):
+                self._exclude("the maps refute the frame the estimate ended in", None, 0)
                 self.poses = self._own_solution()
         if self.excluded:
             return inverse(self.poses[0]) @ self.poses

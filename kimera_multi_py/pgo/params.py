@@ -92,15 +92,12 @@ class PgoParams:
     align_min_places: int = 2
     align_min_margin: int = 1
     align_early_margin: int = 1
-    # no hypothesis clearly leads when the epoch's evidence is in: "consensus" aligns by the robust
-    # consensus of every edge and leaves the choice to GNC, but only while the leader rests on
-    # more places than any other hypothesis; an exact tie in places is no evidence for either,
-    # and the robot stays out of the team frame for the epoch, as the centralised server's frame
-    # screen does. After exact ties GNC has picked the alias and carried the whole team into it
-    # (aliased_wing, 3 robots, seed 9: 3 places each, 24 true edges against 17; team ATE 2.82 m,
-    # 7.3x dead reckoning; seed 5 on an earlier front end: 3 against 3, 2.81 m). "exclude" keeps
-    # the robot out on any tie without a clear lead
-    align_tie: str = "consensus"
+    # no hypothesis clearly leads when the epoch's evidence is in: "exclude" keeps the robot out
+    # of the team frame for the epoch, as the centralised server's frame screen does; groups of
+    # closures from several places each that compete are no evidence for either frame, and
+    # handing the choice to GNC ("consensus": align by the robust consensus of every edge while
+    # the leader rests on more places) has carried whole teams into alias frames
+    align_tie: str = "exclude"
     # ... but only between hypotheses that each rest on this many places or more: a tie between
     # single-place groups is the aliasing case itself (twin rooms: each group is one room), where
     # more edges are no evidence at all; the robot stays out of the team frame (safety
@@ -114,6 +111,18 @@ class PgoParams:
     # default adopts
     align_lone_place: bool = True
     place_radius: float = 2.0  # m: own closure poses closer than this are one place
+    # occupancy agreement (alignment.map_check): a frame hypothesis under which the robot's map
+    # puts walls into the team's clear free space, or free space into its walls, on at least
+    # ``map_min_conflicts`` coarse cells (some 1.8 m² of wall) and ``map_conflict_ratio`` of the
+    # cells both know, is refuted. A correct frame leaves only residual misalignment, which the
+    # one-cell tolerance and the column rule absorb (no conflict at all between robots' maps of the simulator's
+    # floors in their true frames); a frame one room off moves whole walls: a corridor's end
+    # wall alone is some forty cells, a room's walls and furniture hundreds.
+    map_check: bool = True
+    map_conflict_ratio: float = 0.005
+    map_min_conflicts: int = 20
+    map_coarse: float = 0.3  # m: the grid cells are compared on
+    map_occupancy: float = 1.0  # |occupancy log-odds| above which a cell counts as occupied / free
     # safety: an estimate that bends away from the robot's own odometry beyond its drift model
     # (odometry_disagreement > 1) is not adopted; the robot falls back to its own frame
     drift_check: bool = True

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kimera_multi_py.alignment.map_check import MapAgreement
 from kimera_multi_py.comms.messages import (
     AgentState,
     FrameLandmarks,
@@ -96,13 +97,15 @@ class TeamPgo:
     """See the module docstring. ``build`` returns the robot's current :class:`LocalGraph`;
     ``apply`` adopts optimised poses of its first keyframes; ``landmarks`` (optional) returns
     the robot's object landmarks, MAP classes ``(n,)`` and centres ``(n, 3)`` in its current
-    estimate's frame."""
+    estimate's frame; ``map_view`` (optional) returns, for a team frame's root, how the robot's
+    map agrees with the team's under a frame hypothesis (:mod:`kimera_multi_py.alignment.map_check`)."""
 
     def __init__(self, robot: int, params: PgoParams, schedule: ScheduleParams,
                  build: Callable[[], LocalGraph], apply: Callable[[np.ndarray], object],
                  robot_graph: Callable[[], Collection[tuple[int, int]]],
                  accepted_closures: Callable[[], int],
-                 landmarks: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+                 landmarks: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
+                 map_view: Callable[[int], Callable[[np.ndarray], MapAgreement | None] | None] | None = None) -> None:
         self.robot = robot
         self.params = params
         self.schedule = schedule
@@ -111,6 +114,7 @@ class TeamPgo:
         self._robot_graph = robot_graph
         self._accepted = accepted_closures
         self._landmarks = landmarks
+        self._map_view = map_view  # frame root -> how the robot's map agrees with the team's there
         # robot -> (root of its frame, classes, centres): settled peers' latest FrameLandmarks
         self.peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         self._outbox: list[Message] = []  # messages not tied to a round (FrameLandmarks)
@@ -194,6 +198,9 @@ class TeamPgo:
         pgo.in_team_frame = last is not None and (last.root or (last.aligned and not last.excluded and last.settled))
         if self._landmarks is not None:
             self._share_landmarks(pgo, last, members, local.robot_graph)
+        root = component_root(self.robot, members, local.robot_graph)
+        if self._map_view is not None and root != self.robot:
+            pgo.set_map_view(self._map_view(root))
         leader = min(members)
         # the epoch's leader waits for everyone; the others for their neighbours and the leader
         # (which paces a robot without neighbours yet, instead of it racing to the round cap)

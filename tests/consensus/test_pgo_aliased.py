@@ -150,7 +150,9 @@ def test_distributed_gnc_rejects_aliased_closure_groups() -> None:
     # robot 1 is not settled (one place), so the root does not follow it while GNC decides
     # (PgoAgent._followers); the joint solve after GNC then moves both, which from this start
     # (robot 1 off by the room offset) takes more than the sim's 600 rounds per epoch
-    poses, weights = asyncio.run(distributed(graph, PgoParams(robust=True, max_rounds=800)))
+    # the robots align by the consensus of every edge (not the default, which keeps a robot out
+    # of the team frame on a tie) so that GNC itself must tell the groups apart
+    poses, weights = asyncio.run(distributed(graph, PgoParams(robust=True, max_rounds=800, align_tie="consensus")))
     assert not np.any(weights[graph.outlier] > 0.5), "an aliased closure survived"
     assert np.all(weights[~graph.outlier] > 0.5)
     cost = graph_cost(graph, poses, ~graph.outlier)

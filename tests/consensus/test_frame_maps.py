@@ -1,0 +1,91 @@
+"""Frame decisions against the maps: an alias that rests on more places than the truth is refuted
+by the robots' occupancy maps, and the robot aligns to the truth, or stays out of the team frame.
+
+Two robots loop a corridor ring with two identical rooms 6 m apart (:mod:`.test_alignment_switch`).
+Robot 0's room A matches robot 1's room B, and two corridor places match the places 6 m further
+on: the frame shifted by 6 m rests on three places, the truth (the corner only) on one. The
+closures alone take the alias. The maps do not: shifted 6 m, robot 1's map puts the ring's walls
+into robot 0's corridors (maps from :mod:`tests.alignment.world`, what each robot saw near its
+path, in its own frame).
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+
+from kimera_multi_py.alignment.map_check import refined_agreement
+from kimera_multi_py.comms.loopback import LoopbackNetwork
+from kimera_multi_py.pgo.agent import PgoAgent
+from kimera_multi_py.pgo.local_graph import split_local
+from kimera_multi_py.pgo.params import team_params
+from kimera_multi_py.pgo.runtime import run_team
+from tests.alignment.world import Floor, seen
+from tests.consensus.test_alignment_switch import CORNER, _closures, _frame_error, _graph, _odometry_start, _team
+from tests.consensus.test_pgo_aliased import OFFSET, ROOM_A, ROOM_B
+
+# the ring's corridors (2 m wide around its sides) and the twin rooms south of its first side
+RING_FLOOR = Floor(spaces=[(-1.0, -1.0, 17.0, 1.0), (15.0, -1.0, 17.0, 9.0), (-1.0, 7.0, 17.0, 9.0),
+                           (-1.0, -1.0, 1.0, 9.0), (ROOM_A - 1.5, -4.0, ROOM_A + 1.5, -1.1),
+                           (ROOM_B - 1.5, -4.0, ROOM_B + 1.5, -1.1), (ROOM_A - 0.5, -1.2, ROOM_A + 0.5, -0.9),
+                           (ROOM_B - 0.5, -1.2, ROOM_B + 0.5, -0.9)],
+                   boxes=[(ROOM_A - 1.2, -3.6, ROOM_A, -3.0), (ROOM_B - 1.2, -3.6, ROOM_B, -3.0)])
+
+
+def _run(edges_at: list, map_check: bool, seed: int = 3, alias_per_place: int = 2, true_per_place: int = 4) -> tuple[float, dict]:
+    trajs, odo, first = _team()
+    rng = np.random.default_rng(seed)
+    edges = _closures(trajs, first, [p for p in edges_at if p[2]], rng, per_place=alias_per_place)
+    edges += _closures(trajs, first, [p for p in edges_at if not p[2]], rng, per_place=true_per_place)
+    graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
+    params = team_params(max_rounds=300, map_check=map_check)
+    agents = [PgoAgent(local, params) for local in split_local(graph, frames="given")]
+    maps = [seen(RING_FLOOR, T[:, :2, 3], T_world_own=T[0]) for T in trajs]
+    agents[1].set_map_view(lambda T: refined_agreement(maps[1], maps[0], T))
+
+    async def epoch() -> None:
+        net = LoopbackNetwork(team="maps", seed=0, robots=[a.robot for a in agents])
+        buses = [net.bus(a.robot) for a in agents]
+        try:
+            await run_team(agents, buses, 300, round_timeout=0.2)
+        finally:
+            for b in buses:
+                await b.close()
+
+    asyncio.run(epoch())
+    poses = np.empty_like(graph.poses)
+    for a in agents:
+        poses[graph.robot_indices(a.robot)] = a.final_poses()
+    return _frame_error(trajs, poses, first), agents[1].alignment
+
+
+ALIAS_PLACES = [(np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0]), True),
+                (np.array([2.0, 8.0]), np.array([8.0, 8.0]), True),
+                (np.array([6.0, 8.0]), np.array([12.0, 8.0]), True)]
+
+
+def test_an_alias_on_more_places_than_the_truth_is_refuted_and_the_robot_aligns_to_the_truth() -> None:
+    places = [*ALIAS_PLACES, (CORNER, CORNER, False)]  # alias: 3 places, 1 edge each; truth: 1 place, 4 edges
+    error, report = _run(places, map_check=False, alias_per_place=1)
+    assert abs(error - OFFSET) < 1.5, report  # the closures alone take the alias
+    error, report = _run(places, map_check=True, alias_per_place=1)
+    assert report["status"] == "aligned" and error < 1.0, report
+    assert report["map_refuted"] and all(r["conflicts"] >= 20 for r in report["map_refuted"])
+    assert report["map"]["conflicts"] < 20
+
+
+def test_an_estimate_carried_into_the_alias_is_not_adopted() -> None:
+    """Two edges per alias place: the robot adopts the truth, but the edges' owner (robot 0) weighs
+    six alias edges against four true ones, and its GNC carries the estimate into the alias. The
+    maps refute the frame the estimate ended in: the robot stays out, in its own frame."""
+    error, report = _run([*ALIAS_PLACES, (CORNER, CORNER, False)], map_check=True, alias_per_place=2)
+    assert report["status"] == "excluded" and "maps refute" in report["reason"], report
+    assert abs(error - OFFSET) > 1.5
+
+
+def test_without_true_closures_the_refuted_alias_keeps_the_robot_out() -> None:
+    error, report = _run(ALIAS_PLACES, map_check=True)
+    assert report["status"] == "excluded", report
+    assert report["map_refuted"]
+    assert error > 1.0  # in its own frame, not the alias's: nothing was adopted
