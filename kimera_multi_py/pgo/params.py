@@ -83,7 +83,7 @@ class PgoParams:
     gnc_max_rechecks: int = 4  # gn_pcg: more plain re-checks while the last one flipped a decision
     recheck_factor: float = 3.0  # first re-check admits r² ≤ factor·c̄², the last one r² ≤ c̄²
     align_patience: int = 20  # rounds with < 3 alignment inliers before a plain alignment
-    # robust mode: frame alignment by hypotheses (alignment.frame_hypotheses). A robot aligns to
+    # robust mode: frame alignment by hypotheses (alignment.frames.frame_hypotheses). A robot aligns to
     # the hypothesis supported by the most distinct places, when it leads the runner-up by
     # ``align_min_margin`` places and rests on ``align_min_places`` or more; it decides before
     # every neighbour pose is known only with a lead of ``align_early_margin``. A robot with no
