@@ -1,4 +1,4 @@
-"""The per-robot Agent: pure logic, no I/O (docs/architecture.md, §6).
+"""The per-robot Agent: pure logic, no I/O (docs/architecture.md).
 
 ``Agent.process_keyframe(kf)`` and ``Agent.handle(msg)`` return the messages to send; a
 runtime (:mod:`.node`, :class:`~kimera_multi_py.workflow.simulate.SimRunner`) moves them. The agent
@@ -99,7 +99,7 @@ class AgentParams:
     min_inliers: int = 5
     closure_votes: bool = True  # closures sharing a keyframe and a robot split one vote in the robust cost
     pcm_min_size: int = 2
-    pcm_groups: int = 3  # consistent groups per robot pair handed to the back end (see consensus.pcm)
+    pcm_groups: int = 3  # consistent groups per robot pair handed to the back end (see frontend.pcm)
     intra_min_gap: int = 40  # keyframes between an intra-robot closure's ends
     cloud_voxel: float = 0.2  # downsampling of the semantic cloud kept per keyframe for ICP
     icp_min_overlap: float = 0.1
@@ -601,7 +601,7 @@ class Agent:
         cinfo = self._info(self.params.closure_sigmas)
         lower = np.array([k[1] < self.robot for k, _ in edges], dtype=bool)
         meas = np.array([v[0] for _, v in edges]).reshape(-1, 4, 4)
-        # robust votes of correlated closures (consensus.robust.correlated_votes), in the infos;
+        # robust votes of correlated closures (core.robust.correlated_votes), in the infos;
         # one call over intra and inter closures: votes are counted per robot pair, so they don't mix
         own = np.array([k[0] for k, _ in edges], dtype=int)
         peer = np.array([k[1] for k, _ in edges], dtype=int)

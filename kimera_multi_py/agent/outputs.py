@@ -57,7 +57,7 @@ class RobotOutcome:
     front_end: dict[str, int]
     traffic: dict[str, Any] = field(default_factory=dict)
     pgo_epochs: int = 0
-    # the frame decision of the last PGO epoch (consensus.pgo.PgoAgent.alignment; in centralised
+    # the frame decision of the last PGO epoch (pgo.agent.PgoAgent.alignment; in centralised
     # mode the server's, from its settled flag): status (root / aligned / excluded / unaligned),
     # hypothesis, support (places), margin, reason; and frame (the root robot of the poses' frame)
     alignment: dict[str, Any] = field(default_factory=dict)

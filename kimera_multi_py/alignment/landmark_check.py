@@ -11,7 +11,7 @@ team landmarks (12 places, 0 conflicts), the one-room alias 23 (4 places) with 2
 
 :func:`landmark_scores` scores each hypothesis; :func:`landmark_lead` names the one the
 landmarks clearly favour, or none. The frame decision asks only when closures do not decide
-(:mod:`.frame_decision`).
+(:mod:`kimera_multi_py.pgo.frame_decision`).
 """
 
 from __future__ import annotations

@@ -4,15 +4,15 @@ The server receives each robot's odometry in the robot's own frame, and every lo
 front ends accepted, aliases included. GNC on that graph alone has no notion of a frame: an
 alias group spread over many keyframes can be cheaper than the truth (office, 5 robots, seed 1:
 104 false closures kept, 2.24 m). So before GNC the server decides each robot's frame as the
-agents do (:mod:`.frame_decision`):
+agents do (:mod:`kimera_multi_py.pgo.frame_decision`):
 
 * the root (lowest id) is the team frame; the other robots join it one at a time;
 * for a robot not yet aligned, its closures with the aligned robots are clustered into frame
-  hypotheses (:func:`.alignment.frame_hypotheses`), each supported by the distinct places its
-  closures come from; :func:`.alignment.decide` says whether one clearly leads;
+  hypotheses (:func:`.frames.frame_hypotheses`), each supported by the distinct places its
+  closures come from; :func:`.frames.decide` says whether one clearly leads;
 * of all robots with a clear lead, the one with the largest margin joins first; closures with
   robots that are not *settled* (the root, and robots that joined on a clear lead are) decide
-  only what the settled robots' closures do not (:func:`.alignment.settled_decision`);
+  only what the settled robots' closures do not (:func:`.frames.settled_decision`);
 * only when no robot has a clear lead does a lone single-place group (one group, no competitor)
   join its robot, unsettled (``lone``); ties and robots without closures stay out (own frame);
 * each inter-robot closure is judged once, when the later of its two robots joins: it is kept
@@ -81,7 +81,7 @@ class _Screen:
 
     def lead(self, robot: int, settled: set[int], aligned: set[int]
              ) -> tuple[FrameHypothesis | None, int, bool, list[FrameHypothesis]]:
-        """The hypothesis that clearly leads for ``robot`` (:func:`.alignment.settled_decision`),
+        """The hypothesis that clearly leads for ``robot`` (:func:`.frames.settled_decision`),
         its margin, whether it is settled, and the hypotheses over every aligned robot."""
         firm = self.edges(robot, settled)
         every = self.edges(robot, aligned)

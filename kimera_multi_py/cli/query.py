@@ -1,4 +1,4 @@
-"""The ``kimera-multi query`` commands. The lead's ``cli.py`` calls :func:`register`.
+"""The ``kimera-multi query`` commands. ``cli/main.py`` calls :func:`register`.
 
 ``kimera-multi query RUN_DIR room-of O(3)``, ``... objects-in R(1) [--class chair]``,
 ``... path X,Y,Z X,Y,Z`` (or object / place names), ``... where ROBOT T``. They read

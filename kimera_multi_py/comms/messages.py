@@ -36,7 +36,7 @@ MAX_ROBOT_ID = 4095
 MAX_STR_LEN = 256
 INT64_MIN = -(2**63)
 INT64_MAX = 2**63 - 1
-# PGO epochs tag rounds as epoch * 1e6 + round (team_pgo.EPOCH_ROUNDS), and a leader opens the
+# PGO epochs tag rounds as epoch * 1e6 + round (pgo.team.EPOCH_ROUNDS), and a leader opens the
 # newest epoch it heard of + 1: epochs on the wire stay below what keeps that tag an int64
 MAX_EPOCH = INT64_MAX // 1_000_000 - 2
 
@@ -531,7 +531,7 @@ class PgoStatus(Message):
 
 @message("PcgState", keys.PCG_STATE)
 class PcgState(Message):
-    """One lock-step of the distributed Gauss–Newton solve (``consensus.pgo_gn``).
+    """One lock-step of the distributed Gauss–Newton solve (``pgo.gn``).
 
     ``scalars`` are the robot's shares of the team-wide sums of this step (costs, CG inner
     products); ``vectors`` a tangent vector at its public poses, in the order of its

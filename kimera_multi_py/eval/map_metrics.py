@@ -1,7 +1,7 @@
 """Map consensus metrics: disagreement, agreement with the centralised fusion, clamping, bytes.
 
 Every function works on *cells*: sorted finest-level Morton codes and their int16 fixed-point
-rows (``MapConsensus.team_cells()``, or :func:`~.map_fusion.octree_cells` of a tree). A cell a
+rows (``MapConsensus.team_cells()``, or :func:`~kimera_multi_py.mapshare.fusion.octree_cells` of a tree). A cell a
 robot does not know counts as the prior (whose occupancy log-odds is 0, as ROAM counts it).
 """
 

@@ -17,11 +17,11 @@ is :attr:`MapConsensus.team_map`, the robot's belief about the whole team's spac
     ``summary_every`` periods) tells the neighbours what the robot holds; a neighbour re-sends
     what a summary newer than its last send still lacks, which recovers lost messages and
     partitions. The team map is ``clamp(prior + sum T_s dh_s)`` over every held submap whose
-    source is in the robot's frame (:class:`~.map_fusion.EvidenceMap`): it equals the
-    centralised fusion (:func:`~.map_fusion.fuse_records`) cell for cell once all has arrived.
+    source is in the robot's frame (:class:`~.fusion.EvidenceMap`): it equals the
+    centralised fusion (:func:`~.fusion.fuse_records`) cell for cell once all has arrived.
 ``roam`` (the baseline, :mod:`.roam`)
     ROAM's rule as its code does it; every period the full tree, at most one fusion per period.
-``laplacian`` (:mod:`.map_laplacian`)
+``laplacian`` (:mod:`.laplacian`)
     The paper's consensus step on evidence with Metropolis-Hastings weights, scaled by N.
 
 Frames: the node calls :meth:`MapConsensus.set_frame` with the root robot of the world frame

@@ -1,4 +1,4 @@
-"""An in-memory, lock-step network of :class:`~.map_consensus.MapConsensus` robots (no bus).
+"""An in-memory, lock-step network of :class:`~.consensus.MapConsensus` robots (no bus).
 
 Every :meth:`MapExchange.round` steps each robot, encodes what it publishes with the real codec
 (so bytes are wire bytes, counted once per publish, per robot and topic), and delivers it to the

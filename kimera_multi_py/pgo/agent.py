@@ -2,7 +2,7 @@
 
 A :class:`PgoAgent` owns its poses. Its *public* poses are those touching inter-robot edges.
 It never touches the network: :meth:`PgoAgent.handle` takes incoming messages and
-:meth:`PgoAgent.step` returns the messages to publish (see :mod:`.runner` for the runtime).
+:meth:`PgoAgent.step` returns the messages to publish (see :mod:`.runtime` for the runtime).
 
 A round ``r``:
 
@@ -19,7 +19,7 @@ A round ``r``:
 A robot's first update waits until it knows every neighbour pose it is joined to (or
 ``align_patience`` rounds): a block solved against part of its separator lands far away.
 
-Initialisation (:mod:`.pgo_init`): a robot starts from its own odometry (or its local chordal solution) in its own
+Initialisation (:mod:`.initialisation`): a robot starts from its own odometry (or its local chordal solution) in its own
 frame; the lowest id of each connected robot graph is the team frame; the others align to an
 aligned neighbour (:mod:`.frame_decision`, robust frame hypotheses included). A robot publishes
 public poses only once aligned, so late joiners and robots without inter-robot edges simply
@@ -27,7 +27,7 @@ wait (their edges are ignored by the others meanwhile). Optionally (``distribute
 team first runs block Gauss–Seidel on the chordal relaxation until every robot has settled.
 
 Robust mode: GNC-TLS weights on loop closures and inter-robot edges, one ``μ`` for the team
-(:mod:`.pgo_weights`). The lowest robot id is the leader: it orders the weight updates and
+(:mod:`.weights`). The lowest robot id is the leader: it orders the weight updates and
 sends ``stop`` when the team is done.
 """
 
@@ -57,8 +57,8 @@ log = logging.getLogger(__name__)
 
 class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
     """One robot's distributed-PGO state and its pure round step (its initialisation, frame
-    decision, robust weights and step-size control are the mixins of :mod:`.pgo_init`,
-    :mod:`.frame_decision`, :mod:`.pgo_weights` and :mod:`.pgo_relaxation`)."""
+    decision, robust weights and step-size control are the mixins of :mod:`.initialisation`,
+    :mod:`.frame_decision`, :mod:`.weights` and :mod:`.relaxation`)."""
 
     def __init__(self, local: LocalGraph, params: PgoParams | None = None) -> None:
         self.local = local
@@ -86,7 +86,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         self.published = self.poses.copy()  # what neighbours see (extrapolated)
         self.aligned = self.root
         # the frame rests on the root or on >= align_min_places places of settled peers' poses
-        # (see :class:`.messages.PublicPoses`); peers' flags, by robot, as last heard
+        # (see :class:`kimera_multi_py.comms.messages.PublicPoses`); peers' flags, by robot, as last heard
         self.settled = self.root
         self.peer_settled: dict[int, bool] = {}
         self.neighbour_poses: dict[int, np.ndarray] = {}

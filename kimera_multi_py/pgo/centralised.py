@@ -103,7 +103,7 @@ def _gnc_votes(graph: PoseGraph, priors: list[gtsam.NonlinearFactor], values: gt
                lm: gtsam.LevenbergMarquardtParams, barc2: float, votes: np.ndarray,
                max_iterations: int = 100, weights_tol: float = 1e-4,
                cost_tol: float = 1e-5) -> tuple[gtsam.Values, np.ndarray]:
-    """GNC-TLS with a vote per closure (:func:`.robust.correlated_votes`; ``graph``'s
+    """GNC-TLS with a vote per closure (:func:`kimera_multi_py.core.robust.correlated_votes`; ``graph``'s
     information already carries them): gtsam's schedule (μ₀ from the largest residual, μ ×1.4,
     odometry and priors known inliers, done when the weights are binary or the cost settles),
     the TLS test on ``r²/ω``. gtsam's Python GNC takes one threshold for every factor, which

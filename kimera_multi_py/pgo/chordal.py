@@ -5,7 +5,7 @@ SO(3)); translations second, with the rotations fixed: ``Σ τ‖tⱼ − tᵢ �
 weights are DPGO's ``κ = 3 / (2 tr Ω_R⁻¹)`` and ``τ = 3 / tr Ω_t⁻¹`` of each edge's information,
 which stay meaningful where gtsam's ``InitializePose3`` gives up (cubicle's indefinite matrices).
 
-The block form is what a robot solves in the distributed initialisation (:mod:`.pgo`): its own
+The block form is what a robot solves in the distributed initialisation (:mod:`.agent`): its own
 poses are the unknowns, its neighbours' poses (from messages) are fixed, and the chordal cost is
 minimised by block Gauss–Seidel over the robots. A tiny proximal term toward the current
 estimate keeps every block well posed, including components that no edge anchors.

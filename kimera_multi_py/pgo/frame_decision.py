@@ -1,28 +1,28 @@
 """Frame decision of one distributed-PGO robot: which team frame it joins, and whether its
-estimate is adopted at the end of the epoch (a mixin of :class:`.pgo.PgoAgent`, whose state it
+estimate is adopted at the end of the epoch (a mixin of :class:`.agent.PgoAgent`, whose state it
 reads and writes; docs/algorithms/pgo.md).
 
 Plain alignment: the lowest id of each connected robot graph is the team frame; the others align
 to an aligned neighbour by GNC rotation + translation averaging over the inter-robot edges
-(:mod:`.alignment`). A robot publishes public poses only once aligned.
+(:mod:`kimera_multi_py.alignment.frames`). A robot publishes public poses only once aligned.
 
 Robust frame alignment (``align_hypotheses``): the known inter-robot edges are
-clustered into frame hypotheses (:func:`.alignment.frame_hypotheses`), each supported by the
+clustered into frame hypotheses (:func:`kimera_multi_py.alignment.frames.frame_hypotheses`), each supported by the
 number of distinct places its closures come from, over every neighbour at once. A robot adopts
 the hypothesis that leads the runner-up by ``align_min_margin`` places (twice the runner-up's
 places, or twice the places only the runner-up explains, when it rests on several:
-:func:`.alignment.decide`) and rests on at least
-``align_min_places``. Settled frames (:class:`.messages.PublicPoses`): the robot decides on
+:func:`kimera_multi_py.alignment.frames.decide`) and rests on at least
+``align_min_places``. Settled frames (:class:`kimera_multi_py.comms.messages.PublicPoses`): the robot decides on
 settled peers' edges first; the rest decide only what those leave open, and evidence that leads
 to two frames (settled peers against the rest, or two settled peers against each other) is
-contested, no decision (:func:`.alignment.settled_decision`). A lone single-place group with no
+contested, no decision (:func:`kimera_multi_py.alignment.frames.settled_decision`). A lone single-place group with no
 competitor (one room seen by both robots, which an alias looks exactly like) is adopted once no
 more edges can arrive, and reported as such (not settled); ``align_lone_place=False`` keeps the
 robot out until a second place agrees. Where closures leave groups of several places competing
 (twin rooms: the truth and the frame one room over rest on as many places, or closures through
 different peers lead to different frames), the team's object
-landmarks may decide (:mod:`.landmark_check`; settled peers publish theirs as
-:class:`.messages.FrameLandmarks` when an epoch opens): adopted when they clearly favour one
+landmarks may decide (:mod:`kimera_multi_py.alignment.landmark_check`; settled peers publish theirs as
+:class:`kimera_multi_py.comms.messages.FrameLandmarks` when an epoch opens): adopted when they clearly favour one
 hypothesis, reported as such and not settled. Without such a hypothesis the robot stays out of the team
 frame for the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
 :attr:`PgoAgent.alignment` and the log. A robot already in a settled team frame switches frames
@@ -31,7 +31,7 @@ root has published. Every epoch builds a fresh agent, so the decision is revisit
 accumulate: a robot aligned into an alias frame switches once the true hypothesis leads. Edges
 outside the adopted hypothesis start at weight 0. At the end of an epoch
 (:meth:`PgoAgent.final_poses`) an estimate that bends away from the robot's own odometry beyond
-its drift model (:func:`.alignment.odometry_disagreement`) is not adopted either.
+its drift model (:func:`kimera_multi_py.alignment.frames.odometry_disagreement`) is not adopted either.
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ log = logging.getLogger(__name__)
 
 
 class FrameDecision:
-    """The frame-alignment part of :class:`.pgo.PgoAgent`: align, screen, exclude, settle."""
+    """The frame-alignment part of :class:`.agent.PgoAgent`: align, screen, exclude, settle."""
 
     # state of the agent (set by PgoAgent.__init__)
     local: LocalGraph
@@ -129,7 +129,7 @@ class FrameDecision:
         self.settled = True  # without frame hypotheses every aligned frame counts
 
     def _align_consensus(self, known: np.ndarray) -> None:
-        """Align by the robust consensus of every known edge (:func:`.alignment.align_frames`)."""
+        """Align by the robust consensus of every known edge (:func:`kimera_multi_py.alignment.frames.align_frames`)."""
         lg = self.local
         nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
         res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known], lg.inter_own_is_i[known])
@@ -214,12 +214,12 @@ class FrameDecision:
         return refuted
 
     def _settled_edges(self) -> np.ndarray:
-        """The inter-robot edges to peers whose frames are settled (:class:`.messages.PublicPoses`)."""
+        """Inter-robot edges to peers in a settled frame (:class:`~kimera_multi_py.comms.messages.PublicPoses`)."""
         return np.array([self.peer_settled.get(int(r), True) for r in self.local.inter_peer], dtype=bool)
 
     def _evidence(self, known: np.ndarray) -> tuple[list[FrameHypothesis], FrameHypothesis | None, int, str]:
         """The frame hypotheses over every known edge, the one that clearly leads (or None), its
-        margin, and the verdict of :func:`.alignment.settled_decision` (edges to peers whose own
+        margin, and the verdict of :func:`kimera_multi_py.alignment.frames.settled_decision` (edges to peers whose own
         frames are not settled decide only what settled peers' edges do not)."""
         p = self.params
         lg = self.local
@@ -337,7 +337,7 @@ class FrameDecision:
         self.landmark_classes = np.asarray(classes)
 
     def _landmark_lead(self, hyps: list[FrameHypothesis]) -> tuple[FrameHypothesis | None, list[LandmarkScore]]:
-        """The hypothesis the team's landmarks clearly favour (:mod:`.landmark_check`), among
+        """The hypothesis the team's landmarks clearly favour (:mod:`kimera_multi_py.alignment.landmark_check`), among
         those resting on ``align_tie_min_places`` places, and every hypothesis's score."""
         team = [(c, x) for r, (f, c, x) in self.peer_landmarks.items() if f == self.root_robot and r != self.robot]
         if self.landmark_anchor is None or not team or not hyps:
@@ -420,7 +420,7 @@ class FrameDecision:
 
     def _supported(self, known: np.ndarray) -> np.ndarray:
         """The known inter-robot edges some other known edge agrees with (own poses in the team
-        frame), see :func:`.alignment.supported_edges`."""
+        frame), see :func:`kimera_multi_py.alignment.frames.supported_edges`."""
         lg = self.local
         out = np.zeros(len(lg.inter_edge), dtype=bool)
         if known.any():

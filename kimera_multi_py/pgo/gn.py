@@ -1,9 +1,9 @@
 """Distributed Levenberg–Marquardt with pipelined conjugate gradients across the robots.
 
-:class:`GnPcgAgent` is a :class:`.pgo.PgoAgent` (same initialisation and frame alignment) whose
+:class:`GnPcgAgent` is a :class:`.agent.PgoAgent` (same initialisation and frame alignment) whose
 solve is a Gauss–Newton outer loop instead of block Gauss–Seidel. The team's damped system
 ``(H + λ diag H) δ = −g`` is a sum of robot blocks coupled only through inter-robot edges
-(:class:`.pgo_linear.LocalSystem`). It is solved by conjugate gradients preconditioned with
+(:class:`.linear.LocalSystem`). It is solved by conjugate gradients preconditioned with
 each robot's own block, factored exactly (block Jacobi over robots: bending inside a block is
 solved exactly, CG fixes the coupling between blocks; its non-trivial spectrum is that of the
 block-Jacobi-preconditioned Schur complement on the separator poses).
@@ -22,7 +22,7 @@ team accepts the step when the team cost fell (LM: ``λ`` shrinks) or rejects it
 Everything team-wide is a sum of per-robot scalars that every robot receives, so all robots
 take the same decisions.
 
-The coarse space also recycles the team's last ``gn_recycle`` steps (:mod:`.pgo_coarse`):
+The coarse space also recycles the team's last ``gn_recycle`` steps (:mod:`.coarse`):
 truncated CG leaves the same smooth error in consecutive linear systems. The team stops after
 two accepted steps in a row that lower the team cost by less than ``gn_rel_tol`` (relative),
 when a rejected step pushes ``λ`` past ``gn_damping_max``, or after ``gn_max_outer`` steps.
@@ -55,7 +55,7 @@ log = logging.getLogger(__name__)
 
 class GnPcgAgent(GnRobust, PgoAgent):
     """One robot of the distributed Levenberg–Marquardt / pipelined-PCG solve (see module;
-    robust mode: :mod:`.pgo_gn_weights`)."""
+    robust mode: :mod:`.gn_weights`)."""
 
     def __init__(self, local: LocalGraph, params: PgoParams | None = None) -> None:
         super().__init__(local, params)

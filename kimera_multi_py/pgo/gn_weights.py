@@ -1,7 +1,7 @@
 """Robust weights of one distributed Levenberg–Marquardt robot: GNC-TLS in the lock-step outer
-loop (a mixin of :class:`.pgo_gn.GnPcgAgent`, whose state it reads and writes; docs/algorithms/pgo.md).
+loop (a mixin of :class:`.gn.GnPcgAgent`, whose state it reads and writes; docs/algorithms/pgo.md).
 
-The robust schedule is the block-SOR solver's (:mod:`.pgo_weights`): one team ``μ`` (the
+The robust schedule is the block-SOR solver's (:mod:`.weights`): one team ``μ`` (the
 smallest ``μ₀`` any robot proposes, floored at ``gnc_mu0_min``), ``μ ← 1.4 μ`` per weight
 update, then re-checks of every closure at the settled solution (first with
 ``recheck_factor`` slack, then the plain threshold). What differs is the timing and the
@@ -45,7 +45,7 @@ if TYPE_CHECKING:
 
 
 class GnRobust:
-    """The robust-weights part of :class:`.pgo_gn.GnPcgAgent` (see module)."""
+    """The robust-weights part of :class:`.gn.GnPcgAgent` (see module)."""
 
     # state of the agent (set by PgoAgent.__init__ / GnPcgAgent.__init__)
     local: LocalGraph
@@ -204,7 +204,7 @@ class GnRobust:
         # at the last one may fit the re-converged solution, and TLS keeps what fits
         unstable = self.rechecks < p.gnc_rechecks or (self.team_flipped > 0 and self.rechecks < p.gnc_max_rechecks)
         if self.phase == "recheck" and unstable:
-            # the TLS decision at the converged solution, first with slack (see .pgo_weights)
+            # the TLS decision at the converged solution, first with slack (see .weights)
             last = self.rechecks + 1 >= p.gnc_rechecks
             factor = 1.0 if last else p.recheck_factor
             r2 = np.concatenate(self._robust_r2_all())

@@ -1,4 +1,4 @@
-"""Initialisation of one distributed-PGO robot (a mixin of :class:`.pgo.PgoAgent`, whose state
+"""Initialisation of one distributed-PGO robot (a mixin of :class:`.agent.PgoAgent`, whose state
 it reads and writes; docs/algorithms/pgo.md).
 
 A robot starts from its own odometry (or its local chordal solution) in its own frame.
@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 
 
 class Initialisation:
-    """The initialisation part of :class:`.pgo.PgoAgent`: own start, team chordal relaxation."""
+    """The initialisation part of :class:`.agent.PgoAgent`: own start, team chordal relaxation."""
 
     # state of the agent (set by PgoAgent.__init__)
     local: LocalGraph

@@ -33,7 +33,7 @@ class LocalGraph:
     inter_edge: np.ndarray  # (k,) global edge index
     robot_graph: list[tuple[int, int]] = field(default_factory=list)  # team topology
     team: tuple[int, ...] = ()
-    # robust votes (:func:`.robust.correlated_votes`; the infos above already carry them, the TLS
+    # robust votes (:func:`kimera_multi_py.core.robust.correlated_votes`; the infos above already carry them, the TLS
     # decisions divide the squared residuals by them); None: 1 for every edge
     intra_vote: np.ndarray | None = None
     inter_vote: np.ndarray | None = None

@@ -1,4 +1,4 @@
-"""The distributed solver's knobs (:class:`PgoParams`), shared by both methods (:mod:`.pgo`, :mod:`.pgo_gn`)."""
+"""The distributed solver's knobs (:class:`PgoParams`), shared by both methods (:mod:`.agent`, :mod:`.gn`)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ class PgoParams:
 
     max_rounds: int = 500
     # "block_sor": block Gauss–Seidel with adaptive over-relaxation (this module);
-    # "gn_pcg": Levenberg–Marquardt with pipelined block-Jacobi CG across the robots (.pgo_gn)
+    # "gn_pcg": Levenberg–Marquardt with pipelined block-Jacobi CG across the robots (.gn)
     method: str = "block_sor"
     gn_forcing: float = 0.25  # CG stops when the preconditioned residual fell by this factor
     # (measured on cubicle, 5 robots, with recycling: 0.25 reaches 1e-3 in 191 rounds, 0.1 in
@@ -83,7 +83,7 @@ class PgoParams:
     gnc_max_rechecks: int = 4  # gn_pcg: more plain re-checks while the last one flipped a decision
     recheck_factor: float = 3.0  # first re-check admits r² ≤ factor·c̄², the last one r² ≤ c̄²
     align_patience: int = 20  # rounds with < 3 alignment inliers before a plain alignment
-    # robust mode: frame alignment by hypotheses (alignment.frame_hypotheses). A robot aligns to
+    # robust mode: frame alignment by hypotheses (alignment.frames.frame_hypotheses). A robot aligns to
     # the hypothesis supported by the most distinct places, when it leads the runner-up by
     # ``align_min_margin`` places and rests on ``align_min_places`` or more; it decides before
     # every neighbour pose is known only with a lead of ``align_early_margin``. A robot with no

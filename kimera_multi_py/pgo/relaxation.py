@@ -1,4 +1,4 @@
-"""Step-size control of one block-SOR robot (a mixin of :class:`.pgo.PgoAgent`, whose state it
+"""Step-size control of one block-SOR robot (a mixin of :class:`.agent.PgoAgent`, whose state it
 reads and writes): the adaptive over-relaxation factor ``ω`` with its back-off, the momentum
 restart of the ``acceleration`` alternative, and the SE(3) extrapolation both use."""
 
@@ -18,7 +18,7 @@ OMEGA_WINDOW = 12  # block updates over which a growing step backs over-relaxati
 
 
 class Relaxation:
-    """The step-size part of :class:`.pgo.PgoAgent`."""
+    """The step-size part of :class:`.agent.PgoAgent`."""
 
     # state of the agent (set by PgoAgent.__init__)
     params: PgoParams

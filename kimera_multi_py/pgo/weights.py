@@ -1,7 +1,7 @@
 """Robust weights of one distributed-PGO robot: team-wide GNC-TLS over its loop closures and
-inter-robot edges (a mixin of :class:`.pgo.PgoAgent`, whose state it reads and writes; docs/algorithms/pgo.md).
+inter-robot edges (a mixin of :class:`.agent.PgoAgent`, whose state it reads and writes; docs/algorithms/pgo.md).
 
-Robust mode: GNC-TLS weights (:mod:`.robust`) on loop closures and inter-robot edges (odometry
+Robust mode: GNC-TLS weights (:mod:`kimera_multi_py.core.robust`) on loop closures and inter-robot edges (odometry
 is trusted). The lowest robot id is the leader: it sends ``update_weights`` when every robot is
 ready (or after a round cap) and ``stop`` when the team is done. GNC runs with *one* ``μ`` for
 the team, as the centralised GNC does: at the first update every robot publishes its ``μ₀``
@@ -35,7 +35,7 @@ if TYPE_CHECKING:
 
 
 class RobustWeights:
-    """The robust-weights part of :class:`.pgo.PgoAgent`: GNC steps, rechecks, the leader's schedule."""
+    """The robust-weights part of :class:`.agent.PgoAgent`: GNC steps, rechecks, the leader's schedule."""
 
     # state of the agent (set by PgoAgent.__init__)
     local: LocalGraph

@@ -66,7 +66,7 @@ class Server:
         # graph): with votes GNC keeps 14 false closures (team ATE 2.81 m), and the alias's voted
         # TLS cost is below the truth's (267.5 against 280.6); without votes 0 false (0.077 m)
         self.closure_votes = closure_votes
-        # the agents' frame decision before GNC (:mod:`.server_frames`); off: GNC on every closure
+        # the agents' frame decision before GNC (:mod:`~kimera_multi_py.alignment.server_frames`); off: all closures
         self.frame_screen = frame_screen
         self.frames: FrameScreen | None = None  # the last solve's frame decisions
         self.stats = ServerStats()

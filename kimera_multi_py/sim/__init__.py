@@ -1,4 +1,4 @@
-"""The deterministic multi-robot simulator (world, sensors, scenarios, runner).
+"""The deterministic multi-robot simulator (world, sensors, scenarios, keyframe source).
 
 Typical use::
 

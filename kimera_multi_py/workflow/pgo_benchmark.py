@@ -1,7 +1,7 @@
 """The ``pgo`` workflow: load a graph, solve it centrally and distributed, score, write.
 
 Inputs: g2o / TORO files (SE(3), or SE(2) solved as planar SE(3) with 2-D outputs) and DPGO CSV
-folders. Robust runs are scored without ground truth (:mod:`.evaluation`); precision, recall
+folders. Robust runs are scored without ground truth (:mod:`kimera_multi_py.eval.pgo`); precision, recall
 and the outlier-free reference appear only when the outliers were injected here.
 
 ``run_pgo(...)`` reads as its stages: ``_load``, ``_inject``, ``_centralized``,
@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 
 METHODS = ("block_sor", "gn_pcg")
 # the solver of ``run_pgo`` called without a method (the agents' team PGO uses PgoParams').
-# ``kimera-multi pgo`` and benchmarks/pgo.py pass cli_pgo.CLI_METHOD ("gn_pcg"); block SOR
+# ``kimera-multi pgo`` and benchmarks/pgo.py pass cli.pgo.CLI_METHOD ("gn_pcg"); block SOR
 # stays the library default: it tolerates late joiners (gn_pcg needs the whole team at start)
 DEFAULT_METHOD = "block_sor"
 

@@ -33,7 +33,8 @@ RING_FLOOR = Floor(spaces=[(-1.0, -1.0, 17.0, 1.0), (15.0, -1.0, 17.0, 9.0), (-1
                    boxes=[(ROOM_A - 1.2, -3.6, ROOM_A, -3.0), (ROOM_B - 1.2, -3.6, ROOM_B, -3.0)])
 
 
-def _run(edges_at: list, map_check: bool, seed: int = 3, alias_per_place: int = 2, true_per_place: int = 4) -> tuple[float, dict]:
+def _run(edges_at: list, map_check: bool, seed: int = 3, alias_per_place: int = 2,
+         true_per_place: int = 4) -> tuple[float, dict]:
     trajs, odo, first = _team()
     rng = np.random.default_rng(seed)
     edges = _closures(trajs, first, [p for p in edges_at if p[2]], rng, per_place=alias_per_place)
