@@ -333,7 +333,9 @@ class AgentNode:
         """How our map agrees with the other robots' evidence in the frame rooted at ``frame``."""
         if not self.pgo_params.map_check:
             return None
-        return map_view(self.maps, self.agent.map, frame, self.pgo_params.map_coarse, self.pgo_params.map_occupancy)
+        p = self.pgo_params
+        return map_view(self.maps, self.agent.map, frame, p.map_min_conflicts, p.map_conflict_ratio, p.map_coarse,
+                        p.map_occupancy)
 
     def _safety_net(self, last: PgoAgent) -> None:
         """After an epoch that left us in a team frame: if our map contradicts the team's there,

@@ -50,6 +50,7 @@ class MapAgreement:
 
     overlap: int  # cells both maps know
     conflicts: int  # of them, occupied in one and clear free space in the other
+    verdict: bool | None = None  # a team's verdict over several maps (:func:`team_agreement`)
 
     @property
     def ratio(self) -> float:
@@ -57,11 +58,18 @@ class MapAgreement:
         return self.conflicts / self.overlap if self.overlap else 0.0
 
     def refutes(self, min_conflicts: int, min_ratio: float) -> bool:
-        """True when the conflicts are too many to be residual misalignment."""
+        """True when the conflicts are too many to be residual misalignment (or the team's
+        verdict, for an agreement summed over several robots' maps)."""
+        if self.verdict is not None:
+            return self.verdict
         return self.conflicts >= min_conflicts and self.ratio >= min_ratio
 
-    def as_dict(self) -> dict[str, float | int]:
-        return {"overlap": self.overlap, "conflicts": self.conflicts, "ratio": round(self.ratio, 4)}
+    def as_dict(self) -> dict[str, float | int | bool]:
+        out: dict[str, float | int | bool] = {"overlap": self.overlap, "conflicts": self.conflicts,
+                                              "ratio": round(self.ratio, 4)}
+        if self.verdict is not None:
+            out["refuted"] = self.verdict
+        return out
 
 
 @dataclass(frozen=True)
@@ -149,14 +157,35 @@ _REGISTRATION = ScanRegistration(voxel=0.2, max_correspondence=(1.0, 0.5, 0.25),
 
 def refined_agreement(a: CellStates, b: CellStates, T_b_a: np.ndarray, coarse: float = 0.3,
                       max_shift: float = 1.0, max_turn: float = 0.2) -> MapAgreement:
-    """:func:`map_agreement` at the frame near ``T_b_a`` where ``a``'s occupied cells fit ``b``'s
-    (GICP from ``T_b_a``; kept when it moved less than ``max_shift`` m and ``max_turn`` rad, else
-    the hypothesis itself is scored)."""
+    """The better :func:`map_agreement` of ``T_b_a`` itself and of the frame near it where ``a``'s
+    occupied cells fit ``b``'s (GICP from ``T_b_a``, considered when it moved less than
+    ``max_shift`` m and ``max_turn`` rad): a frame is refuted only when no frame near it agrees."""
     T = np.asarray(T_b_a, dtype=np.float64)
+    plain = map_agreement(a, b, T, coarse)
+    if plain.conflicts == 0:
+        return plain
     src, tgt = a.centres[a.state == OCCUPIED], b.centres[b.state == OCCUPIED]
     reg = _REGISTRATION.register(tgt, src, T) if len(src) and len(tgt) else None
-    if reg is not None and reg.converged:
-        step = inverse(T) @ reg.T
-        if np.linalg.norm(step[:3, 3]) <= max_shift and np.linalg.norm(so3_log(step[:3, :3])) <= max_turn:
-            T = reg.T
-    return map_agreement(a, b, T, coarse)
+    if reg is None or not reg.converged:
+        return plain
+    step = inverse(T) @ reg.T
+    if np.linalg.norm(step[:3, 3]) > max_shift or np.linalg.norm(so3_log(step[:3, :3])) > max_turn:
+        return plain
+    refined = map_agreement(a, b, reg.T, coarse)
+    return refined if refined.conflicts < plain.conflicts else plain
+
+
+def team_agreement(per_robot: dict[int, MapAgreement], root: int, min_conflicts: int,
+                   min_ratio: float) -> tuple[MapAgreement, list[int], list[int]]:
+    """One frame against several robots' maps, each on its own, so that one robot in a wrong frame
+    cannot outvote the rest: refuted when it contradicts the frame's ``root`` robot, or more of
+    the robots whose maps overlap enough to tell (``min_conflicts / min_ratio`` common cells)
+    than agree with it. Returns the summed agreement carrying that verdict, the conflicting
+    robots and the agreeing ones."""
+    conflicting = sorted(r for r, a in per_robot.items() if a.refutes(min_conflicts, min_ratio))
+    enough = min_conflicts / max(min_ratio, 1e-9)
+    agreeing = sorted(r for r, a in per_robot.items() if r not in conflicting and a.overlap >= enough)
+    refuted = root in conflicting or len(conflicting) > len(agreeing)
+    total = MapAgreement(sum(a.overlap for a in per_robot.values()), sum(a.conflicts for a in per_robot.values()),
+                         refuted)
+    return total, conflicting, agreeing

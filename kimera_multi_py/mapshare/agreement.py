@@ -20,6 +20,7 @@ from kimera_multi_py.alignment.map_check import (
     cell_states,
     map_agreement,
     refined_agreement,
+    team_agreement,
 )
 from kimera_multi_py.mapping.submaps import SubmapMap
 from kimera_multi_py.mapshare.consensus import MapConsensus
@@ -33,17 +34,30 @@ def _own_states(own: SubmapMap, occupancy: float) -> CellStates | None:
     return cell_states(codes, view_rows(own.octree, rows), own.resolution, occupancy) if len(codes) else None
 
 
-def map_view(maps: MapConsensus | None, own: SubmapMap, frame: int, coarse: float = 0.3,
-             occupancy: float = 1.0, sources: list[int] | None = None) -> MapView | None:
-    """Scores of frames ``T`` (own estimate -> the frame rooted at ``frame``) against ``sources``
-    (default: every other robot in that frame), or None when none of their evidence is held (or
-    the map consensus keeps none per robot)."""
-    peers = None if maps is None else maps.frame_cells(frame, sources)
+def _peer_states(maps: MapConsensus, frame: int, resolution: float, occupancy: float) -> dict[int, CellStates]:
+    out = {}
+    for src in maps.frame_sources(frame):
+        cells = maps.frame_cells(frame, [src])
+        if cells is not None and len(cells[0]):
+            out[src] = cell_states(cells[0], cells[1], resolution, occupancy)
+    return out
+
+
+def map_view(maps: MapConsensus | None, own: SubmapMap, frame: int, min_conflicts: int, min_ratio: float,
+             coarse: float = 0.3, occupancy: float = 1.0) -> MapView | None:
+    """Scores of frames ``T`` (own estimate -> the frame rooted at ``frame``) against every other
+    robot's evidence held in that frame, robot by robot (:func:`team_agreement`), or None when none
+    is held (or the map consensus keeps none per robot)."""
     mine = _own_states(own, occupancy)
-    if peers is None or not len(peers[0]) or mine is None:
+    peers = {} if maps is None or mine is None else _peer_states(maps, frame, own.resolution, occupancy)
+    if mine is None or not peers:
         return None
-    team = cell_states(peers[0], peers[1], own.resolution, occupancy)
-    return lambda T: refined_agreement(mine, team, T, coarse)
+
+    def view(T: np.ndarray) -> MapAgreement:
+        per = {src: refined_agreement(mine, cells, T, coarse) for src, cells in peers.items()}
+        return team_agreement(per, frame, min_conflicts, min_ratio)[0]
+
+    return view
 
 
 @dataclass
@@ -62,26 +76,12 @@ class FrameCheck:
 
 def frame_check(maps: MapConsensus | None, own: SubmapMap, frame: int, min_conflicts: int, min_ratio: float,
                 coarse: float = 0.3, occupancy: float = 1.0) -> FrameCheck | None:
-    """Whether the robot's map, where it is now, contradicts the maps of the robots in frame ``frame``.
-
-    Each robot is compared on its own, so one robot in a wrong frame cannot outvote the rest:
-    the frame is refuted when the map contradicts the frame's root robot, or more of the robots
-    whose maps overlap ours enough to tell (``min_conflicts / min_ratio`` common cells) than
-    agree with it. None when no robot's evidence is held for that frame.
-    """
-    if maps is None:
-        return None
+    """Whether the robot's map, where it is now, contradicts the maps of the robots in frame
+    ``frame`` (:func:`team_agreement`); None when no robot's evidence is held for that frame."""
     mine = _own_states(own, occupancy)
-    sources = maps.frame_sources(frame)
-    if mine is None or not sources:
+    peers = {} if maps is None or mine is None else _peer_states(maps, frame, own.resolution, occupancy)
+    if mine is None or not peers:
         return None
-    per: dict[int, MapAgreement] = {}
-    for src in sources:
-        cells = maps.frame_cells(frame, [src])
-        if cells is not None and len(cells[0]):
-            per[src] = map_agreement(mine, cell_states(cells[0], cells[1], own.resolution, occupancy), None, coarse)
-    conflicting = sorted(r for r, a in per.items() if a.refutes(min_conflicts, min_ratio))
-    enough = min_conflicts / max(min_ratio, 1e-9)
-    agreeing = sorted(r for r, a in per.items() if r not in conflicting and a.overlap >= enough)
-    refuted = frame in conflicting or len(conflicting) > len(agreeing)
-    return FrameCheck(refuted, conflicting, agreeing, per)
+    per = {src: map_agreement(mine, cells, None, coarse) for src, cells in peers.items()}
+    total, conflicting, agreeing = team_agreement(per, frame, min_conflicts, min_ratio)
+    return FrameCheck(bool(total.verdict), conflicting, agreeing, per)
