@@ -45,6 +45,7 @@ from kimera_multi_py.comms.messages import (
     PublicPoses,
 )
 from kimera_multi_py.core.geometry import inverse, so3_log, transform_points
+from kimera_multi_py.core.ids import MAX_AGENT_ID
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.core.posegraph import robot_key, split_key
 from kimera_multi_py.core.robust import correlated_votes
@@ -72,7 +73,6 @@ _CLASS_TO_SLOT[_OBJECT_IDS] = np.arange(len(_OBJECT_IDS))
 _FLOOR = class_id("floor")
 _WALL = class_id("wall")
 _FLOOR_CEILING = (_FLOOR, class_id("ceiling"))
-MAX_AGENT_ID = 25  # robot i owns gtsam Symbol chr(ord('a') + i)
 
 
 @dataclass

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import networkx as nx
 
-from kimera_multi_py.agent.agent import MAX_AGENT_ID, Agent
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, BusClosedError, Closeable, PresenceEvent, Stream, Subscription
 from kimera_multi_py.comms.messages import (
@@ -46,6 +46,7 @@ from kimera_multi_py.comms.messages import (
     PublicPoses,
 )
 from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.ids import MAX_AGENT_ID
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.core.posegraph import split_key
 from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, get_map_consensus

@@ -11,6 +11,7 @@ from rich.live import Live
 from rich.table import Table
 
 from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.ids import MAX_AGENT_ID
 
 Connect = Annotated[list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to (repeatable).")]
 Listen = Annotated[list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on (repeatable).")]
@@ -45,7 +46,7 @@ def register(app: typer.Typer) -> None:
 
     @app.command()
     def agent(
-        robot: Annotated[int, typer.Option("--robot", help="This robot's id (0..25).")],
+        robot: Annotated[int, typer.Option("--robot", help=f"This robot's id (0..{MAX_AGENT_ID}).")],
         source: Annotated[str, typer.Option("--source", help="sim:SCENARIO[:SEED] or a recorded folder.")],
         out: Annotated[Path, typer.Option("--out", help="Run folder; outputs go to OUT/robotI/.")],
         connect: Connect = None, listen: Listen = None, zenoh_config: ZenohConfig = None, team: Team = "t0",

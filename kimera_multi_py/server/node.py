@@ -23,6 +23,7 @@ from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Subscription
 from kimera_multi_py.comms.messages import AgentState, KeyframeOdometry, LoopClosures, Message, PgoEpoch, PublicPoses
 from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.ids import SERVER_ID as SERVER_ID  # re-exported: the server's id
 from kimera_multi_py.core.posegraph import PoseGraph, robot_key, split_key
 from kimera_multi_py.core.robust import correlated_votes
 from kimera_multi_py.mapping.submaps import SubmapMap
@@ -33,7 +34,6 @@ from kimera_multi_py.pgo.team import ScheduleParams
 
 log = logging.getLogger(__name__)
 
-SERVER_ID = 999  # the centralised server's id on the bus (agents are 0..25)
 
 
 @dataclass

@@ -29,12 +29,12 @@ from kimera_multi_py.comms.loopback import Partition
 from kimera_multi_py.comms.messages import AgentState
 from kimera_multi_py.comms.team import free_ports
 from kimera_multi_py.core.errors import ConfigError, KimeraMultiError
+from kimera_multi_py.core.ids import MAX_ROBOTS, OBSERVER_ID
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.team.link_proxy import LinkProxy
 
 log = logging.getLogger(__name__)
 
-OBSERVER_ID = 998
 MODES = ("distributed", "centralized")
 
 
@@ -118,8 +118,8 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     """Run the team as processes and evaluate it (see the module docstring)."""
     if job.mode not in MODES:
         raise ConfigError("mode", f"unknown mode {job.mode!r} (available: {', '.join(MODES)})")
-    if job.robots < 1 or job.robots > 26:
-        raise ConfigError("robots", f"must be in 1..26, got {job.robots}")
+    if job.robots < 1 or job.robots > MAX_ROBOTS:
+        raise ConfigError("robots", f"must be in 1..{MAX_ROBOTS}, got {job.robots}")
     for k in job.kills:
         if not 0 <= k.robot < job.robots:
             raise ConfigError("kill", f"robot {k.robot} is not in the team of {job.robots}")

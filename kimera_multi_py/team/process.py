@@ -27,6 +27,7 @@ from kimera_multi_py.agent.outputs import outcome_of, own_graph, write_outcome
 from kimera_multi_py.comms import runtime
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.core.ids import MAX_AGENT_ID, SERVER_ID
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.sources import KeyframeSource
@@ -34,7 +35,7 @@ from kimera_multi_py.mapping.config import MappingConfig, get_submap_map
 from kimera_multi_py.mapping.octree_io import export_team_map
 from kimera_multi_py.pgo.params import team_params
 from kimera_multi_py.pgo.team import ScheduleParams
-from kimera_multi_py.server.node import SERVER_ID, Server, ServerNode
+from kimera_multi_py.server.node import Server, ServerNode
 from kimera_multi_py.team.build import params_for, source_from_spec
 
 log = logging.getLogger(__name__)
@@ -82,8 +83,8 @@ def checkpoint_path(out_dir: Path, robot: int) -> Path:
 
 async def _agent(job: AgentJob) -> dict[str, Any]:
     t0 = time.monotonic()
-    if job.robot < 0 or job.robot > 25:
-        raise ConfigError("robot", f"robot id must be in 0..25, got {job.robot}")
+    if job.robot < 0 or job.robot > MAX_AGENT_ID:
+        raise ConfigError("robot", f"robot id must be in 0..{MAX_AGENT_ID}, got {job.robot}")
     ckpt = checkpoint_path(job.out_dir, job.robot)
     ckpt.parent.mkdir(parents=True, exist_ok=True)
     extra: dict[str, Any] = {}

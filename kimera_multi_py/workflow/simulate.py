@@ -47,6 +47,7 @@ from kimera_multi_py.comms.loopback import Faults, LoopbackBus, LoopbackNetwork
 from kimera_multi_py.comms.team import TRANSPORTS, open_buses
 from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.geometry import transform_points
+from kimera_multi_py.core.ids import SERVER_ID
 from kimera_multi_py.eval.accuracy import ScanRecord, accuracy_results
 from kimera_multi_py.eval.map_metrics import TeamMapReport, phi, team_map_report
 from kimera_multi_py.eval.results import Results
@@ -66,7 +67,7 @@ from kimera_multi_py.mapshare.consensus import MAP_MESSAGES
 from kimera_multi_py.mapshare.fusion import centralised_team_map, octree_cells
 from kimera_multi_py.pgo.params import PgoParams, team_params
 from kimera_multi_py.pgo.team import ScheduleParams
-from kimera_multi_py.server.node import SERVER_ID, Server, ServerNode
+from kimera_multi_py.server.node import Server, ServerNode
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
 from kimera_multi_py.sim.source import keyframe_input
