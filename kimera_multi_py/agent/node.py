@@ -28,6 +28,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Literal
 
 import networkx as nx
 
@@ -62,15 +63,20 @@ MAP_MODES = ("off", "roam", "exact", "laplacian")
 class NodeParams:
     """The node's own knobs (the agent's and the solver's are separate)."""
 
-    query_timeout: float = 2.0  # wall s for a constellation query
-    state_period: float = 5.0  # clock s between AgentState messages (the tick's ``wall`` clock)
-    resend_period: float = 5.0  # clock s between re-sends of unacknowledged closures
-    server: int | None = None  # centralised mode: the server's id (then no team PGO)
-    map_consensus: str = "exact"  # off, roam, exact or laplacian (docs/algorithms/map_consensus.md)
-    # lossy links: every descriptor goes out again with the next one (duplicates are ignored), and
-    # a constellation query that gets no reply is asked again this many times
+    query_timeout: float = 2.0
+    """Wall seconds a constellation query waits for its reply."""
+    state_period: float = 5.0
+    """Clock seconds between AgentState messages (the tick's ``wall`` clock)."""
+    resend_period: float = 5.0
+    """Clock seconds between re-sends of unacknowledged closures."""
+    server: int | None = None
+    """Centralised mode: the server's id (then no team PGO). Set from the run's mode."""
+    map_consensus: Literal["off", "roam", "exact", "laplacian"] = "exact"
+    """Map consensus mode: off, roam, exact or laplacian (docs/algorithms/map_consensus.md)."""
     descriptor_repeats: int = 1
+    """Lossy links: every descriptor goes out again with the next this many times (duplicates are ignored)."""
     query_retries: int = 2
+    """Lossy links: a constellation query that gets no reply is asked again this many times."""
 
 
 class AgentNode:

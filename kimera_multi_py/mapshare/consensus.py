@@ -65,15 +65,26 @@ MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)  # 
 
 @dataclass
 class MapConsensusParams:
+    """A robot's map consensus knobs; the mode is the node's (``node.map_consensus``)."""
+
     mode: str = "exact"
-    period: float = 1.0  # seconds between steps that publish
-    summary_every: int = 5  # periods between unchanged MapVersions summaries
-    roam_period: float = 5.0  # ROAM's publishing period (demo branch), also for roam_bytes
-    roam_weight: float = 0.2  # w of h_i <- clip(h_i + w h_j) (demo branch)
+    """roam, exact or laplacian."""
+    period: float = 1.0
+    """Seconds between steps that publish."""
+    summary_every: int = 5
+    """Periods between unchanged MapVersions summaries."""
+    roam_period: float = 5.0
+    """ROAM's publishing period (s; its demo branch), also for ``roam_bytes``."""
+    roam_weight: float = 0.2
+    """ROAM: w of h_i <- clip(h_i + w h_j) (its demo branch)."""
     roam_top_k: int = 3
+    """ROAM: labels kept per cell (the rest summed as "others")."""
     roam_clamp: float = 5.0
-    epsilon: float = 1.0  # laplacian step size
-    refresh_every: int = 10  # laplacian: a full state every this many rounds
+    """ROAM: every fused log-odds entry is clamped to plus or minus this."""
+    epsilon: float = 1.0
+    """Laplacian consensus: step size."""
+    refresh_every: int = 10
+    """Laplacian consensus: a full state every this many rounds."""
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
