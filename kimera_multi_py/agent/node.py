@@ -50,7 +50,7 @@ from kimera_multi_py.core.errors import KimeraMultiError
 from kimera_multi_py.core.ids import MAX_AGENT_ID
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.core.posegraph import split_key
-from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
+from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, MapConsensusParams, get_map_consensus
 from kimera_multi_py.mapshare.objects import OBJECT_MESSAGES, ObjectExchange
 from kimera_multi_py.pgo.params import PgoParams, team_params
 from kimera_multi_py.pgo.team import ScheduleParams, TeamPgo
@@ -88,7 +88,7 @@ class AgentNode:
 
     def __init__(self, agent: Agent, bus: Bus, pgo_params: PgoParams | None = None,
                  schedule: ScheduleParams | None = None, params: NodeParams | None = None,
-                 clock: Callable[[], float] | None = None) -> None:
+                 clock: Callable[[], float] | None = None, map_params: MapConsensusParams | None = None) -> None:
         self.agent = agent
         self.bus = bus
         self.params = params or NodeParams()
@@ -107,7 +107,7 @@ class AgentNode:
                                    f"(available: {', '.join(MAP_MODES)})")
         self.maps: MapConsensus | None = None
         if self.params.map_consensus != "off":
-            self.maps = get_map_consensus(agent.robot, agent.map, self.params.map_consensus)
+            self.maps = get_map_consensus(agent.robot, agent.map, self.params.map_consensus, base=map_params)
         # the team's objects ride on the exact consensus's submap pose tables
         self.objects: ObjectExchange | None = None
         if self.maps is not None and self.maps.mode == "exact":

@@ -16,6 +16,7 @@ from kimera_multi_py.agent.outputs import RobotOutcome
 from kimera_multi_py.eval.metrics import align_se3, ate_rmse
 from kimera_multi_py.eval.results import RobotResult
 from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures, world_boxes
+from kimera_multi_py.scene_graph.params import SceneGraphParams
 
 
 def team_frame_estimates(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarray],
@@ -172,7 +173,7 @@ def traffic_totals(outcomes: Sequence[RobotOutcome]) -> dict[str, Any]:
 
 def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray,
                         out_dir: Path | None, robot_maps: dict[int, Any] | None = None,
-                        team_map: Any = None) -> dict[str, Any]:
+                        team_map: Any = None, params: SceneGraphParams | None = None) -> dict[str, Any]:
     """Every robot's scene graph (from its team map and team objects when it has them, else its own
     map and objects), and the team's (from the fused team map, with every robot's objects fused
     and every trajectory), scored against
@@ -192,7 +193,8 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
         objects = o.team_objects if o.team_objects is not None else o.objects
-        g, fig = scene_graph_and_outputs(octree, T_world_team, objects, {o.robot: (o.stamps, o.poses)}, world, path)
+        g, fig = scene_graph_and_outputs(octree, T_world_team, objects, {o.robot: (o.stamps, o.poses)}, world, path,
+                                         params)
         graphs.append(g)
         per_robot[str(o.robot)] = fig
     out: dict[str, Any] = dict(per_robot[str(outcomes[0].robot)])
@@ -202,7 +204,7 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
         objects = fuse_team({o.robot: o.objects for o in team})
         trajectories = {o.robot: (o.stamps, o.poses) for o in team}
         _, out = scene_graph_and_outputs(team_map, T_world_team, objects, trajectories, world,
-                                         out_dir / "dsg.json" if out_dir is not None else None)
+                                         out_dir / "dsg.json" if out_dir is not None else None, params)
         out = dict(out)
     out["robots"] = per_robot
     out["agree"] = graphs_agree(graphs)

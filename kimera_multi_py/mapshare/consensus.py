@@ -34,6 +34,7 @@ tree every ``roam_period`` (its ROAM tree in ``roam`` mode, its team map otherwi
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import Counter
 from collections.abc import Callable
@@ -430,6 +431,8 @@ def _compressed(tree: SemanticOctree, rows: np.ndarray) -> np.ndarray:
 
 
 def get_map_consensus(robot: int, local: SubmapMap, mode: str = "exact", team_size: int = 1,
-                      **params: float | int | str) -> MapConsensus:
-    """A robot's map consensus in ``mode`` (``roam``, ``exact`` or ``laplacian``)."""
-    return MapConsensus(robot, local, MapConsensusParams(mode=mode, **params), team_size)  # type: ignore[arg-type]
+                      base: MapConsensusParams | None = None, **params: float | int | str) -> MapConsensus:
+    """A robot's map consensus in ``mode`` (``roam``, ``exact`` or ``laplacian``), with the knobs of
+    ``base`` (default: the defaults) and ``params``."""
+    knobs = dataclasses.replace(base or MapConsensusParams(), mode=mode, **params)  # type: ignore[arg-type]
+    return MapConsensus(robot, local, knobs, team_size)
