@@ -6,16 +6,20 @@ launch of N agent processes (outcomes read back from ``DIR/robotI/``).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.outputs import RobotOutcome
+from kimera_multi_py.agent.team_graph import joint_graph
 from kimera_multi_py.eval.metrics import align_se3, ate_rmse
 from kimera_multi_py.eval.results import RobotResult
 from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures, world_boxes
+from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 
 
@@ -209,3 +213,16 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
     out["robots"] = per_robot
     out["agree"] = graphs_agree(graphs)
     return out
+
+
+def write_team_graph(out_dir: Path, agents: list[Agent], truth: list[np.ndarray]) -> None:
+    """``team_graph.g2o`` (the joint graph) and ``team_graph_truth.json`` (which inter-robot
+    edges are true)."""
+    graph, inter = joint_graph(agents)
+    write_g2o(out_dir / "team_graph.g2o", graph)
+    Z = np.array([agents[a].inter_edges[(ka, b, kb)][0] for a, ka, b, kb in inter]).reshape(-1, 4, 4)
+    ok = score_closures(Z, np.array([truth[a][ka] for a, ka, _, _ in inter]).reshape(-1, 4, 4),
+                        np.array([truth[b][kb] for _, _, b, kb in inter]).reshape(-1, 4, 4))
+    (out_dir / "team_graph_truth.json").write_text(json.dumps(
+        {"inter_robot_edges": [list(e) for e in inter], "true": ok.tolist(),
+         "note": "inter-robot edges follow the odometry and intra-robot edges in team_graph.g2o"}))

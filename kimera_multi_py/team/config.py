@@ -55,6 +55,7 @@ from kimera_multi_py.pgo.team import ScheduleParams
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 
 CONFIG_NAME = "config.yaml"
+DEFAULT_SCENARIO = Path("sims/office.toml")
 
 
 def _partition(value: Any) -> Any:
@@ -189,7 +190,7 @@ class KimeraConfig(BaseSettings):
             raise config_error(exc, source) from None
 
     @classmethod
-    def resolved(cls, run: RunConfig, agent: AgentParams, pgo: PgoParams, node: NodeParams,
+    def resolved(cls, run: RunConfig | dict[str, Any], agent: AgentParams, pgo: PgoParams, node: NodeParams,
                  schedule: ScheduleParams, map_params: MapConsensusParams,
                  scene_graph: SceneGraphParams) -> KimeraConfig:
         """The configuration of what a run ran with, every field set: loading it back gives the
