@@ -244,21 +244,25 @@ def _flow_yaml(value: Any) -> str:
     return text.removesuffix("\n").removesuffix("\n...").strip()
 
 
-def commented_yaml(model: BaseModel, indent: int = 0) -> str:
+def commented_yaml(model: BaseModel, indent: int = 0, only_set: bool = False, _off: bool = False) -> str:
     """``model`` as YAML, each field preceded by its description as a comment (nested models nest).
 
-    Floats are written exactly (``repr``), so loading the text gives back the same values."""
+    With ``only_set``, fields not set explicitly (``model_fields_set``) are written commented out,
+    so that loading the text sets only what was set. Floats are written exactly (``repr``), so
+    loading the text gives back the same values."""
     pad = "  " * indent
     data = model.model_dump(mode="json")
     lines: list[str] = []
     for name, info in type(model).model_fields.items():
         value = getattr(model, name)
+        off = _off or (only_set and name not in model.model_fields_set)
+        mark = "# " if off else ""
         if isinstance(value, BaseModel) and lines:
             lines.append("")
         lines += [f"{pad}# {line}".rstrip() for line in (info.description or "").splitlines()]
         if isinstance(value, BaseModel):
-            lines.append(f"{pad}{name}:")
-            lines.append(commented_yaml(value, indent + 1).rstrip("\n"))
+            lines.append(f"{pad}{mark}{name}:")
+            lines.append(commented_yaml(value, indent + 1, only_set, off).rstrip("\n"))
         else:
-            lines.append(f"{pad}{name}: {_flow_yaml(data[name])}")
+            lines.append(f"{pad}{mark}{name}: {_flow_yaml(data[name])}")
     return "\n".join(lines) + "\n"

@@ -200,17 +200,21 @@ class KimeraConfig(BaseSettings):
             "schedule": ScheduleSection.of(schedule), "map_consensus": MapConsensusSection.of(map_params),
             "scene_graph": SceneGraphSection.of(scene_graph), "mapping": agent.mapping})
 
-    def to_yaml(self) -> str:
-        """The configuration as YAML, each field with its description as a comment."""
-        return ("# kimera-multi-py configuration (docs/configuration.md). Load it with --config FILE;\n"
-                "# KMP_SECTION__FIELD environment variables and explicit flags override it.\n\n"
-                + commented_yaml(self))
+    def to_yaml(self, only_set: bool = False) -> str:
+        """The configuration as YAML, each field with its description as a comment; with
+        ``only_set``, the fields not set explicitly commented out (each process's own choice)."""
+        head = ("# kimera-multi-py configuration (docs/configuration.md). Load it with --config FILE;\n"
+                "# KMP_SECTION__FIELD environment variables and explicit flags override it.\n")
+        if only_set:
+            head += ("# Lines '# name: value' are not set: each process keeps its own choice there (the\n"
+                     "# defaults shown); the processes' config.yaml hold the values they ran with.\n")
+        return head + "\n" + commented_yaml(self, only_set=only_set)
 
-    def write(self, folder: str | Path) -> Path:
-        """``FOLDER/config.yaml``."""
+    def write(self, folder: str | Path, only_set: bool = False) -> Path:
+        """``FOLDER/config.yaml`` (see :meth:`to_yaml`)."""
         path = Path(folder) / CONFIG_NAME
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(self.to_yaml(), encoding="utf-8")
+        path.write_text(self.to_yaml(only_set), encoding="utf-8")
         return path
 
 
