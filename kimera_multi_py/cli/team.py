@@ -10,6 +10,7 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
+from kimera_multi_py.cli.common import ConfigFile
 from kimera_multi_py.core.errors import KimeraMultiError
 from kimera_multi_py.core.ids import MAX_AGENT_ID
 
@@ -43,7 +44,7 @@ def _connection(team: str, connect: list[str] | None, listen: list[str] | None, 
 
 
 def register(app: typer.Typer) -> None:
-    from kimera_multi_py.cli.common import ConfigFile, console, fail, overrides, setup_logging
+    from kimera_multi_py.cli.common import console, fail, overrides, setup_logging
 
     @app.command()
     def agent(
