@@ -57,6 +57,10 @@ def test_file_then_environment_then_flags(tmp_path, monkeypatch):
     assert (params.budget, params.min_inliers) == (40, 9)
     assert config.to_schedule() == ScheduleParams(period=30.0, round_timeout=None)
     assert load_scenario(TINY).sensor.rows == 8  # KMP_AGENT__* does not reach the scenario
+    monkeypatch.setenv("KMP_AGNT__BUDGET", "1")
+    with pytest.raises(ConfigError, match="KMP_AGNT__BUDGET"):
+        load_config(path)
+    monkeypatch.delenv("KMP_AGNT__BUDGET")
     toml = tmp_path / "c.toml"
     toml.write_text("[pgo]\nmax_rounds = 100\n")
     assert load_config(toml, env=False).to_pgo_params().max_rounds == 100

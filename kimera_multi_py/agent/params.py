@@ -1,5 +1,5 @@
 """The per-robot front end's knobs (:class:`AgentParams`), the ``agent`` section of the configuration
-(docs/configuration.md). Every field's docstring is its description in ``kimera-multi config --dump``.
+(docs/architecture.md). Every field's docstring is its description in ``kimera-multi config --dump``.
 """
 
 from __future__ import annotations

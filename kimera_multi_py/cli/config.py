@@ -1,4 +1,4 @@
-"""The ``kimera-multi config`` command: every parameter, its default and what it does (docs/configuration.md)."""
+"""The ``kimera-multi config`` command: every parameter, its default and what it does (docs/architecture.md)."""
 
 from __future__ import annotations
 

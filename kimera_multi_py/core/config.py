@@ -8,7 +8,7 @@ trouble -- a missing file, bad TOML or YAML, a wrong type, an out-of-range value
 Scenario files take environment overrides as ``KMP_`` plus the field path joined by ``__``;
 values are parsed as TOML scalars or arrays, e.g. ``KMP_SENSOR__ROWS=32`` or
 ``KMP_GROUND_TRUTH__RESOLUTION=0.2``. The run configuration
-(:class:`~kimera_multi_py.team.config.KimeraConfig`, docs/configuration.md) uses the same prefix
+(:class:`~kimera_multi_py.team.config.KimeraConfig`, docs/architecture.md) uses the same prefix
 through pydantic-settings (``KMP_AGENT__BUDGET=40``); each reads only its own top-level names.
 
 :func:`param_group` derives a configuration section from a parameter dataclass: the same

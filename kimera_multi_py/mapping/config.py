@@ -98,7 +98,7 @@ class ObjectMapConfig(StrictModel):
 
 
 class MappingConfig(StrictModel):
-    """A robot's maps: the ``mapping`` section of the configuration (docs/configuration.md)."""
+    """A robot's maps: the ``mapping`` section of the configuration (docs/architecture.md)."""
 
     octree: OctreeConfig = OctreeConfig()
     """The semantic octree of each submap."""

@@ -1,4 +1,4 @@
-"""One configuration for every run: :class:`KimeraConfig` (docs/configuration.md).
+"""One configuration for every run: :class:`KimeraConfig` (docs/architecture.md).
 
 A run's parameters live in one typed model built on pydantic-settings. Its sections mirror the
 parameter dataclasses the code runs with, and take their fields, types, defaults and
@@ -26,6 +26,7 @@ the full configuration it ran with (docs/outputs.md): ``--config config.yaml`` r
 
 from __future__ import annotations
 
+import os
 from contextvars import ContextVar
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
@@ -53,6 +54,7 @@ from kimera_multi_py.mapshare.consensus import MapConsensusParams
 from kimera_multi_py.pgo.params import PgoParams, team_params
 from kimera_multi_py.pgo.team import ScheduleParams
 from kimera_multi_py.scene_graph.params import SceneGraphParams
+from kimera_multi_py.sim.scenario import ScenarioConfig
 
 CONFIG_NAME = "config.yaml"
 DEFAULT_SCENARIO = Path("sims/office.toml")
@@ -203,7 +205,7 @@ class KimeraConfig(BaseSettings):
     def to_yaml(self, only_set: bool = False) -> str:
         """The configuration as YAML, each field with its description as a comment; with
         ``only_set``, the fields not set explicitly commented out (each process's own choice)."""
-        head = ("# kimera-multi-py configuration (docs/configuration.md). Load it with --config FILE;\n"
+        head = ("# kimera-multi-py configuration (docs/architecture.md). Load it with --config FILE;\n"
                 "# KMP_SECTION__FIELD environment variables and explicit flags override it.\n")
         if only_set:
             head += ("# Lines '# name: value' are not set: each process keeps its own choice there (the\n"
@@ -228,6 +230,16 @@ def _deep_update(base: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _check_env_sections() -> None:
+    """A ``KMP_SECTION__FIELD`` variable must name a section of the configuration or of a scenario
+    (which reads the same prefix): pydantic-settings would silently ignore a mistyped section."""
+    known = set(KimeraConfig.model_fields) | set(ScenarioConfig.model_fields)
+    for name in sorted(os.environ):
+        head, nested, _ = name[len(ENV_PREFIX):].partition("__")
+        if name.startswith(ENV_PREFIX) and nested and head.lower() not in known:
+            raise ConfigError(name, f"no section {head.lower()!r} in the configuration or the scenario")
+
+
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
                 env: bool = True) -> KimeraConfig:
     """The configuration from, lowest first: the defaults, the file at ``path`` (YAML, or TOML by
@@ -236,6 +248,8 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     :class:`~kimera_multi_py.core.errors.ConfigError` naming the field."""
     data = load_file(path) if path is not None else {}
     source = str(path) if path is not None else "config"
+    if env:
+        _check_env_sections()
     token = _SOURCES.set((data, env))
     try:
         return KimeraConfig(**(overrides or {}))

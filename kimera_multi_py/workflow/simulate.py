@@ -114,9 +114,9 @@ class _SimClock:
 class SimRunner:
     """Runs one scenario for one seed and mode; returns :class:`Results`.
 
-    ``config`` gives every parameter (default: the defaults); ``pgo_period`` and ``map_consensus``,
-    when given, override its ``schedule.period`` and ``node.map_consensus``, and ``params`` and
-    ``pgo_params`` replace what it would build.
+    ``config`` gives every parameter (default: the defaults; its ``run`` section is read by
+    :meth:`from_config` only); ``pgo_period`` and ``map_consensus``, when given, override its
+    ``schedule.period`` and ``node.map_consensus``; ``params`` and ``pgo_params`` replace what it builds.
     """
 
     def __init__(self, cfg: ScenarioConfig, seed: int | None = None, mode: str = "odometry",
