@@ -73,10 +73,10 @@ LIST, TUPLE, DICT, SET, FROZENSET, NDARRAY, SCALAR, OBJECT, MODEL, REF, COUNTER 
 
 ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.agent.agent.Agent",
-    "kimera_multi_py.agent.agent.AgentParams",
     "kimera_multi_py.agent.agent.Closure",
     "kimera_multi_py.agent.agent.Constellation",
     "kimera_multi_py.agent.agent.LoopClosureStats",
+    "kimera_multi_py.agent.params.AgentParams",
     "kimera_multi_py.frontend.loop_closure.DescriptorSpec",
     "kimera_multi_py.frontend.pcm.PcmNoise",
     "kimera_multi_py.pgo.local_graph.LocalGraph",
@@ -102,8 +102,9 @@ ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.mapping.submaps.SubmapMap",
     "kimera_multi_py.mapping.submaps._CellStore",
 })
-# Classes that moved when the package was split by concern: files written before still load.
+# Classes that moved (the package split by concern; AgentParams to its own module): older files still load.
 RENAMED_CLASSES: dict[str, str] = {
+    "kimera_multi_py.agent.agent.AgentParams": "kimera_multi_py.agent.params.AgentParams",
     "kimera_multi_py.agent.loop_closure.DescriptorSpec": "kimera_multi_py.frontend.loop_closure.DescriptorSpec",
     "kimera_multi_py.consensus.pcm.PcmNoise": "kimera_multi_py.frontend.pcm.PcmNoise",
     "kimera_multi_py.consensus.pgo.LocalGraph": "kimera_multi_py.pgo.local_graph.LocalGraph",

@@ -28,10 +28,11 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Literal
 
 import networkx as nx
 
-from kimera_multi_py.agent.agent import MAX_AGENT_ID, Agent
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, BusClosedError, Closeable, PresenceEvent, Stream, Subscription
 from kimera_multi_py.comms.messages import (
@@ -46,10 +47,11 @@ from kimera_multi_py.comms.messages import (
     PublicPoses,
 )
 from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.ids import MAX_AGENT_ID
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.core.posegraph import split_key
 from kimera_multi_py.mapshare.agreement import MapView, frame_check, map_view
-from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
+from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, MapConsensusParams, get_map_consensus
 from kimera_multi_py.mapshare.objects import OBJECT_MESSAGES, ObjectExchange
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.params import PgoParams, team_params
@@ -63,15 +65,20 @@ MAP_MODES = ("off", "roam", "exact", "laplacian")
 class NodeParams:
     """The node's own knobs (the agent's and the solver's are separate)."""
 
-    query_timeout: float = 2.0  # wall s for a constellation query
-    state_period: float = 5.0  # clock s between AgentState messages (the tick's ``wall`` clock)
-    resend_period: float = 5.0  # clock s between re-sends of unacknowledged closures
-    server: int | None = None  # centralised mode: the server's id (then no team PGO)
-    map_consensus: str = "exact"  # off, roam, exact or laplacian (docs/algorithms/map_consensus.md)
-    # lossy links: every descriptor goes out again with the next one (duplicates are ignored), and
-    # a constellation query that gets no reply is asked again this many times
+    query_timeout: float = 2.0
+    """Wall seconds a constellation query waits for its reply."""
+    state_period: float = 5.0
+    """Clock seconds between AgentState messages (the tick's ``wall`` clock)."""
+    resend_period: float = 5.0
+    """Clock seconds between re-sends of unacknowledged closures."""
+    server: int | None = None
+    """Centralised mode: the server's id (then no team PGO). Set from the run's mode."""
+    map_consensus: Literal["off", "roam", "exact", "laplacian"] = "exact"
+    """Map consensus mode: off, roam, exact or laplacian (docs/algorithms/map_consensus.md)."""
     descriptor_repeats: int = 1
+    """Lossy links: every descriptor goes out again with the next this many times (duplicates are ignored)."""
     query_retries: int = 2
+    """Lossy links: a constellation query that gets no reply is asked again this many times."""
 
 
 class AgentNode:
@@ -83,7 +90,7 @@ class AgentNode:
 
     def __init__(self, agent: Agent, bus: Bus, pgo_params: PgoParams | None = None,
                  schedule: ScheduleParams | None = None, params: NodeParams | None = None,
-                 clock: Callable[[], float] | None = None) -> None:
+                 clock: Callable[[], float] | None = None, map_params: MapConsensusParams | None = None) -> None:
         self.agent = agent
         self.bus = bus
         self.params = params or NodeParams()
@@ -104,7 +111,7 @@ class AgentNode:
                                    f"(available: {', '.join(MAP_MODES)})")
         self.maps: MapConsensus | None = None
         if self.params.map_consensus != "off":
-            self.maps = get_map_consensus(agent.robot, agent.map, self.params.map_consensus)
+            self.maps = get_map_consensus(agent.robot, agent.map, self.params.map_consensus, base=map_params)
         # the team's objects ride on the exact consensus's submap pose tables
         self.objects: ObjectExchange | None = None
         if self.maps is not None and self.maps.mode == "exact":

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+from pathlib import Path
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -12,6 +14,9 @@ from kimera_multi_py.core.errors import ConfigError, KimeraMultiError
 
 console = Console()
 err_console = Console(stderr=True)
+
+ConfigFile = Annotated[Path | None, typer.Option("--config", help="YAML or TOML configuration (e.g. a run folder's "
+                                                                  "config.yaml); flags given override it.")]
 
 
 def setup_logging(verbose: bool) -> None:
@@ -52,6 +57,18 @@ def robot_at(spec: str, option: str) -> tuple[int, float]:
         return int(robot), float(at)
     except ValueError:
         raise ConfigError(option, f"expected I@T (robot@seconds), got {spec!r}") from None
+
+
+def overrides(**sections: Any) -> dict[str, Any]:
+    """The flags given on the command line as configuration overrides: ``None`` means not given,
+    and sections (dicts) left empty are dropped."""
+    out: dict[str, Any] = {}
+    for name, value in sections.items():
+        if isinstance(value, dict):
+            value = overrides(**value) or None
+        if value is not None:
+            out[name] = value
+    return out
 
 
 def summary(res: dict) -> None:

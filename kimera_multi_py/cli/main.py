@@ -2,16 +2,25 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from kimera_multi_py.cli.common import console, err_console, fail, results_table, robot_at, setup_logging, summary
-from kimera_multi_py.core.errors import KimeraMultiError
-
-DEFAULT_SCENARIO = Path("sims/office.toml")
+from kimera_multi_py.cli.common import (
+    ConfigFile,
+    console,
+    err_console,
+    fail,
+    overrides,
+    results_table,
+    robot_at,
+    setup_logging,
+    summary,
+)
+from kimera_multi_py.core.errors import ConfigError, KimeraMultiError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="kimera-multi-py: multi-robot distributed metric-semantic SLAM.")
@@ -24,45 +33,53 @@ def _root() -> None:
 
 @app.command()
 def sim(
-    scenario: Annotated[Path, typer.Argument(help="Scenario TOML file.")] = DEFAULT_SCENARIO,
+    scenario: Annotated[Path | None, typer.Argument(help="Scenario TOML file (default: the configuration's, "
+                                                         "else sims/office.toml).")] = None,
     robots: Annotated[int | None, typer.Option("--robots", "-n", help="Team size (overrides the file).")] = None,
     seed: Annotated[int | None, typer.Option(help="Random seed (overrides the file).")] = None,
-    mode: Annotated[str, typer.Option(help="odometry (dead reckoning), distributed or centralized.")] = "odometry",
-    transport: Annotated[str, typer.Option(help="loopback (in-process) or zenoh (one session per robot).")]
-    = "loopback",
-    out: Annotated[Path, typer.Option(help="Run folder for results.json and trajectories.")] = Path("runs/sim"),
+    mode: Annotated[str | None, typer.Option(help="odometry (dead reckoning, the default), distributed or "
+                                                  "centralized.")] = None,
+    transport: Annotated[str | None, typer.Option(help="loopback (in-process, the default) or zenoh (one session "
+                                                       "per robot).")] = None,
+    out: Annotated[Path, typer.Option(help="Run folder for results.json, config.yaml and trajectories.")]
+    = Path("runs/sim"),
     rerun: Annotated[bool, typer.Option("--rerun/--no-rerun", help="Write OUT/recording.rrd.")] = True,
     join: Annotated[list[str] | None, typer.Option("--join", help="I@T: robot I joins T s after the others "
                                                                    "(repeatable).")] = None,
-    map_consensus: Annotated[str, typer.Option("--map-consensus", help="off, roam, exact or laplacian.")] = "exact",
+    map_consensus: Annotated[str | None, typer.Option("--map-consensus", help="off, roam, exact (the default) or "
+                                                                              "laplacian.")] = None,
     comm_range: Annotated[float | None, typer.Option("--comm-range", help="Radio range (m) for map "
                                                                           "traffic; default unlimited.")] = None,
-    drop: Annotated[float, typer.Option("--drop", help="Loopback: drop this fraction of messages.")] = 0.0,
-    delay: Annotated[float, typer.Option("--delay", help="Loopback: delay every message by MS milliseconds "
-                                                         "(wall time; the simulated clock waits).")] = 0.0,
-    jitter: Annotated[float, typer.Option("--jitter", help="Loopback: add uniform +-MS ms to each delay.")] = 0.0,
+    drop: Annotated[float | None, typer.Option("--drop", help="Loopback: drop this fraction of messages.")] = None,
+    delay: Annotated[float | None, typer.Option("--delay", help="Loopback: delay every message by MS milliseconds "
+                                                                "(wall time; the simulated clock waits).")] = None,
+    jitter: Annotated[float | None, typer.Option("--jitter", help="Loopback: add uniform +-MS ms to each "
+                                                                  "delay.")] = None,
     partition: Annotated[list[str] | None, typer.Option("--partition", help="Loopback: 'A,B|C@T0:T1' cuts robots "
                                                                              "A,B off from C from T0 to T1 s "
                                                                              "(repeatable).")] = None,
+    config: ConfigFile = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
     """Run the multi-robot simulation and evaluate it against ground truth."""
-    from kimera_multi_py.comms.faults import sim_faults
-    from kimera_multi_py.sim.scenario import load_scenario
+    from kimera_multi_py.comms.faults import parse_partition
+    from kimera_multi_py.team.config import load_config
     from kimera_multi_py.viz.rerun_viz import make_viz
     from kimera_multi_py.workflow.simulate import SimRunner
 
     setup_logging(verbose)
     try:
-        faults = sim_faults(drop, delay, jitter, partition or [])
-        cfg = load_scenario(scenario, robots=robots)
+        faults = {"drop": drop, "delay": _seconds(delay, "delay"), "jitter": _seconds(jitter, "jitter"),
+                  "partitions": [parse_partition(p) for p in partition] if partition else None}
+        run = {"scenario": scenario, "robots": robots, "seed": seed, "mode": mode, "transport": transport,
+               "comm_range": comm_range, "join": dict(robot_at(j, "join") for j in join) if join else None,
+               "faults": faults}
+        settings = load_config(config, overrides(run=run, node={"map_consensus": map_consensus}))
         viz = make_viz(out / "recording.rrd" if rerun else None)
-        runner = SimRunner(cfg, seed=seed, mode=mode, out_dir=out, viz=viz, transport=transport,
-                           join=dict(robot_at(j, "join") for j in join or []), map_consensus=map_consensus,
-                           comm_range=comm_range, faults=faults)
+        runner = SimRunner.from_config(settings, out_dir=out, viz=viz)
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                       TimeElapsedColumn(), console=err_console, transient=False) as progress:
-            task = progress.add_task(f"{cfg.name} x{len(cfg.robots)}", total=None)
+            task = progress.add_task(f"{runner.cfg.name} x{len(runner.cfg.robots)}", total=None)
             runner.on_progress = lambda done, total: progress.update(task, completed=done, total=total)
             results = runner.run()
     except KimeraMultiError as exc:
@@ -74,12 +91,23 @@ def sim(
                   f"(x{res['realtime_factor']:.1f} real time); wrote {out / 'results.json'}")
 
 
+def _seconds(ms: float | None, option: str) -> float | None:
+    """A ``--delay``/``--jitter`` in milliseconds as seconds (None: not given)."""
+    if ms is None:
+        return None
+    if not (math.isfinite(ms) and ms >= 0):
+        raise ConfigError(option, f"must be a finite number of milliseconds >= 0, got {ms}")
+    return ms / 1000.0
+
+
 def _register_commands() -> None:
+    from kimera_multi_py.cli import config as cli_config
     from kimera_multi_py.cli import team as cli_team
     from kimera_multi_py.cli.pgo import register
 
     register(app)
     cli_team.register(app)
+    cli_config.register(app)
     __import__("kimera_multi_py.cli.query", fromlist=["register"]).register(app)
 
 

@@ -10,14 +10,17 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
+from kimera_multi_py.cli.common import ConfigFile
 from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.ids import MAX_AGENT_ID
 
 Connect = Annotated[list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to (repeatable).")]
 Listen = Annotated[list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on (repeatable).")]
 ZenohConfig = Annotated[Path | None, typer.Option("--zenoh-config", help="Zenoh JSON5 config (TLS, auth, ...).")]
 Team = Annotated[str, typer.Option("--team", help="Team id: teams on one network never mix.")]
 Verbose = Annotated[bool, typer.Option("--verbose", "-v")]
-MapMode = Annotated[str, typer.Option("--map-consensus", help="off, roam, exact or laplacian.")]
+MapMode = Annotated[str | None, typer.Option("--map-consensus", help="off, roam, exact (the default) or laplacian.")]
+PgoPeriod = Annotated[float | None, typer.Option(help="Team-time seconds between PGO epochs (default 60).")]
 
 
 def _rate(value: str) -> float:
@@ -41,30 +44,36 @@ def _connection(team: str, connect: list[str] | None, listen: list[str] | None, 
 
 
 def register(app: typer.Typer) -> None:
-    from kimera_multi_py.cli.common import console, fail, setup_logging
+    from kimera_multi_py.cli.common import console, fail, overrides, setup_logging
 
     @app.command()
     def agent(
-        robot: Annotated[int, typer.Option("--robot", help="This robot's id (0..25).")],
+        robot: Annotated[int, typer.Option("--robot", help=f"This robot's id (0..{MAX_AGENT_ID}).")],
         source: Annotated[str, typer.Option("--source", help="sim:SCENARIO[:SEED] or a recorded folder.")],
         out: Annotated[Path, typer.Option("--out", help="Run folder; outputs go to OUT/robotI/.")],
         connect: Connect = None, listen: Listen = None, zenoh_config: ZenohConfig = None, team: Team = "t0",
         rate: Annotated[str, typer.Option(help="Pace keyframes at RATE x their stamps; inf: no pacing.")] = "inf",
         checkpoint_every: Annotated[float, typer.Option(help="Seconds between checkpoints.")] = 10.0,
         resume: Annotated[bool, typer.Option("--resume", help="Restore OUT/robotI/checkpoint.kmc.")] = False,
-        centralized: Annotated[bool, typer.Option("--centralized", help="A server optimises the team.")] = False,
-        pgo_period: Annotated[float, typer.Option(help="Team-time seconds between PGO epochs.")] = 60.0,
-        map_consensus: MapMode = "exact",
+        centralized: Annotated[bool | None, typer.Option("--centralized/--distributed", help="A server optimises "
+                                                         "the team (default: the configuration's mode, else "
+                                                         "distributed).")] = None,
+        pgo_period: PgoPeriod = None,
+        map_consensus: MapMode = None,
+        config: ConfigFile = None,
         verbose: Verbose = False,
     ) -> None:
         """Run one robot: its keyframes, loop closures, distributed PGO, team map and outputs."""
+        from kimera_multi_py.team.config import load_config
         from kimera_multi_py.team.process import AgentJob, run_agent
 
         setup_logging(verbose)
         try:
+            mode = None if centralized is None else "centralized" if centralized else "distributed"
+            settings = load_config(config, overrides(run={"mode": mode}, schedule={"period": pgo_period},
+                                                     node={"map_consensus": map_consensus}))
             conn = _connection(team, connect, listen, zenoh_config, "client" if connect and not listen else None)
-            summary = run_agent(AgentJob(robot, source, out, conn, _rate(rate), checkpoint_every, resume,
-                                         centralized, pgo_period, map_consensus))
+            summary = run_agent(AgentJob(robot, source, out, conn, _rate(rate), checkpoint_every, resume, settings))
         except KimeraMultiError as exc:
             raise fail(exc) from None
         console.print(f"robot {summary['robot']}: {summary['keyframes']} keyframes, {summary['epochs']} PGO epochs, "
@@ -74,16 +83,20 @@ def register(app: typer.Typer) -> None:
     def server(
         out: Annotated[Path, typer.Option("--out", help="Run folder; the server writes OUT/server/.")],
         connect: Connect = None, listen: Listen = None, zenoh_config: ZenohConfig = None, team: Team = "t0",
-        pgo_period: Annotated[float, typer.Option(help="Team-time seconds between solves.")] = 60.0,
+        pgo_period: Annotated[float | None, typer.Option(help="Team-time seconds between solves (default 60).")]
+        = None,
+        config: ConfigFile = None,
         verbose: Verbose = False,
     ) -> None:
         """Centralised mode: optimise the whole team's graph and send each robot its poses."""
+        from kimera_multi_py.team.config import load_config
         from kimera_multi_py.team.process import ServerJob, run_server
 
         setup_logging(verbose)
         try:
+            settings = load_config(config, overrides(schedule={"period": pgo_period}))
             conn = _connection(team, connect, listen, zenoh_config, "client" if connect and not listen else None)
-            summary = run_server(ServerJob(out, conn, pgo_period))
+            summary = run_server(ServerJob(out, conn, settings))
         except KimeraMultiError as exc:
             raise fail(exc) from None
         console.print(f"server: {summary['solves']} solves over {summary['poses']} poses")
@@ -104,10 +117,11 @@ def register(app: typer.Typer) -> None:
 
     @app.command()
     def launch(
-        scenario: Annotated[Path, typer.Argument(help="Scenario TOML file.")] = Path("sims/office.toml"),
-        robots: Annotated[int, typer.Option("--robots", "-n")] = 3,
-        seed: Annotated[int, typer.Option()] = 0,
-        mode: Annotated[str, typer.Option(help="distributed or centralized.")] = "distributed",
+        scenario: Annotated[Path | None, typer.Argument(help="Scenario TOML file (default: the configuration's, "
+                                                             "else sims/office.toml).")] = None,
+        robots: Annotated[int | None, typer.Option("--robots", "-n", help="Team size (default 3).")] = None,
+        seed: Annotated[int | None, typer.Option(help="Random seed (default 0).")] = None,
+        mode: Annotated[str | None, typer.Option(help="distributed (the default) or centralized.")] = None,
         out: Annotated[Path, typer.Option()] = Path("runs/launch"),
         rate: Annotated[str, typer.Option(help="Pace keyframes at RATE x their stamps; inf: no pacing.")] = "inf",
         kill: Annotated[list[str] | None, typer.Option("--kill", help="I@T: SIGKILL agent I at stream time T, "
@@ -115,9 +129,9 @@ def register(app: typer.Typer) -> None:
         join: Annotated[list[str] | None, typer.Option("--join", help="I@T: start agent I once the team's "
                                                                        "stream reaches T s.")] = None,
         checkpoint_every: Annotated[float, typer.Option(help="Seconds between agent checkpoints.")] = 5.0,
-        pgo_period: Annotated[float, typer.Option(help="Team-time seconds between PGO epochs.")] = 60.0,
+        pgo_period: PgoPeriod = None,
         timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 1800.0,
-        map_consensus: MapMode = "exact",
+        map_consensus: MapMode = None,
         restart_router: Annotated[list[str] | None, typer.Option("--restart-router", help="T: SIGKILL the router "
                                                                   "at team stream time T and start it again "
                                                                   "(repeatable).")] = None,
@@ -127,21 +141,25 @@ def register(app: typer.Typer) -> None:
         = None,
         tls: Annotated[bool, typer.Option("--tls", help="Mutual TLS: a new team CA and certificates in "
                                                         "OUT/certs; no process without one can join.")] = False,
+        config: ConfigFile = None,
         verbose: Verbose = False,
     ) -> None:
         """Start a router and N agent processes (and the server) on 127.0.0.1, then evaluate."""
         from kimera_multi_py.cli.common import results_table, robot_at, summary
         from kimera_multi_py.comms.faults import parse_partition
-        from kimera_multi_py.team.launcher import LaunchJob, launch, parse_kill, parse_restart
+        from kimera_multi_py.team.config import load_config
+        from kimera_multi_py.team.launcher import launch, launch_job, parse_kill, parse_restart
 
         setup_logging(verbose)
         try:
-            job = LaunchJob(scenario, robots, seed, mode, out, _rate(rate), [parse_kill(k) for k in kill or []],
-                            dict(robot_at(j, "join") for j in join or []), checkpoint_every, pgo_period=pgo_period,
-                            timeout=timeout,
-                            verbose=verbose, map_consensus=map_consensus, tls=tls,
-                            router_restarts=[parse_restart(t) for t in restart_router or []],
-                            partitions=[parse_partition(p) for p in partition or []])
+            run = {"scenario": scenario, "robots": robots, "seed": seed, "mode": mode,
+                   "join": dict(robot_at(j, "join") for j in join) if join else None,
+                   "faults": {"partitions": [parse_partition(p) for p in partition] if partition else None}}
+            settings = load_config(config, overrides(run=run, schedule={"period": pgo_period},
+                                                     node={"map_consensus": map_consensus}))
+            job = launch_job(settings, out, rate=_rate(rate), kills=[parse_kill(k) for k in kill or []],
+                             checkpoint_every=checkpoint_every, timeout=timeout, verbose=verbose, tls=tls,
+                             router_restarts=[parse_restart(t) for t in restart_router or []])
             with Live(_table({}), console=console, refresh_per_second=4, transient=False) as live:
                 results = launch(job, lambda views: live.update(_table(views)))
         except KimeraMultiError as exc:

@@ -36,7 +36,6 @@ from kimera_multi_py.comms.columnar import BATCH_TYPE, from_columns, to_columns
 from kimera_multi_py.comms.keys import check_team
 from kimera_multi_py.comms.messages import (
     INT64_MAX,
-    MAX_ROBOT_ID,
     MESSAGE_TYPES,
     SCHEMA_VERSION,
     Message,
@@ -49,6 +48,7 @@ from kimera_multi_py.comms.wire import (
     ext_of,
 )
 from kimera_multi_py.core.errors import MessageError
+from kimera_multi_py.core.ids import MAX_ROBOT_ID
 
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 MAX_BATCH = 4096

@@ -76,12 +76,20 @@ class Faults:
     """Per-link fault rates. Probabilities are in [0, 1]; times are seconds."""
 
     drop: float = 0.0
+    """Probability that a message is lost on a link."""
     duplicate: float = 0.0
+    """Probability that a message arrives twice."""
     reorder: float = 0.0
+    """Probability that a message is held back by ``reorder_delay`` (overtaken by later ones)."""
     delay: float = 0.0
+    """Delay of every message (s)."""
     jitter: float = 0.0
+    """Uniform +- this added to each delay (s)."""
     reorder_delay: float = 0.005
+    """How long a reordered message is held back (s)."""
     partitions: tuple[Partition, ...] = ()
+    """Windows in which groups of robots are cut off from each other: ``"0,1|2@60:120"`` or
+    ``{groups: [[0, 1], [2]], start: 60, end: 120}``."""
 
     def __post_init__(self) -> None:
         for name in ("drop", "duplicate", "reorder"):

@@ -30,9 +30,9 @@ import numpy as np
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.core.errors import MessageError
+from kimera_multi_py.core.ids import MAX_ROBOT_ID
 
 SCHEMA_VERSION = 1
-MAX_ROBOT_ID = 4095
 MAX_STR_LEN = 256
 INT64_MIN = -(2**63)
 INT64_MAX = 2**63 - 1

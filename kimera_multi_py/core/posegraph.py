@@ -15,6 +15,7 @@ import numpy as np
 
 from kimera_multi_py.core.errors import GraphError
 from kimera_multi_py.core.geometry import inverse
+from kimera_multi_py.core.ids import MAX_AGENT_ID, MAX_ROBOTS
 
 log = logging.getLogger(__name__)
 
@@ -25,8 +26,8 @@ INTER_ROBOT = 2
 
 def robot_key(robot: int, index: int) -> int:
     """gtsam ``Symbol(chr(ord('a') + robot), index)`` as an integer key."""
-    if not 0 <= robot < 26:
-        raise GraphError(f"robot id {robot} outside 0..25 (one Symbol letter per robot)")
+    if not 0 <= robot <= MAX_AGENT_ID:
+        raise GraphError(f"robot id {robot} outside 0..{MAX_AGENT_ID} (one Symbol letter per robot)")
     return ((ord("a") + robot) << 56) | int(index)
 
 
@@ -133,8 +134,8 @@ def split_contiguous(graph: PoseGraph, num_robots: int) -> PoseGraph:
     Edges between blocks become inter-robot measurements, as in the DPGO benchmarks.
     """
     n = graph.num_poses
-    if num_robots < 1 or num_robots > min(n, 26):
-        raise GraphError(f"cannot split {n} poses among {num_robots} robots (1..{min(n, 26)})")
+    if num_robots < 1 or num_robots > min(n, MAX_ROBOTS):
+        raise GraphError(f"cannot split {n} poses among {num_robots} robots (1..{min(n, MAX_ROBOTS)})")
     order = np.argsort(graph.ids, kind="stable")
     robot = np.empty(n, dtype=int)
     robot[order] = (np.arange(n) * num_robots) // n

@@ -45,18 +45,20 @@ class Results:
 
     def metrics(self) -> dict[str, Any]:
         """``to_dict`` without machine timings (at any depth): identical for identical seeds."""
-        return _untimed(self.to_dict())
+        return untimed(self.to_dict())
 
     def write_json(self, path: str | Path) -> None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
 
 
-def _untimed(obj: Any) -> Any:
+def untimed(obj: Any) -> Any:
+    """Results as a dict (``results.json``) without machine timings at any depth: what
+    :meth:`Results.metrics` compares."""
     if isinstance(obj, dict):
-        return {k: _untimed(v) for k, v in obj.items() if k not in TIMING_KEYS}
+        return {k: untimed(v) for k, v in obj.items() if k not in TIMING_KEYS}
     if isinstance(obj, list):
-        return [_untimed(v) for v in obj]
+        return [untimed(v) for v in obj]
     return obj
 
 

@@ -6,16 +6,21 @@ launch of N agent processes (outcomes read back from ``DIR/robotI/``).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.outputs import RobotOutcome
+from kimera_multi_py.agent.team_graph import joint_graph
 from kimera_multi_py.eval.metrics import align_se3, ate_rmse
 from kimera_multi_py.eval.results import RobotResult
 from kimera_multi_py.eval.slam import map_quality, merge_objects, object_quality, score_closures, world_boxes
+from kimera_multi_py.io.g2o import write_g2o
+from kimera_multi_py.scene_graph.params import SceneGraphParams
 
 
 def team_frame_estimates(truth: Sequence[np.ndarray], estimates: Sequence[np.ndarray],
@@ -172,7 +177,7 @@ def traffic_totals(outcomes: Sequence[RobotOutcome]) -> dict[str, Any]:
 
 def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray,
                         out_dir: Path | None, robot_maps: dict[int, Any] | None = None,
-                        team_map: Any = None) -> dict[str, Any]:
+                        team_map: Any = None, params: SceneGraphParams | None = None) -> dict[str, Any]:
     """Every robot's scene graph (from its team map and team objects when it has them, else its own
     map and objects), and the team's (from the fused team map, with every robot's objects fused
     and every trajectory), scored against
@@ -192,7 +197,8 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
         objects = o.team_objects if o.team_objects is not None else o.objects
-        g, fig = scene_graph_and_outputs(octree, T_world_team, objects, {o.robot: (o.stamps, o.poses)}, world, path)
+        g, fig = scene_graph_and_outputs(octree, T_world_team, objects, {o.robot: (o.stamps, o.poses)}, world, path,
+                                         params)
         graphs.append(g)
         per_robot[str(o.robot)] = fig
     out: dict[str, Any] = dict(per_robot[str(outcomes[0].robot)])
@@ -202,8 +208,21 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
         objects = fuse_team({o.robot: o.objects for o in team})
         trajectories = {o.robot: (o.stamps, o.poses) for o in team}
         _, out = scene_graph_and_outputs(team_map, T_world_team, objects, trajectories, world,
-                                         out_dir / "dsg.json" if out_dir is not None else None)
+                                         out_dir / "dsg.json" if out_dir is not None else None, params)
         out = dict(out)
     out["robots"] = per_robot
     out["agree"] = graphs_agree(graphs)
     return out
+
+
+def write_team_graph(out_dir: Path, agents: list[Agent], truth: list[np.ndarray]) -> None:
+    """``team_graph.g2o`` (the joint graph) and ``team_graph_truth.json`` (which inter-robot
+    edges are true)."""
+    graph, inter = joint_graph(agents)
+    write_g2o(out_dir / "team_graph.g2o", graph)
+    Z = np.array([agents[a].inter_edges[(ka, b, kb)][0] for a, ka, b, kb in inter]).reshape(-1, 4, 4)
+    ok = score_closures(Z, np.array([truth[a][ka] for a, ka, _, _ in inter]).reshape(-1, 4, 4),
+                        np.array([truth[b][kb] for _, _, b, kb in inter]).reshape(-1, 4, 4))
+    (out_dir / "team_graph_truth.json").write_text(json.dumps(
+        {"inter_robot_edges": [list(e) for e in inter], "true": ok.tolist(),
+         "note": "inter-robot edges follow the odometry and intra-robot edges in team_graph.g2o"}))

@@ -28,10 +28,15 @@ class PcmNoise:
     """Per-closure and per-metre-of-odometry standard deviations (rotation rad, translation m)."""
 
     closure_rot: float = 0.05
+    """Loop-closure rotation noise (rad)."""
     closure_trans: float = 0.1
+    """Loop-closure translation noise (m)."""
     odom_rot_per_m: float = 0.01
+    """Odometry rotation drift per metre travelled (rad)."""
     odom_trans_per_m: float = 0.02
+    """Odometry translation drift per metre travelled (m)."""
     probability: float = 0.99
+    """χ² quantile two closures' cycle error must stay within to be consistent."""
 
 
 def consistency_errors(

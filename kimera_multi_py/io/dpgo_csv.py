@@ -21,6 +21,7 @@ import numpy as np
 
 from kimera_multi_py.core.errors import DatasetError
 from kimera_multi_py.core.geometry import make_pose, quat_to_rot, rot_to_quat
+from kimera_multi_py.core.ids import MAX_AGENT_ID
 from kimera_multi_py.core.posegraph import PoseGraph, chain_odometry, robot_key
 from kimera_multi_py.io.text import read_text
 
@@ -108,8 +109,8 @@ def _build(folder: Path, rows: dict[tuple[int, ...], tuple[np.ndarray, str]]) ->
         local[idx] = np.arange(len(idx))
         if pose_id[idx[-1]] + 1 != len(idx):
             log.warning("%s: robot %d has gaps in pose ids; poses renumbered by rank", folder, r)
-    if robot.max() >= 26:
-        raise DatasetError(f"{folder}: robot id {robot.max()} exceeds 25")
+    if robot.max() > MAX_AGENT_ID:
+        raise DatasetError(f"{folder}: robot id {robot.max()} exceeds {MAX_AGENT_ID}")
     m = len(rows)
     edge_i, edge_j = np.zeros(m, dtype=int), np.zeros(m, dtype=int)
     meas, info = np.zeros((m, 4, 4)), np.zeros((m, 6, 6))

@@ -19,6 +19,7 @@ import numpy as np
 
 from kimera_multi_py.core.errors import DatasetError
 from kimera_multi_py.core.geometry import make_pose, quat_to_rot, rot_to_quat
+from kimera_multi_py.core.ids import MAX_AGENT_ID
 from kimera_multi_py.core.posegraph import PoseGraph, chain_odometry, split_key
 from kimera_multi_py.io.planar import (
     information_from_se2,
@@ -242,7 +243,7 @@ def _owners(path: Path, ids: np.ndarray, vertex_ids: list[int],
     if symbolic.all():
         for k, vid in enumerate(vertex_ids):
             r, _ = split_key(vid)
-            if not 0 <= r < 26:
+            if not 0 <= r <= MAX_AGENT_ID:
                 raise DatasetError(
                     f"{path}:{vertex_line[vid]}: Symbol key {vid} does not use a letter a..z"
                 )

@@ -33,17 +33,26 @@ def _class_names(v: list[str]) -> list[str]:
 
 
 class OctreeConfig(StrictModel):
+    """The semantic octree of each submap."""
+
     resolution: PosFloat = 0.1
+    """Voxel edge (m)."""
     hit: PosFloat = 0.85
     """Occupancy log-odds a hit adds to a cell at the uniform prior."""
     miss: Annotated[float, Field(lt=0)] = -0.4
+    """Occupancy log-odds a pass through a cell adds."""
     psi: float | None = None
     """Label log-likelihood ratio; default from ``label_accuracy``."""
     label_accuracy: Annotated[float, Field(gt=0, lt=1)] = 0.9
+    """Probability that a point's label is right (sets ``psi`` when it is null)."""
     h_min: float = -5.0
+    """Lower clamp of a cell's log-odds."""
     h_max: float = 5.0
+    """Upper clamp of a cell's log-odds."""
     top_k: Annotated[int, Field(ge=1)] | None = None
+    """Labels kept per cell (the rest summed); null: every class."""
     dynamic_classes: list[str] = sorted(DYNAMIC_CLASSES)
+    """Classes that move (people): their end points only clear free space."""
     free_margin_voxels: Annotated[float, Field(ge=0)] = 2.0
     """Free space of a ray stops this many voxels before what it hit (grazing rays would
     otherwise erode the surface cells they skim; 0 is OctoMap)."""
@@ -65,12 +74,20 @@ class OctreeConfig(StrictModel):
 
 
 class ObjectMapConfig(StrictModel):
+    """The object map: clusters of object-class points tracked as landmarks."""
+
     cluster_radius: PosFloat | None = None
+    """Points of one detection are linked within this distance (m); null: two voxels."""
     min_points: Annotated[int, Field(ge=1)] = 8
+    """Points a detection (a cluster of one class) needs."""
     min_purity: Annotated[float, Field(ge=0, le=1)] = 0.5
+    """Share of all the points in its voxels a detection's class must hold at least."""
     gate_distance: PosFloat = 0.5
+    """A detection is associated with a landmark whose centroid is this close (or whose box overlaps it; m)."""
     confirm_after: Annotated[int, Field(ge=1)] = 3
+    """Sightings before a landmark is confirmed."""
     classes: list[str] = list(OBJECT_CLASSES)
+    """Classes mapped as objects."""
     fragment_gap: Annotated[float, Field(ge=0)] = 1.0
     """Largest occluded gap across which two same-class fragments are merged."""
 
@@ -81,10 +98,16 @@ class ObjectMapConfig(StrictModel):
 
 
 class MappingConfig(StrictModel):
+    """A robot's maps: the ``mapping`` section of the configuration (docs/architecture.md)."""
+
     octree: OctreeConfig = OctreeConfig()
+    """The semantic octree of each submap."""
     objects: ObjectMapConfig = ObjectMapConfig()
+    """The object map."""
     keyframes_per_submap: Annotated[int, Field(ge=1)] = 10
+    """Keyframes integrated into one submap."""
     move_threshold: PosFloat | None = None
+    """How far any cell of a submap must move before it is re-integrated (m); null: half a voxel."""
 
 
 def mapping_config(data: dict[str, Any] | None = None) -> MappingConfig:

@@ -34,6 +34,7 @@ tree every ``roam_period`` (its ROAM tree in ``roam`` mode, its team map otherwi
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import Counter
 from collections.abc import Callable
@@ -65,15 +66,26 @@ MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)  # 
 
 @dataclass
 class MapConsensusParams:
+    """A robot's map consensus knobs; the mode is the node's (``node.map_consensus``)."""
+
     mode: str = "exact"
-    period: float = 1.0  # seconds between steps that publish
-    summary_every: int = 5  # periods between unchanged MapVersions summaries
-    roam_period: float = 5.0  # ROAM's publishing period (demo branch), also for roam_bytes
-    roam_weight: float = 0.2  # w of h_i <- clip(h_i + w h_j) (demo branch)
+    """roam, exact or laplacian."""
+    period: float = 1.0
+    """Seconds between steps that publish."""
+    summary_every: int = 5
+    """Periods between unchanged MapVersions summaries."""
+    roam_period: float = 5.0
+    """ROAM's publishing period (s; its demo branch), also for ``roam_bytes``."""
+    roam_weight: float = 0.2
+    """ROAM: w of h_i <- clip(h_i + w h_j) (its demo branch)."""
     roam_top_k: int = 3
+    """ROAM: labels kept per cell (the rest summed as "others")."""
     roam_clamp: float = 5.0
-    epsilon: float = 1.0  # laplacian step size
-    refresh_every: int = 10  # laplacian: a full state every this many rounds
+    """ROAM: every fused log-odds entry is clamped to plus or minus this."""
+    epsilon: float = 1.0
+    """Laplacian consensus: step size."""
+    refresh_every: int = 10
+    """Laplacian consensus: a full state every this many rounds."""
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -436,6 +448,8 @@ def _compressed(tree: SemanticOctree, rows: np.ndarray) -> np.ndarray:
 
 
 def get_map_consensus(robot: int, local: SubmapMap, mode: str = "exact", team_size: int = 1,
-                      **params: float | int | str) -> MapConsensus:
-    """A robot's map consensus in ``mode`` (``roam``, ``exact`` or ``laplacian``)."""
-    return MapConsensus(robot, local, MapConsensusParams(mode=mode, **params), team_size)  # type: ignore[arg-type]
+                      base: MapConsensusParams | None = None, **params: float | int | str) -> MapConsensus:
+    """A robot's map consensus in ``mode`` (``roam``, ``exact`` or ``laplacian``), with the knobs of
+    ``base`` (default: the defaults) and ``params``."""
+    knobs = dataclasses.replace(base or MapConsensusParams(), mode=mode, **params)  # type: ignore[arg-type]
+    return MapConsensus(robot, local, knobs, team_size)

@@ -60,11 +60,17 @@ _PGO_MESSAGES = (PublicPoses, PgoStatus, PgoCommand, GncWeights)
 class ScheduleParams:
     """When the team optimises."""
 
-    period: float = 60.0  # team-time seconds between epochs
-    closure_interval: float = 30.0  # new accepted closures open an epoch at most this often
-    round_timeout: float | None = 0.5  # wall s a round waits for its dependencies (None: forced only)
-    absent_timeout: float = 30.0  # wall s an absent robot is waited for before the final epoch
-    final_grace: float = 0.0  # wall s every stream must have been over before the final epoch
+    period: float = 60.0
+    """Team-time seconds between PGO epochs (``--pgo-period``)."""
+    closure_interval: float = 30.0
+    """New accepted closures open an epoch at most this often (team-time s)."""
+    round_timeout: float | None = 0.5
+    """Wall seconds a round waits for its dependencies (null: only until forced; the simulator over
+    loopback forces it once the network is quiet)."""
+    absent_timeout: float = 30.0
+    """Wall seconds an absent robot is waited for before the final epoch."""
+    final_grace: float = 0.0
+    """Wall seconds every stream must have been over before the final epoch."""
 
 
 @dataclass

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.ids import MAX_AGENT_ID
 from kimera_multi_py.core.semantics import CLASS_IDS, CLASS_NAMES
 from kimera_multi_py.mapping.object_fusion import team_id
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
@@ -45,8 +46,8 @@ class SceneGraphError(KimeraMultiError):
 
 def robot_letter(robot: int) -> str:
     """The NodeSymbol category of robot ``robot``'s agent nodes (``a``, ``b``, ...)."""
-    if not 0 <= robot < 26:
-        raise SceneGraphError(f"robot {robot}: agent letters exist for robots 0..25 only")
+    if not 0 <= robot <= MAX_AGENT_ID:
+        raise SceneGraphError(f"robot {robot}: agent letters exist for robots 0..{MAX_AGENT_ID} only")
     letter = chr(ord("a") + robot)
     if letter in RESERVED_LETTERS:
         raise SceneGraphError(f"robot {robot}: its letter {letter!r} is the places' category")

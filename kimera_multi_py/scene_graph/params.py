@@ -28,9 +28,11 @@ class SceneGraphParams:
     """An unknown cell with this many of its 6 face neighbours free is free (holes between rays;
     twice); 0: unknown is always an obstacle."""
     place_min_clearance: float = 0.4
+    """GVD voxels with less clearance hold no place."""
     place_cell: float = 0.5
     """Edge of the cells GVD voxels are compressed in (one place per connected cluster)."""
     place_merge_distance: float = 0.25
+    """Places closer than this are merged."""
     edge_min_clearance: float = 0.25
     """Place edges whose straight segment has less clearance are dropped."""
     freespace_edge_max_length: float = 2.0
@@ -38,15 +40,21 @@ class SceneGraphParams:
     freespace edges; one per pair of components, the one of most clearance); <= 0: none."""
     # rooms (Hydra's room_finder)
     room_delta_max: float = 1.2
+    """Room sweep: the largest clearance δ the places are cut at."""
     room_delta_min: float = 0.5
+    """Room sweep: the smallest δ."""
     room_delta_step: float = 0.05
+    """Room sweep: the step of δ."""
     room_min_places: int = 10
+    """Connected places a room needs at least."""
     room_plateau_ratio: float = 0.5
     """Plateaus of fewer than this fraction of the largest component count are not candidates."""
     room_method: str = "dilation"
     """``dilation`` (Hydra's sweep) or ``ceiling`` (the DSG paper's cut below the ceiling)."""
     ceiling_offset: float = 0.3
+    """``ceiling`` rooms: the free space is cut this far below the ceiling."""
     ceiling_clearance: float = 0.3
+    """``ceiling`` rooms: 2-D clearance the cut's cells need."""
     room_min_area: float = 2.0
     """Smallest component of the ceiling cut (m²) that seeds a room."""
     # attachments

@@ -23,17 +23,17 @@ from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Subscription
 from kimera_multi_py.comms.messages import AgentState, KeyframeOdometry, LoopClosures, Message, PgoEpoch, PublicPoses
 from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.ids import SERVER_ID as SERVER_ID  # re-exported: the server's id
 from kimera_multi_py.core.posegraph import PoseGraph, robot_key, split_key
 from kimera_multi_py.core.robust import correlated_votes
 from kimera_multi_py.mapping.submaps import SubmapMap
-from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, get_map_consensus
+from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, MapConsensusParams, get_map_consensus
 from kimera_multi_py.mapshare.objects import OBJECT_MESSAGES, ObjectExchange
 from kimera_multi_py.pgo.centralised import solve_centralized
 from kimera_multi_py.pgo.team import ScheduleParams
 
 log = logging.getLogger(__name__)
 
-SERVER_ID = 999  # the centralised server's id on the bus (agents are 0..25)
 
 
 @dataclass
@@ -201,10 +201,11 @@ class ServerNode:
         self.maps: MapConsensus | None = None  # the team map: every robot's evidence, fused here
         self.objects: ObjectExchange | None = None  # every robot's object table, relayed and fused here
 
-    def fuse_maps(self, local: SubmapMap, mode: str = "exact") -> None:
+    def fuse_maps(self, local: SubmapMap, mode: str = "exact", params: MapConsensusParams | None = None) -> None:
         """Also fuse every robot's map evidence (a star: the agents' only map neighbour) and serve
-        the team map back. ``local`` is an empty map with the agents' map parameters."""
-        self.maps = get_map_consensus(self.robot, local, mode)
+        the team map back. ``local`` is an empty map with the agents' map parameters; ``params``
+        the agents' map consensus knobs (default: the defaults)."""
+        self.maps = get_map_consensus(self.robot, local, mode, base=params)
         # the joint graph's frame: the lowest robot's (it follows the graph, see tick). Evidence is
         # applied only from robots whose pose tables are in it: a robot the frame screen keeps out
         # has its poses, and so its submaps and objects, in its own frame and stays out of the team map

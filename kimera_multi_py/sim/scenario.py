@@ -207,7 +207,7 @@ def load_scenario(path: str | Path, robots: int | None = None, env: bool = True)
     """
     data = load_toml(path)
     if env:
-        data = apply_env_overrides(data)
+        data = apply_env_overrides(data, names=ScenarioConfig.model_fields)
     cfg = validate(ScenarioConfig, data, source=str(path))
     check_references(cfg)
     if robots is not None:

@@ -1,7 +1,10 @@
 """Where a robot's parts are chosen: its keyframe source and its agent parameters (docs/architecture.md).
 
 Every runner (the single-process simulation, the agent process, replay) builds through here,
-so a source spec or a noise model means the same thing everywhere.
+so a source spec or a noise model means the same thing everywhere. The noise model is the
+source's: the scenario's sensor, a recording's manifest, or their defaults; a configuration
+(:class:`~kimera_multi_py.team.config.KimeraConfig`) that sets ``agent.odom_sigmas`` or
+``agent.keyframe_distance`` explicitly overrides it.
 """
 
 from __future__ import annotations
@@ -11,30 +14,41 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.agent.agent import AgentParams
+from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.io.sources import KeyframeSource, RecordedSource
 from kimera_multi_py.sim.scenario import KeyframeConfig, OdometryConfig, ScenarioConfig, load_scenario, with_team_size
 from kimera_multi_py.sim.source import SimSource
+from kimera_multi_py.team.config import KimeraConfig
+
+# the server process has no keyframe source: about the simulator's default noise (0.5 deg, 0.03 m)
+SERVER_ODOM_SIGMAS = (0.0087, 0.03)
 
 
-def noise_params(rot_sigma_deg: float, trans_sigma: float, keyframe_distance: float) -> AgentParams:
-    """The agents' parameters for an odometry noise model (floored so no edge is infinitely certain)."""
+def noise_model(rot_sigma_deg: float, trans_sigma: float, keyframe_distance: float) -> dict[str, Any]:
+    """The agents' noise fields for an odometry noise model (floored so no edge is infinitely certain)."""
     odom_sigmas = (max(float(np.deg2rad(rot_sigma_deg)), 1e-4), max(trans_sigma, 1e-3))
-    return AgentParams(odom_sigmas=odom_sigmas, keyframe_distance=keyframe_distance)
+    return {"odom_sigmas": odom_sigmas, "keyframe_distance": keyframe_distance}
 
 
-def agent_params(cfg: ScenarioConfig) -> AgentParams:
+def noise_params(rot_sigma_deg: float, trans_sigma: float, keyframe_distance: float,
+                 config: KimeraConfig | None = None) -> AgentParams:
+    """The agents' parameters (``config``'s, else the defaults) for an odometry noise model."""
+    return (config or KimeraConfig.defaults()).to_agent_params(
+        **noise_model(rot_sigma_deg, trans_sigma, keyframe_distance))
+
+
+def agent_params(cfg: ScenarioConfig, config: KimeraConfig | None = None) -> AgentParams:
     """The agents' parameters for a scenario (the odometry noise model comes from its sensor)."""
-    return noise_params(cfg.odometry.rot_sigma_deg, cfg.odometry.trans_sigma, cfg.keyframes.distance)
+    return noise_params(cfg.odometry.rot_sigma_deg, cfg.odometry.trans_sigma, cfg.keyframes.distance, config)
 
 
-def params_for(source: KeyframeSource) -> AgentParams:
-    """The agent's noise model: the scenario's for the simulator, the recording's sensor info
-    (``odometry.rot_sigma_deg``, ``odometry.trans_sigma``, ``keyframe_distance``) otherwise; what a
-    recording leaves out takes the simulator's defaults."""
+def params_for(source: KeyframeSource, config: KimeraConfig | None = None) -> AgentParams:
+    """The agent's parameters with the source's noise model: the scenario's for the simulator, the
+    recording's sensor info (``odometry.rot_sigma_deg``, ``odometry.trans_sigma``,
+    ``keyframe_distance``) otherwise; what a recording leaves out takes the simulator's defaults."""
     if isinstance(source, SimSource):
-        return agent_params(source.sim.cfg)
+        return agent_params(source.sim.cfg, config)
     sensor = getattr(source, "manifest", {}).get("sensor", {})
     odo = sensor.get("odometry") or {}
     odo_default, kf_default = OdometryConfig(), KeyframeConfig()
@@ -44,7 +58,7 @@ def params_for(source: KeyframeSource) -> AgentParams:
         dist = float(sensor.get("keyframe_distance", kf_default.distance))
     except (TypeError, ValueError) as exc:
         raise ConfigError("manifest.sensor", f"bad odometry noise model: {exc}") from None
-    return noise_params(rot, trans, dist)
+    return noise_params(rot, trans, dist, config)
 
 
 def source_from_spec(spec: str, robot: int, start: int = 0, resume: dict[str, Any] | None = None) -> KeyframeSource:

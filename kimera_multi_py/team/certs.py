@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.core.ids import MAX_ROBOTS
 
 CA_CERT, CA_KEY = "ca.pem", "ca.key"
 DEFAULT_DAYS = 365
@@ -38,8 +39,8 @@ class Identity:
 
 def team_names(robots: int) -> list[str]:
     """The processes of a team of ``robots``: each robot, the server, the router, the observer."""
-    if not 1 <= robots <= 26:
-        raise ConfigError("robots", f"must be in 1..26, got {robots}")
+    if not 1 <= robots <= MAX_ROBOTS:
+        raise ConfigError("robots", f"must be in 1..{MAX_ROBOTS}, got {robots}")
     return [f"robot{r}" for r in range(robots)] + ["server", "router", "observer"]
 
 

@@ -20,6 +20,7 @@ from kimera_multi_py.mapshare.fusion import octree_cells
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Simulation
 from kimera_multi_py.team.build import agent_params
+from kimera_multi_py.team.config import KimeraConfig
 
 
 def _server_weights(run_dir: Path) -> dict[tuple[int, int, int, int], float] | None:
@@ -62,8 +63,11 @@ def team_map_figures(world: object, maps: dict[int, SemanticOctree], T: np.ndarr
             f"identical_to_robot{first}": same}
 
 
-def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str, wall_s: float) -> Results:
+def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str, wall_s: float,
+                 config: KimeraConfig | None = None) -> Results:
+    """The run's results (``config``: the team's configuration, default the defaults)."""
     run_dir = Path(run_dir)
+    config = config or KimeraConfig.defaults()
     sim = Simulation(cfg, seed)
     truth = [plan.poses for plan in sim.plans]
     outcomes = [read_outcome(run_dir, r) for r in range(sim.num_robots)]
@@ -81,13 +85,14 @@ def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str,
     robots, team, T = trajectory_results(truth, [o.poses for o in outcomes], anchored=False,
                                          own_frame=excluded_robots(outcomes))
     extra: dict[str, object] = dict(team_results(sim.world, truth, outcomes, T,
-                                                 agent_params(cfg).team_object_sightings))
+                                                 agent_params(cfg, config).team_object_sightings))
     extra["pgo_runs"] = max(o.pgo_epochs for o in outcomes)
     extra["transport"] = "zenoh-processes"
     team_maps = _team_maps(run_dir, [o.robot for o in outcomes])
     if team_maps:
         extra["map_consensus"] = team_map_figures(sim.world, team_maps, T)
-    extra["scene_graph"] = scene_graph_results(sim.world, outcomes, T, run_dir, team_maps or None)
+    extra["scene_graph"] = scene_graph_results(sim.world, outcomes, T, run_dir, team_maps or None,
+                                               params=config.to_scene_graph_params())
     for r, plan in enumerate(sim.plans):
         write_tum(run_dir / f"robot{r}_gt.tum", np.asarray(plan.stamps), plan.poses)
     return Results(scenario=cfg.name, mode=mode, seed=sim.seed, robots=robots, team=team,

@@ -5,11 +5,16 @@ a :class:`LinkProxy`), optional mutual TLS, and the evaluation of what they wrot
 The launcher is not part of the system: it only starts OS processes that find each other
 through the router, watches their :class:`AgentState` messages (as a silent observer that never
 announces itself, so it is not a team member) and scores the outputs afterwards.
+
+Its configuration (:func:`launch_job`) goes to ``OUT/config.yaml`` with the run resolved and only
+what was set explicitly active, and every process loads it (``--config``); each process writes
+the configuration it ran with to its own folder (docs/outputs.md).
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import logging
 import math
@@ -25,17 +30,20 @@ from pathlib import Path
 from typing import Any
 
 from kimera_multi_py.comms import keys, runtime
-from kimera_multi_py.comms.loopback import Partition
+from kimera_multi_py.comms.loopback import Faults, Partition
 from kimera_multi_py.comms.messages import AgentState
 from kimera_multi_py.comms.team import free_ports
 from kimera_multi_py.core.errors import ConfigError, KimeraMultiError
+from kimera_multi_py.core.ids import MAX_ROBOTS, OBSERVER_ID
 from kimera_multi_py.eval.results import Results
+from kimera_multi_py.team.config import CONFIG_NAME, DEFAULT_SCENARIO, KimeraConfig
 from kimera_multi_py.team.link_proxy import LinkProxy
 
 log = logging.getLogger(__name__)
 
-OBSERVER_ID = 998
 MODES = ("distributed", "centralized")
+LAUNCH_ROBOTS = 3  # team size unless configured
+LAUNCH_SEED = 0
 
 
 @dataclass
@@ -74,14 +82,29 @@ class LaunchJob:
     kills: list[Kill] = field(default_factory=list)
     joins: dict[int, float] = field(default_factory=dict)  # robot -> team stream time it starts at
     checkpoint_every: float = 5.0
-    pgo_period: float = 60.0
     timeout: float = 1800.0
     team: str = "t0"
     verbose: bool = False
-    map_consensus: str = "exact"
     tls: bool = False  # mutual TLS: certificates of a new team CA in OUT/certs, endpoints tls/localhost
     router_restarts: list[float] = field(default_factory=list)  # team stream times to SIGKILL + restart the router
     partitions: list[Partition] = field(default_factory=list)  # windows in team stream time (see cut_off)
+    config: KimeraConfig = field(default_factory=KimeraConfig.defaults)  # every process's parameters
+
+
+def launch_job(config: KimeraConfig, out_dir: Path, **options: Any) -> LaunchJob:
+    """The launch ``config`` describes: its ``run`` section (scenario, robots, seed, mode, join,
+    fault partitions) with the launcher's defaults filled in and recorded; ``options`` are the
+    :class:`LaunchJob`'s other fields."""
+    run = config.run
+    faults = run.faults.build()
+    if dataclasses.replace(faults, partitions=()) != Faults():
+        raise ConfigError("run.faults", "launch cuts router links (partitions) only; drop, delay, jitter, "
+                                        "duplicates and reordering need kimera-multi sim")
+    scenario, robots, mode = run.scenario or DEFAULT_SCENARIO, run.robots or LAUNCH_ROBOTS, run.mode or MODES[0]
+    seed = LAUNCH_SEED if run.seed is None else run.seed
+    config = config.updated({"run": {"scenario": scenario, "robots": robots, "seed": seed, "mode": mode}})
+    return LaunchJob(scenario, robots, seed, mode, Path(out_dir), joins=dict(run.join),
+                     partitions=list(faults.partitions), config=config, **options)
 
 
 @dataclass
@@ -118,8 +141,8 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     """Run the team as processes and evaluate it (see the module docstring)."""
     if job.mode not in MODES:
         raise ConfigError("mode", f"unknown mode {job.mode!r} (available: {', '.join(MODES)})")
-    if job.robots < 1 or job.robots > 26:
-        raise ConfigError("robots", f"must be in 1..26, got {job.robots}")
+    if job.robots < 1 or job.robots > MAX_ROBOTS:
+        raise ConfigError("robots", f"must be in 1..{MAX_ROBOTS}, got {job.robots}")
     for k in job.kills:
         if not 0 <= k.robot < job.robots:
             raise ConfigError("kill", f"robot {k.robot} is not in the team of {job.robots}")
@@ -133,11 +156,12 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     from kimera_multi_py.sim.scenario import load_scenario
 
     cfg = load_scenario(job.scenario, robots=job.robots)  # fail here, not in N processes
+    job.config.write(job.out_dir, only_set=True)  # what every process loads
     t0 = time.monotonic()
     runtime.run(_launch(job, on_update))
     from kimera_multi_py.team.evaluate import evaluate_run
 
-    results = evaluate_run(job.out_dir, cfg, job.seed, job.mode, time.monotonic() - t0)
+    results = evaluate_run(job.out_dir, cfg, job.seed, job.mode, time.monotonic() - t0, job.config)
     results.write_json(job.out_dir / "results.json")
     return results
 
@@ -191,12 +215,12 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
         logs.append(fh)
         return subprocess.Popen(_cmd(*args), stdout=fh, stderr=subprocess.STDOUT)
 
+    config = ["--config", str(out / CONFIG_NAME)]
+
     def agent_args(r: int, resume: bool) -> list[str]:
         args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}",
                 "--out", str(out), "--rate", str(job.rate), "--checkpoint-every", str(job.checkpoint_every),
-                "--pgo-period", str(job.pgo_period), "--map-consensus", job.map_consensus, *conn(f"robot{r}", r)]
-        if job.mode == "centralized":
-            args.append("--centralized")
+                "--centralized" if job.mode == "centralized" else "--distributed", *config, *conn(f"robot{r}", r)]
         return args + (["--resume"] if resume else [])
 
     views = {f"robot{r}": RobotView() for r in range(job.robots)}
@@ -212,8 +236,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
                             config_file=configs.get("observer"))
         states = observer.subscribe(keys.topic_all(job.team, keys.AGENT_STATE))
         if job.mode == "centralized":
-            procs["server"] = start("server", ["server", "--out", str(out), "--pgo-period", str(job.pgo_period),
-                                               *conn("server")])
+            procs["server"] = start("server", ["server", "--out", str(out), *config, *conn("server")])
         for r in range(job.robots):
             if r not in job.joins:
                 procs[f"robot{r}"] = start(f"robot{r}", agent_args(r, False))

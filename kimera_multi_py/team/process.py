@@ -5,7 +5,9 @@ An agent process builds its :class:`Agent` (or restores it from its checkpoint),
 session, runs its :class:`AgentNode` over keyframes from a source until the team's final
 optimisation, and writes ``OUT/robotI/``. Checkpoints go to ``OUT/robotI/checkpoint.kmc`` every
 ``checkpoint_every`` seconds (atomically); ``resume`` restores the agent and continues its
-source at the next keyframe.
+source at the next keyframe. Parameters come from the job's
+:class:`~kimera_multi_py.team.config.KimeraConfig`; each process writes the configuration it runs
+with to ``OUT/robotI/config.yaml`` (``OUT/server/config.yaml``; docs/outputs.md).
 """
 
 from __future__ import annotations
@@ -22,20 +24,20 @@ from typing import Any
 
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.checkpoint import load_checkpoint, save_checkpoint
-from kimera_multi_py.agent.node import AgentNode, NodeParams
+from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.agent.outputs import outcome_of, own_graph, write_outcome
 from kimera_multi_py.comms import runtime
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.core.ids import MAX_AGENT_ID, SERVER_ID
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.sources import KeyframeSource
-from kimera_multi_py.mapping.config import MappingConfig, get_submap_map
+from kimera_multi_py.mapping.config import get_submap_map
 from kimera_multi_py.mapping.octree_io import export_team_map
-from kimera_multi_py.pgo.params import team_params
-from kimera_multi_py.pgo.team import ScheduleParams
-from kimera_multi_py.server.node import SERVER_ID, Server, ServerNode
-from kimera_multi_py.team.build import params_for, source_from_spec
+from kimera_multi_py.server.node import Server, ServerNode
+from kimera_multi_py.team.build import SERVER_ODOM_SIGMAS, params_for, source_from_spec
+from kimera_multi_py.team.config import KimeraConfig
 
 log = logging.getLogger(__name__)
 
@@ -66,9 +68,7 @@ class AgentJob:
     rate: float = math.inf
     checkpoint_every: float = 10.0
     resume: bool = False
-    centralized: bool = False
-    pgo_period: float = 60.0
-    map_consensus: str = "exact"
+    config: KimeraConfig = field(default_factory=KimeraConfig.defaults)  # run.mode: distributed unless centralized
 
 
 def run_agent(job: AgentJob) -> dict[str, Any]:
@@ -82,13 +82,16 @@ def checkpoint_path(out_dir: Path, robot: int) -> Path:
 
 async def _agent(job: AgentJob) -> dict[str, Any]:
     t0 = time.monotonic()
-    if job.robot < 0 or job.robot > 25:
-        raise ConfigError("robot", f"robot id must be in 0..25, got {job.robot}")
+    if job.robot < 0 or job.robot > MAX_AGENT_ID:
+        raise ConfigError("robot", f"robot id must be in 0..{MAX_AGENT_ID}, got {job.robot}")
     ckpt = checkpoint_path(job.out_dir, job.robot)
     ckpt.parent.mkdir(parents=True, exist_ok=True)
     extra: dict[str, Any] = {}
-    params = params_for(source_from_spec(job.source, job.robot, 0))
-    if job.centralized:
+    config = job.config
+    if config.run.mode == "odometry":
+        raise ConfigError("run.mode", "an agent runs distributed or centralized, not odometry")
+    params = params_for(source_from_spec(job.source, job.robot, 0), config)
+    if config.run.mode == "centralized":
         params = replace(params, server=SERVER_ID)
     if job.resume and ckpt.exists():
         agent, extra = load_checkpoint(ckpt)
@@ -100,10 +103,14 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     start = agent.num_keyframes
     resume = json.loads(extra["source"]) if isinstance(extra.get("source"), str) else None
     source = source_from_spec(job.source, job.robot, start, resume)
-    schedule = ScheduleParams(period=job.pgo_period, round_timeout=0.5, final_grace=2.0)
+    schedule = config.to_schedule(round_timeout=0.5, final_grace=2.0)
+    node_params = config.to_node_params(server=params.server, state_period=1.0)
+    pgo_params, map_params = config.to_pgo_params(), config.to_map_params()
+    run = config.run.model_copy(update={"mode": "centralized" if params.server is not None else "distributed"})
+    KimeraConfig.resolved(run, agent.params, pgo_params, node_params, schedule, map_params,
+                          config.to_scene_graph_params()).write(ckpt.parent)
     bus = job.connection.bus(job.robot)
-    node = AgentNode(agent, bus, team_params(), schedule,
-                     NodeParams(server=params.server, state_period=1.0, map_consensus=job.map_consensus))
+    node = AgentNode(agent, bus, pgo_params, schedule, node_params, map_params=map_params)
     if node.pgo is not None:
         node.pgo.epoch = node.pgo.completed = int(extra.get("epoch", 0))
     last = time.monotonic()
@@ -142,9 +149,7 @@ def _node_state(node: AgentNode, source: KeyframeSource) -> dict[str, Any]:
 class ServerJob:
     out_dir: Path
     connection: Connection = field(default_factory=Connection)
-    pgo_period: float = 60.0
-    closure_sigmas: tuple[float, float] = (0.05, 0.15)
-    odom_sigmas: tuple[float, float] = (0.0087, 0.03)
+    config: KimeraConfig = field(default_factory=KimeraConfig.defaults)
 
 
 def run_server(job: ServerJob) -> dict[str, Any]:
@@ -152,18 +157,24 @@ def run_server(job: ServerJob) -> dict[str, Any]:
 
 
 async def _server(job: ServerJob) -> dict[str, Any]:
+    config = job.config
+    # the closure noise is the agents'; the odometry noise the server's own unless configured
+    params = config.to_agent_params(odom_sigmas=SERVER_ODOM_SIGMAS)
+    schedule = config.to_schedule(final_grace=2.0)
+    map_params = config.to_map_params()
+    d = Path(job.out_dir) / "server"
+    KimeraConfig.resolved(config.run.model_copy(update={"mode": "centralized"}), params, config.to_pgo_params(),
+                          config.to_node_params(), schedule, map_params, config.to_scene_graph_params()).write(d)
     bus = job.connection.bus(SERVER_ID)
-    server = Server(SERVER_ID, None, job.closure_sigmas, job.odom_sigmas)
-    node = ServerNode(server, bus, ScheduleParams(period=job.pgo_period, final_grace=2.0))
-    node.fuse_maps(get_submap_map(MappingConfig()))  # the agents' default map parameters
+    server = Server(SERVER_ID, None, params.closure_sigmas, params.odom_sigmas)
+    node = ServerNode(server, bus, schedule)
+    node.fuse_maps(get_submap_map(params.mapping), params=map_params)  # the agents' map parameters (exact)
     try:
         await node.start()
         await node.run()
     finally:
         await node.close()
         await bus.close()
-    d = Path(job.out_dir) / "server"
-    d.mkdir(parents=True, exist_ok=True)
     if node.maps is not None:
         export_team_map(node.maps.team_map, d)
     graph, _ = server.graph()

@@ -19,13 +19,16 @@ and closed by the team's leader) and outputs, exactly as in ``kimera-multi agent
 The clock is simulated: keyframes arrive in stamp order, and after each one the nodes run until
 the network is quiet. Over loopback a PGO round's wait ends when nothing more can arrive, so a
 seed always gives the same results, whatever the machine's load.
+
+Parameters come from a :class:`~kimera_multi_py.team.config.KimeraConfig`; the run folder gets
+``config.yaml``, all the run ran with (docs/outputs.md): ``sim --config`` with it repeats the run.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import heapq
-import json
 import math
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -37,9 +40,8 @@ from typing import Any
 import numpy as np
 
 from kimera_multi_py.agent.agent import Agent, AgentParams
-from kimera_multi_py.agent.node import AgentNode, NodeParams
+from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.agent.outputs import RobotOutcome, outcome_of, own_graph, write_outcome
-from kimera_multi_py.agent.team_graph import joint_graph
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.comm_range import neighbours_within
 from kimera_multi_py.comms.faults import check_robots, cut_links
@@ -47,31 +49,33 @@ from kimera_multi_py.comms.loopback import Faults, LoopbackBus, LoopbackNetwork
 from kimera_multi_py.comms.team import TRANSPORTS, open_buses
 from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.geometry import transform_points
+from kimera_multi_py.core.ids import SERVER_ID
 from kimera_multi_py.eval.accuracy import ScanRecord, accuracy_results
 from kimera_multi_py.eval.map_metrics import TeamMapReport, phi, team_map_report
 from kimera_multi_py.eval.results import Results
-from kimera_multi_py.eval.slam import map_quality, score_closures
+from kimera_multi_py.eval.slam import map_quality
 from kimera_multi_py.eval.team import (
     excluded_robots,
     scene_graph_results,
     team_frame_robots,
     team_results,
     trajectory_results,
+    write_team_graph,
 )
-from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.tum import write_tum
 from kimera_multi_py.mapping.config import get_submap_map
 from kimera_multi_py.mapping.octree_io import export_team_map
 from kimera_multi_py.mapshare.consensus import MAP_MESSAGES
 from kimera_multi_py.mapshare.fusion import centralised_team_map, octree_cells
-from kimera_multi_py.pgo.params import PgoParams, team_params
-from kimera_multi_py.pgo.team import ScheduleParams
-from kimera_multi_py.server.node import SERVER_ID, Server, ServerNode
-from kimera_multi_py.sim.scenario import ScenarioConfig
+from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.server.node import Server, ServerNode
+from kimera_multi_py.sim.scenario import ScenarioConfig, load_scenario
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
 from kimera_multi_py.sim.source import keyframe_input
 from kimera_multi_py.team.build import agent_params
+from kimera_multi_py.team.config import DEFAULT_SCENARIO, KimeraConfig
 from kimera_multi_py.viz.rerun_viz import NullViz, Viz
+from kimera_multi_py.workflow.sim_viz import log_team
 
 MODES = ("odometry", "distributed", "centralized")
 MAP_SETTLE_S = 15.0  # sim seconds the team keeps exchanging maps after its final optimisation
@@ -108,16 +112,21 @@ class _SimClock:
 
 
 class SimRunner:
-    """Runs one scenario for one seed and mode; returns :class:`Results`."""
+    """Runs one scenario for one seed and mode; returns :class:`Results`.
+
+    ``config`` gives every parameter (default: the defaults; its ``run`` section is read by
+    :meth:`from_config` only); ``pgo_period`` and ``map_consensus``, when given, override its
+    ``schedule.period`` and ``node.map_consensus``; ``params`` and ``pgo_params`` replace what it builds.
+    """
 
     def __init__(self, cfg: ScenarioConfig, seed: int | None = None, mode: str = "odometry",
                  out_dir: str | Path | None = None, viz: Viz | None = None,
                  on_progress: Progress | None = None, transport: str = "loopback",
-                 pgo_period: float = 60.0, params: AgentParams | None = None,
+                 pgo_period: float | None = None, params: AgentParams | None = None,
                  pgo_params: PgoParams | None = None, join: dict[int, float] | None = None,
-                 leave: dict[int, float] | None = None, map_consensus: str = "exact",
+                 leave: dict[int, float] | None = None, map_consensus: str | None = None,
                  comm_range: float | None = None, drop: float = 0.0, faults: Faults | None = None,
-                 quality: bool = True) -> None:
+                 quality: bool = True, config: KimeraConfig | None = None) -> None:
         if mode not in MODES:
             raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
         if transport not in TRANSPORTS:
@@ -129,12 +138,19 @@ class SimRunner:
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.viz: Viz = viz or NullViz()
         self.on_progress = on_progress
-        self.params = params or agent_params(cfg)
-        self.pgo_params = pgo_params or team_params()
+        explicit = {name: values for name, values in (("schedule", {"period": pgo_period}),
+                                                      ("node", {"map_consensus": map_consensus}))
+                    if None not in values.values()}
+        self.config = (config or KimeraConfig.defaults()).updated(explicit)
+        self.params = params or agent_params(cfg, self.config)
+        self.pgo_params = pgo_params or self.config.to_pgo_params()
         # over Zenoh a round waits on the wall clock; over loopback until the network is quiet
-        self.schedule = ScheduleParams(period=pgo_period, round_timeout=0.5 if transport == "zenoh" else None)
+        self.schedule = self.config.to_schedule(round_timeout=0.5 if transport == "zenoh" else None)
+        self.node_params = self.config.to_node_params()
+        self.map_params = self.config.to_map_params()
+        self.scene_graph_params = self.config.to_scene_graph_params()
         self.clock = _SimClock()
-        self.map_mode = map_consensus
+        self.map_mode = self.node_params.map_consensus
         # score the maps and the scene graph against truth (off: team ATE, closures, map agreement only)
         self.quality = quality
         # loopback link faults (``faults`` wins over ``drop``); partitions run on the simulated clock
@@ -162,6 +178,27 @@ class SimRunner:
         self.server: ServerNode | None = None
         self.outcomes: list[RobotOutcome] = []
         self.rays = 0
+
+    @classmethod
+    def from_config(cls, config: KimeraConfig, out_dir: str | Path | None = None, viz: Viz | None = None,
+                    on_progress: Progress | None = None) -> SimRunner:
+        """The run ``config`` describes, its ``run`` section included (``kimera-multi sim``)."""
+        if config.run.scenario is None:
+            config = config.updated({"run": {"scenario": DEFAULT_SCENARIO}})
+        run = config.run
+        assert run.scenario is not None
+        chosen = {"mode": run.mode, "transport": run.transport}  # null: SimRunner's own default
+        return cls(load_scenario(run.scenario, robots=run.robots), seed=run.seed, out_dir=out_dir, viz=viz,
+                   on_progress=on_progress, join=run.join, leave=run.leave, comm_range=run.comm_range,
+                   faults=run.faults.build(), config=config, **{k: v for k, v in chosen.items() if v is not None})
+
+    def resolved_config(self) -> KimeraConfig:
+        """Everything this run runs with, its choices included: the run folder's ``config.yaml``."""
+        run = {"scenario": self.config.run.scenario, "seed": self.sim.seed, "robots": self.sim.num_robots,
+               "mode": self.mode, "transport": self.transport, "comm_range": self.comm_range, "join": self.join,
+               "leave": self.leave, "faults": dataclasses.asdict(self.faults)}
+        return KimeraConfig.resolved(run, self.params, self.pgo_params, self.node_params, self.schedule,
+                                     self.map_params, self.scene_graph_params)
 
     @property
     def agents(self) -> list[Agent]:
@@ -204,9 +241,9 @@ class SimRunner:
         ids = robots + ([SERVER_ID] if central else [])
         params = replace(self.params, server=SERVER_ID) if central else self.params
         async with self._buses(ids) as buses:
-            self.nodes = [AgentNode(Agent(r, None, params), buses[r], self.pgo_params, self.schedule,
-                                    NodeParams(server=params.server, map_consensus=self.map_mode),
-                                    clock=self.clock.now) for r in robots]
+            node_params = dataclasses.replace(self.node_params, server=params.server)
+            self.nodes = [AgentNode(Agent(r, None, params), buses[r], self.pgo_params, self.schedule, node_params,
+                                    clock=self.clock.now, map_params=self.map_params) for r in robots]
             if self.comm_range is not None:
                 for agent_node in self.nodes:
                     agent_node.map_neighbours = lambda r=agent_node.robot: self._in_range(r)
@@ -216,7 +253,7 @@ class SimRunner:
                 self.server = ServerNode(Server(SERVER_ID, None, self.params.closure_sigmas, self.params.odom_sigmas),
                                          buses[-1], self.schedule, clock=self.clock.now)
                 if self.map_mode != "off":
-                    self.server.fuse_maps(get_submap_map(params.mapping), self.map_mode)
+                    self.server.fuse_maps(get_submap_map(params.mapping), self.map_mode, self.map_params)
                 nodes.append(self.server)
             for node in nodes:
                 if node.robot not in self.join:
@@ -384,30 +421,9 @@ class SimRunner:
             progressed = True
 
     def _log_team(self, stamp: float | None = None) -> None:
-        """Send the team's current estimate to the visualiser, placed in the world by the true start
-        of robot 0 (the team frame is robot 0's odometry frame)."""
-        if isinstance(self.viz, NullViz):
-            return
-        agents = self.agents
-        T = self.tracks[0].true[0] if self.tracks[0].true else np.eye(4)
-        trajs = [transform_points(T, np.array(a.poses)[:, :3, 3]) if a.poses else np.zeros((0, 3))
-                 for a in agents]
-        closures = []
-        for a in agents:
-            for peer, group in a.closures.items():
-                for c in group:
-                    if c.own_kf < len(a.poses) and c.peer_kf < len(agents[peer].poses):
-                        closures.append((transform_points(T, a.poses[c.own_kf][None, :3, 3])[0],
-                                         transform_points(T, agents[peer].poses[c.peer_kf][None, :3, 3])[0],
-                                         c.accepted))
-        voxels = []
-        for a in agents:
-            lv, occ = a.map.octree.leaves(), a.map.octree.occupied_leaves()
-            voxels.append((transform_points(T, lv.centers[occ]), np.argmax(lv.logodds[occ], axis=1)))
-        lms = [lm for a in agents for lm in a.objects.confirmed()]
-        objects = (transform_points(T, np.array([lm.position for lm in lms]).reshape(-1, 3)),
-                   np.array([lm.box()[1] for lm in lms]).reshape(-1, 3), np.array([lm.label for lm in lms], dtype=int))
-        self.viz.log_team(stamp if stamp is not None else self.sim.duration, trajs, closures, voxels, objects)
+        if not isinstance(self.viz, NullViz):
+            log_team(self.viz, self.agents, self.tracks[0].true[0] if self.tracks[0].true else np.eye(4),
+                     stamp if stamp is not None else self.sim.duration)
 
     def _evaluate(self, wall_s: float) -> Results:
         truth = [np.array(tr.true) for tr in self.tracks]
@@ -431,7 +447,7 @@ class SimRunner:
                 extra["map_consensus"], team_maps = self._map_results(T_world_team)
             if self.quality:
                 extra["scene_graph"] = scene_graph_results(self.sim.world, self.outcomes, T_world_team, self.out_dir,
-                                                           team_maps, self._reference_map())
+                                                           team_maps, self._reference_map(), self.scene_graph_params)
         return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
 
@@ -484,16 +500,5 @@ class SimRunner:
         if self.nodes:  # the team's joint graph, for `kimera-multi pgo` and offline study
             write_team_graph(self.out_dir, self.agents, [np.array(tr.true) for tr in self.tracks])
         results.write_json(self.out_dir / "results.json")
+        self.resolved_config().write(self.out_dir)
 
-
-def write_team_graph(out_dir: Path, agents: list[Agent], truth: list[np.ndarray]) -> None:
-    """``team_graph.g2o`` (the joint graph) and ``team_graph_truth.json`` (which inter-robot
-    edges are true)."""
-    graph, inter = joint_graph(agents)
-    write_g2o(out_dir / "team_graph.g2o", graph)
-    Z = np.array([agents[a].inter_edges[(ka, b, kb)][0] for a, ka, b, kb in inter]).reshape(-1, 4, 4)
-    ok = score_closures(Z, np.array([truth[a][ka] for a, ka, _, _ in inter]).reshape(-1, 4, 4),
-                        np.array([truth[b][kb] for _, _, b, kb in inter]).reshape(-1, 4, 4))
-    (out_dir / "team_graph_truth.json").write_text(json.dumps(
-        {"inter_robot_edges": [list(e) for e in inter], "true": ok.tolist(),
-         "note": "inter-robot edges follow the odometry and intra-robot edges in team_graph.g2o"}))
