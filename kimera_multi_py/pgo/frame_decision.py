@@ -56,7 +56,7 @@ from kimera_multi_py.alignment.frames import (
 )
 from kimera_multi_py.alignment.landmark_check import LandmarkScore, landmark_lead, landmark_scores
 from kimera_multi_py.alignment.map_check import MapAgreement
-from kimera_multi_py.core.geometry import inverse, make_pose, so3_log, umeyama
+from kimera_multi_py.core.geometry import inverse, so3_log
 from kimera_multi_py.pgo.factors import to_values
 
 if TYPE_CHECKING:
@@ -453,13 +453,6 @@ class FrameDecision:
                             self.robot, ratio)
                 self._exclude(f"estimate disagrees with odometry ({ratio:.2f} x drift model)", None, 0)
                 self.alignment["drift_ratio"] = round(ratio, 3)
-                self.poses = self._own_solution()
-        if self.map_view is not None and self.aligned and not self.excluded and not self.root:
-            # the estimate may end in another frame than the one adopted (GNC weighs every edge):
-            # the frame it ended in faces the maps too
-            R, t, _ = umeyama(lg.poses[:, :3, 3], self.poses[:, :3, 3])
-            if self._map_refutes(make_pose(R, t)):
-                self._exclude("the maps refute the frame the estimate ended in", None, 0)
                 self.poses = self._own_solution()
         if self.excluded:
             return inverse(self.poses[0]) @ self.poses
