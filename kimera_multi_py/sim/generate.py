@@ -11,7 +11,8 @@ different places and their routes overlap: every robot visits a shared non-repea
 hall, or a distinct room) and copies of the repeated rooms. People can walk the corridors and
 halls.
 
-The same arguments give the same scenario and, through :func:`scenario_toml`, the same bytes.
+The same arguments give the same scenario and, through :func:`scenario_toml`, the same bytes
+(all draws come from numpy's PCG64 generator seeded with ``(seed, attempt)``).
 Every generated scenario passes the simulator's own checks (:meth:`World.plan_route`,
 :meth:`World.check_path`); a draw that does not is drawn again from the next attempt's stream.
 Which places are repeats is in the layout names: :func:`repeated_layouts` lists the identical
