@@ -108,6 +108,7 @@ def _register_commands() -> None:
     register(app)
     cli_team.register(app)
     cli_config.register(app)
+    __import__("kimera_multi_py.cli.scenario", fromlist=["register"]).register(app)
     __import__("kimera_multi_py.cli.query", fromlist=["register"]).register(app)
 
 
