@@ -132,6 +132,7 @@ class AgentNode:
         self._state_at = -math.inf
         self._peer_stamp = 0.0
         self.epochs_seen = 0
+        self._frame_check_at: float | None = None  # when the safety net looks at the last epoch's frame
         self._closure_counts: dict[tuple[int, int], int] = {}
         self._recent_descriptors: list[KeyframeDescriptor] = []  # the last ones sent (repeated)
         self.queries_retried = 0
@@ -327,10 +328,17 @@ class AgentNode:
                     self.frame = self.robot
                 elif last is not None and last.aligned:
                     self.frame = self._component_root(last.local.robot_graph)
-                    self._safety_net(last)
+                    # after the peers' new pose tables had time to arrive: right after an epoch
+                    # their maps may still sit where the epoch found them, ours where it left us
+                    period = self.maps.params.period if self.maps is not None else 1.0
+                    self._frame_check_at = wall + 2.0 * period
                 out.append(self._state())
                 if self.pgo.final_done and self.finished:
                     self.complete = True
+        if self._frame_check_at is not None and wall >= self._frame_check_at and self.pgo is not None:
+            self._frame_check_at = None
+            if self.pgo.last_pgo is not None and self._safety_net(self.pgo.last_pgo):
+                out.append(self._state())
         out.extend(self._map_step(wall))  # on the tick's clock: it goes on after the streams end
         for m in out:
             await self._publish(m)
@@ -344,26 +352,27 @@ class AgentNode:
         return map_view(self.maps, self.agent.map, frame, p.map_min_conflicts, p.map_conflict_ratio, p.map_coarse,
                         p.map_occupancy)
 
-    def _safety_net(self, last: PgoAgent) -> None:
+    def _safety_net(self, last: PgoAgent) -> bool:
         """After an epoch that left us in a team frame: if our map contradicts the team's there,
         leave the frame (our evidence then leaves every team map, which keys it by frame) and say
         so; the next epoch decides again, and the maps refute this frame there too."""
         p = self.pgo_params
         if self.frame == self.robot or not p.map_check:  # the root of its own frame has nothing to check
-            return
+            return False
         check = frame_check(self.maps, self.agent.map, self.frame, p.map_min_conflicts, p.map_conflict_ratio,
                             p.map_coarse, p.map_occupancy)
         if check is None:
-            return
+            return False
         last.alignment = {**last.alignment, "safety_net": check.as_dict()}
         if not check.refuted:
-            return
+            return False
         log.warning("robot %d: leaves team frame %d: its map contradicts robots %s there (agrees with %s)",
                     self.robot, self.frame, check.conflicting, check.agreeing, extra={"robot": self.robot})
         last.excluded = True
         last.alignment.update(status="excluded", settled=False,
                               reason=f"safety net: its map contradicts the team's in frame {self.frame}")
         self.frame = self.robot
+        return True
 
     def _map_step(self, now: float) -> list[Message]:
         if self.maps is None:
