@@ -34,16 +34,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import (
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.closures import (
     KeyframeDescriptor,
     KeyframeOdometry,
     LoopClosureReply,
     LoopClosureRequest,
     LoopClosures,
     LoopClosuresAck,
-    Message,
-    PublicPoses,
 )
+from kimera_multi_py.comms.messages.pgo import PublicPoses
 from kimera_multi_py.core.geometry import inverse, so3_log, transform_points
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.core.posegraph import robot_key, split_key

@@ -35,7 +35,8 @@ import logging
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import GncWeights, Message, PcgState, PgoStatus, PublicPoses
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.pgo import GncWeights, PcgState, PgoStatus, PublicPoses
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.coarse import (
     INDEX_MASK,

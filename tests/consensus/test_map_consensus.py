@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.comms.comm_range import neighbours_within
-from kimera_multi_py.comms.messages import SubmapEvidence, SubmapPoses
+from kimera_multi_py.comms.messages.maps import SubmapEvidence, SubmapPoses
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp, transform_points
 from kimera_multi_py.eval.map_metrics import agreement, occupancy_logodds, phi
