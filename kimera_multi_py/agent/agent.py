@@ -30,10 +30,12 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
+from kimera_multi_py.agent import pose_graph
+from kimera_multi_py.agent.closures import Closure, Constellation, LoopClosureStats
+from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.closures import (
     KeyframeDescriptor,
@@ -47,7 +49,6 @@ from kimera_multi_py.comms.messages.pgo import PublicPoses
 from kimera_multi_py.core.geometry import inverse, so3_log, transform_points
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.core.posegraph import robot_key, split_key
-from kimera_multi_py.core.robust import correlated_votes
 from kimera_multi_py.core.semantics import NUM_CLASSES, OBJECT_CLASSES, class_id
 from kimera_multi_py.frontend.loop_closure import (
     DescriptorSpec,
@@ -56,8 +57,8 @@ from kimera_multi_py.frontend.loop_closure import (
     verify,
     voxel_downsample,
 )
-from kimera_multi_py.frontend.pcm import PcmNoise, odometry_consistent_path, pcm
-from kimera_multi_py.mapping.config import MappingConfig, get_object_map, get_submap_map
+from kimera_multi_py.frontend.pcm import odometry_consistent_path, pcm
+from kimera_multi_py.mapping.config import get_object_map, get_submap_map
 from kimera_multi_py.mapping.floor import FloorReference
 from kimera_multi_py.mapping.heading import HeadingReference
 from kimera_multi_py.mapping.registration import ScanRegistration
@@ -73,126 +74,6 @@ _FLOOR = class_id("floor")
 _WALL = class_id("wall")
 _FLOOR_CEILING = (_FLOOR, class_id("ceiling"))
 MAX_AGENT_ID = 25  # robot i owns gtsam Symbol chr(ord('a') + i)
-
-
-@dataclass
-class AgentParams:
-    """Knobs of the per-robot front end (defaults tuned on ``sims/office.toml``)."""
-
-    mapping: MappingConfig = field(default_factory=MappingConfig)
-    odom_sigmas: tuple[float, float] = (np.deg2rad(0.5), 0.03)  # rot (rad), trans (m) per keyframe
-    closure_sigmas: tuple[float, float] = (0.05, 0.15)
-    keyframe_distance: float = 0.5  # nominal, for PCM's drift model
-    descriptor_every: int = 2
-    descriptor_window: int = 8
-    min_objects: int = 5
-    min_similarity: float = 0.75
-    # verification requests per peer per budget period. It binds: at 12, aliased_wing with 3 robots
-    # (seed 9) dropped 255 of 405 inter-robot verification requests in the order they came, so which places got
-    # verified hinged on timing; at 36 both modes verify about twice the true closures (team ATE
-    # 0.030 → 0.024 m distributed), for 2.1x the bytes of fetched constellations (2x all bytes)
-    budget: int = 36
-    matches_per_query: int = 2
-    distinct_places: int = 20  # keyframes between two places tried for one query
-    budget_period: float = 20.0  # s
-    verify_eps: float = 0.3
-    min_inliers: int = 5
-    closure_votes: bool = True  # closures sharing a keyframe and a robot split one vote in the robust cost
-    pcm_min_size: int = 2
-    pcm_groups: int = 3  # consistent groups per robot pair handed to the back end (see consensus.pcm)
-    intra_min_gap: int = 40  # keyframes between an intra-robot closure's ends
-    cloud_voxel: float = 0.2  # downsampling of the semantic cloud kept per keyframe for ICP
-    icp_min_overlap: float = 0.1
-    icp_max_correction: tuple[float, float] = (0.5, np.deg2rad(10.0))  # larger refinements are not trusted
-    # a closure the scan registration does not confirm is rejected: the object constellation alone
-    # is weak in roll and pitch (centroids sit at nearly one height; measured: 12-14 degrees off)
-    require_registration: bool = True
-    closure_correspondence: tuple[float, ...] = (0.6, 0.3, 0.15)  # GICP stages refining a closure (m)
-    revisit_radius: float = 1.0  # intra-robot closures by place: older keyframes this close (m), 0 = off
-    revisit_angle: float = np.deg2rad(45.0)  # ... and facing within this angle
-    revisit_overlap: float = 0.4  # fraction of the cloud within the last correspondence distance
-    # scan-to-map odometry (registration of each scan to the last reg_window keyframes' scans)
-    registration: bool = True
-    # how registration enters the pose graph: "fused", one factor per step, the odometry fused
-    # with the registration (the registration in its well-constrained directions) under the
-    # odometry's information — the same factor the centralised server receives, so both modes
-    # solve one problem; "separate", the odometry factor plus a registration factor with the
-    # information of GICP's Hessian (over-confident: GICP treats correlated point errors as
-    # independent, so loop closures barely bend the chain; measured worse on office and small)
-    registration_factor: str = "fused"
-    reg_window: int = 8
-    reg_voxel: float = 0.1
-    # GICP stages (m); None: from the odometry's noise (registration_stages)
-    reg_correspondence: tuple[float, ...] | None = None
-    reg_point_sigma: float = 0.02  # per-point noise along a surface (m)
-    reg_information_scale: float = 1.0  # discount of the GICP Hessian for correlated points
-    reg_min_ratio: float = 1.0  # directions with less information than the odometry's are dropped
-    reg_gate: float = 25.0  # squared Mahalanobis distance to the odometry beyond which it is not used
-    # the floor seen at each keyframe sets the registration chain's roll, pitch and height
-    # (mapping.floor: a ground robot on one floor; a fit off the predicted floor is not used)
-    floor_reference: bool = True
-    # the walls' grid seen at each keyframe sets the chain's yaw (mapping.heading: walls along two
-    # perpendicular directions; a keyframe whose walls are off that grid is not used)
-    heading_reference: bool = True
-    team_object_sightings: int = 5  # sightings before a landmark enters the team's object map
-    server: int | None = None  # centralised mode: the server's id (odometry streams to it)
-    pcm: PcmNoise | None = None  # default: drift from odom_sigmas, closure noise from closure_sigmas
-
-    def registration_stages(self) -> tuple[float, ...]:
-        """The scan odometry's correspondence distances: as given, or two stages from three sigma
-        of the odometry's prediction error at a point 4 m away (rotation times range, plus the
-        translation over three axes) down to half that. Wider than the prediction can be wrong
-        only admits wrong correspondences: with (0.5, 0.2) m, 8 % of office's keyframes fell back
-        to the odometry, with (0.15, 0.07) m 3 % (seeds 1 and 2, robots 0-2, 200 keyframes each)."""
-        if self.reg_correspondence is not None:
-            return self.reg_correspondence
-        first = max(3.0 * (np.sqrt(3.0) * self.odom_sigmas[1] + 4.0 * self.odom_sigmas[0]), 0.1)
-        return (float(first), float(first) / 2)
-
-    def odom_information(self) -> np.ndarray:
-        return np.diag(np.repeat(1.0 / np.square(self.odom_sigmas), 3))
-
-    def pcm_noise(self) -> PcmNoise:
-        """PCM's drift model: the per-keyframe odometry noise as a random walk per metre."""
-        if self.pcm is not None:
-            return self.pcm
-        per_m = 1.0 / np.sqrt(self.keyframe_distance)
-        return PcmNoise(closure_rot=self.closure_sigmas[0], closure_trans=self.closure_sigmas[1],
-                        odom_rot_per_m=self.odom_sigmas[0] * per_m, odom_trans_per_m=self.odom_sigmas[1] * per_m)
-
-
-@dataclass
-class Constellation:
-    """Objects seen around a keyframe, in that keyframe's frame."""
-
-    keyframe: int
-    stamp: float
-    xyz: np.ndarray  # (m, 3)
-    classes: np.ndarray  # (m,) class ids
-    descriptor: np.ndarray
-    cloud: np.ndarray  # (p, 3) semantic points of the window, keyframe frame
-    cloud_labels: np.ndarray  # (p,)
-
-
-@dataclass
-class Closure:
-    """A verified loop closure: ``Z = T_a^{-1} T_b`` between own keyframe a and peer keyframe b."""
-
-    own_kf: int
-    peer: int
-    peer_kf: int
-    Z: np.ndarray
-    inliers: int
-    own_pose: np.ndarray  # dead-reckoned poses used by PCM
-    peer_pose: np.ndarray
-    accepted: bool = False
-
-
-@dataclass
-class LoopClosureStats:
-    candidates: int = 0  # verification requests sent (inter) or attempted (intra)
-    verified: int = 0  # passed geometric verification
-    rejected_verification: int = 0
 
 
 class Agent:
@@ -554,83 +435,18 @@ class Agent:
         return []
 
     # ---- back end -------------------------------------------------------------------------
-    def _info(self, sigmas: tuple[float, float]) -> np.ndarray:
-        return np.diag(np.repeat(1.0 / np.square(sigmas), 3))
-
-    def intra_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Odometry, scan registrations and accepted intra-robot closures: ``(i, j, Z, info, is_odometry)``.
-
-        ``registration_factor="fused"``: one trusted (``is_odometry``) factor per keyframe step,
-        the registration-refined step under the odometry's information. ``"separate"``: a
-        registration factor joins the odometry factor of its step; both are trusted, its
-        information is the registration's (zero where degenerate)."""
-        n = self.num_keyframes
-        i = list(range(n - 1))
-        j = list(range(1, n))
-        fused = self.params.registration_factor == "fused"
-        Z = list(self.steps[1:] if fused else self.odometry[1:])
-        info = [self._info(self.params.odom_sigmas)] * (n - 1)
-        odo = [True] * (n - 1)
-        if self.scan_odometry is not None and not fused:
-            for k, (Zr, Ir) in sorted(self.scan_odometry.edges.items()):
-                i.append(k - 1)
-                j.append(k)
-                Z.append(Zr)
-                info.append(Ir)
-                odo.append(True)
-        for c in self.closures.get(self.robot, []):
-            if c.accepted:
-                i.append(c.own_kf)
-                j.append(c.peer_kf)
-                Z.append(c.Z)
-                info.append(self._info(self.params.closure_sigmas))
-                odo.append(False)
-        return (np.array(i, dtype=int), np.array(j, dtype=int), np.array(Z).reshape(-1, 4, 4),
-                np.array(info).reshape(-1, 6, 6), np.array(odo, dtype=bool))
+    def intra_edges(self) -> pose_graph.Edges:
+        """Odometry, scan registrations and accepted intra-robot closures: ``(i, j, Z, info, is_odometry)``
+        (:func:`.pose_graph.intra_edges`)."""
+        so = self.scan_odometry
+        return pose_graph.intra_edges(self.num_keyframes, self.steps, self.odometry, None if so is None else so.edges,
+                                      self.closures.get(self.robot, []), self.params)
 
     def local_graph(self) -> LocalGraph:
-        """What this robot contributes to distributed PGO, from its current estimate.
-
-        An inter-robot edge is the lower robot id's measurement, directed lower → higher (as in
-        the joint graph): both robots must hold the same factor. The higher robot's stored copy
-        is the inverse, and the inverse with the same (diagonal) information is a different
-        factor; with it the two block problems disagree and the distributed solve cycles.
-        """
-        i, j, Z, info, odo = self.intra_edges()
-        edges = sorted(self.inter_edges.items())
-        cinfo = self._info(self.params.closure_sigmas)
-        lower = np.array([k[1] < self.robot for k, _ in edges], dtype=bool)
-        meas = np.array([v[0] for _, v in edges]).reshape(-1, 4, 4)
-        # robust votes of correlated closures (consensus.robust.correlated_votes), in the infos;
-        # one call over intra and inter closures: votes are counted per robot pair, so they don't mix
-        own = np.array([k[0] for k, _ in edges], dtype=int)
-        peer = np.array([k[1] for k, _ in edges], dtype=int)
-        c = ~odo
-        nc = int(c.sum())
-        votes = np.ones(nc + len(edges))
-        if self.params.closure_votes:
-            votes = correlated_votes(np.full(len(votes), self.robot), np.r_[i[c], own],
-                                     np.r_[np.full(nc, self.robot), peer],
-                                     np.r_[j[c], np.array([k[2] for k, _ in edges], dtype=int)])
-        intra_vote = np.ones(len(i))
-        intra_vote[c] = votes[:nc]
-        inter_vote = votes[nc:]
-        return LocalGraph(
-            robot=self.robot,
-            keys=np.array([robot_key(self.robot, k) for k in range(self.num_keyframes)], dtype=np.int64),
-            poses=np.array(self.poses),
-            intra_i=i, intra_j=j, intra_meas=Z, intra_info=info * intra_vote[:, None, None], intra_odometry=odo,
-            intra_edge=np.arange(len(i)),
-            inter_own=own,
-            inter_own_is_i=~lower,
-            inter_peer=peer,
-            inter_peer_key=np.array([robot_key(k[1], k[2]) for k, _ in edges], dtype=np.int64),
-            inter_meas=np.where(lower[:, None, None], inverse(meas), meas),
-            inter_info=np.tile(cinfo, (len(edges), 1, 1)) * inter_vote[:, None, None],
-            inter_edge=np.arange(len(edges)),
-            robot_graph=sorted(self.robot_graph), team=self.team or (self.robot,),
-            intra_vote=intra_vote, inter_vote=inter_vote,
-        )
+        """What this robot contributes to distributed PGO, from its current estimate
+        (:func:`.pose_graph.local_graph`)."""
+        return pose_graph.local_graph(self.robot, self.team, self.poses, self.intra_edges(), self.inter_edges,
+                                      self.robot_graph, self.params)
 
     def apply_poses(self, poses: np.ndarray) -> int:
         """Adopt optimised poses of the first keyframes; re-anchor the submaps and objects that moved.

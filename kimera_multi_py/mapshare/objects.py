@@ -29,8 +29,8 @@ from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.maps import ObjectUpdate, SubmapPoses
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.geometry import inverse, transform_points
+from kimera_multi_py.mapping.landmark import Landmark
 from kimera_multi_py.mapping.object_fusion import fuse_objects, team_id
-from kimera_multi_py.mapping.objects import Landmark
 
 OBJECT_MESSAGES = (ObjectUpdate,)
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.agent.agent import AgentParams
+from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.io.sources import KeyframeSource, RecordedSource
 from kimera_multi_py.sim.scenario import KeyframeConfig, OdometryConfig, ScenarioConfig, load_scenario, with_team_size

@@ -36,9 +36,10 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.agent.agent import Agent, AgentParams
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode, NodeParams
 from kimera_multi_py.agent.outputs import RobotOutcome, outcome_of, own_graph, write_outcome
+from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.agent.team_graph import joint_graph
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.comm_range import neighbours_within

@@ -11,7 +11,7 @@ from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp, transform_points
 from kimera_multi_py.eval.map_metrics import agreement, occupancy_logodds, phi
 from kimera_multi_py.mapping import SemanticOctree, SubmapMap
-from kimera_multi_py.mapping.semantic_octree import SCALE
+from kimera_multi_py.mapping.observation import SCALE
 from kimera_multi_py.mapshare.consensus import MapConsensus, MapConsensusParams
 from kimera_multi_py.mapshare.exchange import MapExchange, full_links
 from kimera_multi_py.mapshare.fusion import centralised_team_map, octree_cells
