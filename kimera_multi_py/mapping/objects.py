@@ -176,7 +176,7 @@ class ObjectMap:
                 assigned[int(r)] = ids[int(c)]
         matched_cols = sorted({ids.index(v) for v in assigned.values()})
         touched: list[int] = []
-        self._merged_into: dict[int, int] = {}
+        self._merged_into = {}
         for i, det in enumerate(detections):
             if i in assigned:
                 lid = assigned[i]

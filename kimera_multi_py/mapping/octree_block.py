@@ -13,6 +13,7 @@ update of all touched rows at once, and pruning of the touched branches level by
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import cast
 
 import numpy as np
 
@@ -238,7 +239,7 @@ class OctreeBlock:
         codes, levels, values = self.codes, self.levels, self.values
         seeds: dict[int, np.ndarray] = {}
         if extra_codes is not None and len(extra_codes):
-            el = extra_levels.astype(np.int64)
+            el = cast(np.ndarray, extra_levels).astype(np.int64)  # given with extra_codes
             for lev in np.unique(el):
                 seeds[int(lev) + 1] = np.unique(extra_codes[el == lev] >> (3 * (int(lev) + 1)))
         deleted = np.zeros(n, dtype=np.bool_)

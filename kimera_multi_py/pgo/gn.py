@@ -58,6 +58,9 @@ class GnPcgAgent(GnRobust, PgoAgent):
     """One robot of the distributed Levenberg–Marquardt / pipelined-PCG solve (see module;
     robust mode: :mod:`.pgo_gn_weights`)."""
 
+    gamma_prev: float  # the previous CG iteration's γ and α (set by the first one)
+    alpha_prev: float
+
     def __init__(self, local: LocalGraph, params: PgoParams | None = None) -> None:
         super().__init__(local, params)
         self.k = 0  # the next lock-step to publish

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 
 @dataclass
@@ -127,6 +128,6 @@ class PgoParams:
     start_resend: int = 5  # the leader repeats ``start`` this many rounds (message loss)
 
 
-def team_params(**overrides: object) -> PgoParams:
+def team_params(**overrides: Any) -> PgoParams:
     """The PGO of a SLAM team's agents: robust, with 600 rounds per epoch, no μ₀ floor."""
     return dataclasses.replace(PgoParams(robust=True, max_rounds=600, gnc_mu0_min=0.0), **overrides)
