@@ -48,7 +48,7 @@ import numpy as np
 import zenoh
 
 from kimera_multi_py.comms import keys, runtime
-from kimera_multi_py.comms.messages import Heartbeat, Ping
+from kimera_multi_py.comms.messages.team import Heartbeat, Ping
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 
 REPO = Path(__file__).resolve().parents[1]

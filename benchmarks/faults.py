@@ -50,7 +50,7 @@ from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.faults import sim_faults
 from kimera_multi_py.comms.fuzz import fuzz_payloads, stranger_traffic
 from kimera_multi_py.comms.loopback import Faults
-from kimera_multi_py.comms.messages import AgentState
+from kimera_multi_py.comms.messages.team import AgentState
 from kimera_multi_py.comms.team import free_ports
 from kimera_multi_py.comms.zenoh_bus import Tls, ZenohBus
 from kimera_multi_py.sim import Simulation, load_scenario

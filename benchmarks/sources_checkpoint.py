@@ -21,8 +21,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from kimera_multi_py.agent.agent import Agent, AgentParams
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.checkpoint import load_checkpoint, save_checkpoint, snapshot
+from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.io.sources import RecordedSource
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.source import SimSource, keyframe_input, write_recording

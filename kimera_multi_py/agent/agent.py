@@ -30,26 +30,26 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
-from kimera_multi_py.agent.params import AgentParams as AgentParams  # re-exported
-from kimera_multi_py.comms.messages import (
+from kimera_multi_py.agent import pose_graph
+from kimera_multi_py.agent.closures import Closure, Constellation, LoopClosureStats
+from kimera_multi_py.agent.params import AgentParams
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.closures import (
     KeyframeDescriptor,
     KeyframeOdometry,
     LoopClosureReply,
     LoopClosureRequest,
     LoopClosures,
     LoopClosuresAck,
-    Message,
-    PublicPoses,
 )
+from kimera_multi_py.comms.messages.pgo import PublicPoses
 from kimera_multi_py.core.geometry import inverse, so3_log, transform_points
 from kimera_multi_py.core.ids import MAX_AGENT_ID
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.core.posegraph import robot_key, split_key
-from kimera_multi_py.core.robust import correlated_votes
 from kimera_multi_py.core.semantics import NUM_CLASSES, OBJECT_CLASSES, class_id
 from kimera_multi_py.frontend.loop_closure import (
     DescriptorSpec,
@@ -74,40 +74,6 @@ _CLASS_TO_SLOT[_OBJECT_IDS] = np.arange(len(_OBJECT_IDS))
 _FLOOR = class_id("floor")
 _WALL = class_id("wall")
 _FLOOR_CEILING = (_FLOOR, class_id("ceiling"))
-
-
-@dataclass
-class Constellation:
-    """Objects seen around a keyframe, in that keyframe's frame."""
-
-    keyframe: int
-    stamp: float
-    xyz: np.ndarray  # (m, 3)
-    classes: np.ndarray  # (m,) class ids
-    descriptor: np.ndarray
-    cloud: np.ndarray  # (p, 3) semantic points of the window, keyframe frame
-    cloud_labels: np.ndarray  # (p,)
-
-
-@dataclass
-class Closure:
-    """A verified loop closure: ``Z = T_a^{-1} T_b`` between own keyframe a and peer keyframe b."""
-
-    own_kf: int
-    peer: int
-    peer_kf: int
-    Z: np.ndarray
-    inliers: int
-    own_pose: np.ndarray  # dead-reckoned poses used by PCM
-    peer_pose: np.ndarray
-    accepted: bool = False
-
-
-@dataclass
-class LoopClosureStats:
-    candidates: int = 0  # verification requests sent (inter) or attempted (intra)
-    verified: int = 0  # passed geometric verification
-    rejected_verification: int = 0
 
 
 class Agent:
@@ -469,83 +435,18 @@ class Agent:
         return []
 
     # ---- back end -------------------------------------------------------------------------
-    def _info(self, sigmas: tuple[float, float]) -> np.ndarray:
-        return np.diag(np.repeat(1.0 / np.square(sigmas), 3))
-
-    def intra_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Odometry, scan registrations and accepted intra-robot closures: ``(i, j, Z, info, is_odometry)``.
-
-        ``registration_factor="fused"``: one trusted (``is_odometry``) factor per keyframe step,
-        the registration-refined step under the odometry's information. ``"separate"``: a
-        registration factor joins the odometry factor of its step; both are trusted, its
-        information is the registration's (zero where degenerate)."""
-        n = self.num_keyframes
-        i = list(range(n - 1))
-        j = list(range(1, n))
-        fused = self.params.registration_factor == "fused"
-        Z = list(self.steps[1:] if fused else self.odometry[1:])
-        info = [self._info(self.params.odom_sigmas)] * (n - 1)
-        odo = [True] * (n - 1)
-        if self.scan_odometry is not None and not fused:
-            for k, (Zr, Ir) in sorted(self.scan_odometry.edges.items()):
-                i.append(k - 1)
-                j.append(k)
-                Z.append(Zr)
-                info.append(Ir)
-                odo.append(True)
-        for c in self.closures.get(self.robot, []):
-            if c.accepted:
-                i.append(c.own_kf)
-                j.append(c.peer_kf)
-                Z.append(c.Z)
-                info.append(self._info(self.params.closure_sigmas))
-                odo.append(False)
-        return (np.array(i, dtype=int), np.array(j, dtype=int), np.array(Z).reshape(-1, 4, 4),
-                np.array(info).reshape(-1, 6, 6), np.array(odo, dtype=bool))
+    def intra_edges(self) -> pose_graph.Edges:
+        """Odometry, scan registrations and accepted intra-robot closures: ``(i, j, Z, info, is_odometry)``
+        (:func:`.pose_graph.intra_edges`)."""
+        so = self.scan_odometry
+        return pose_graph.intra_edges(self.num_keyframes, self.steps, self.odometry, None if so is None else so.edges,
+                                      self.closures.get(self.robot, []), self.params)
 
     def local_graph(self) -> LocalGraph:
-        """What this robot contributes to distributed PGO, from its current estimate.
-
-        An inter-robot edge is the lower robot id's measurement, directed lower → higher (as in
-        the joint graph): both robots must hold the same factor. The higher robot's stored copy
-        is the inverse, and the inverse with the same (diagonal) information is a different
-        factor; with it the two block problems disagree and the distributed solve cycles.
-        """
-        i, j, Z, info, odo = self.intra_edges()
-        edges = sorted(self.inter_edges.items())
-        cinfo = self._info(self.params.closure_sigmas)
-        lower = np.array([k[1] < self.robot for k, _ in edges], dtype=bool)
-        meas = np.array([v[0] for _, v in edges]).reshape(-1, 4, 4)
-        # robust votes of correlated closures (consensus.robust.correlated_votes), in the infos;
-        # one call over intra and inter closures: votes are counted per robot pair, so they don't mix
-        own = np.array([k[0] for k, _ in edges], dtype=int)
-        peer = np.array([k[1] for k, _ in edges], dtype=int)
-        c = ~odo
-        nc = int(c.sum())
-        votes = np.ones(nc + len(edges))
-        if self.params.closure_votes:
-            votes = correlated_votes(np.full(len(votes), self.robot), np.r_[i[c], own],
-                                     np.r_[np.full(nc, self.robot), peer],
-                                     np.r_[j[c], np.array([k[2] for k, _ in edges], dtype=int)])
-        intra_vote = np.ones(len(i))
-        intra_vote[c] = votes[:nc]
-        inter_vote = votes[nc:]
-        return LocalGraph(
-            robot=self.robot,
-            keys=np.array([robot_key(self.robot, k) for k in range(self.num_keyframes)], dtype=np.int64),
-            poses=np.array(self.poses),
-            intra_i=i, intra_j=j, intra_meas=Z, intra_info=info * intra_vote[:, None, None], intra_odometry=odo,
-            intra_edge=np.arange(len(i)),
-            inter_own=own,
-            inter_own_is_i=~lower,
-            inter_peer=peer,
-            inter_peer_key=np.array([robot_key(k[1], k[2]) for k, _ in edges], dtype=np.int64),
-            inter_meas=np.where(lower[:, None, None], inverse(meas), meas),
-            inter_info=np.tile(cinfo, (len(edges), 1, 1)) * inter_vote[:, None, None],
-            inter_edge=np.arange(len(edges)),
-            robot_graph=sorted(self.robot_graph), team=self.team or (self.robot,),
-            intra_vote=intra_vote, inter_vote=inter_vote,
-        )
+        """What this robot contributes to distributed PGO, from its current estimate
+        (:func:`.pose_graph.local_graph`)."""
+        return pose_graph.local_graph(self.robot, self.team, self.poses, self.intra_edges(), self.inter_edges,
+                                      self.robot_graph, self.params)
 
     def apply_poses(self, poses: np.ndarray) -> int:
         """Adopt optimised poses of the first keyframes; re-anchor the submaps and objects that moved.

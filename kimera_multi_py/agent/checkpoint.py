@@ -73,14 +73,12 @@ LIST, TUPLE, DICT, SET, FROZENSET, NDARRAY, SCALAR, OBJECT, MODEL, REF, COUNTER 
 
 ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.agent.agent.Agent",
-    "kimera_multi_py.agent.agent.Closure",
-    "kimera_multi_py.agent.agent.Constellation",
-    "kimera_multi_py.agent.agent.LoopClosureStats",
+    "kimera_multi_py.agent.closures.Closure",
+    "kimera_multi_py.agent.closures.Constellation",
+    "kimera_multi_py.agent.closures.LoopClosureStats",
     "kimera_multi_py.agent.params.AgentParams",
     "kimera_multi_py.frontend.loop_closure.DescriptorSpec",
     "kimera_multi_py.frontend.pcm.PcmNoise",
-    "kimera_multi_py.pgo.local_graph.LocalGraph",
-    "kimera_multi_py.pgo.params.PgoParams",
     "kimera_multi_py.mapping.axes.StructureAxes",
     "kimera_multi_py.mapping.config.MappingConfig",
     "kimera_multi_py.mapping.config.ObjectMapConfig",
@@ -90,19 +88,22 @@ ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.mapping.floor.Plane",
     "kimera_multi_py.mapping.heading.HeadingReference",
     "kimera_multi_py.mapping.heading.HeadingStats",
-    "kimera_multi_py.mapping.objects.Landmark",
+    "kimera_multi_py.mapping.landmark.Landmark",
     "kimera_multi_py.mapping.objects.ObjectMap",
+    "kimera_multi_py.mapping.observation.ObservationModel",
+    "kimera_multi_py.mapping.octree_block.OctreeBlock",
     "kimera_multi_py.mapping.registration.ScanRegistration",
     "kimera_multi_py.mapping.scan_odometry.ScanOdometry",
     "kimera_multi_py.mapping.scan_odometry.ScanOdometryStats",
-    "kimera_multi_py.mapping.semantic_octree.ObservationModel",
     "kimera_multi_py.mapping.semantic_octree.SemanticOctree",
-    "kimera_multi_py.mapping.semantic_octree._Block",
     "kimera_multi_py.mapping.submaps.Submap",
     "kimera_multi_py.mapping.submaps.SubmapMap",
     "kimera_multi_py.mapping.submaps._CellStore",
+    "kimera_multi_py.pgo.local_graph.LocalGraph",
+    "kimera_multi_py.pgo.params.PgoParams",
 })
-# Classes that moved (the package split by concern; AgentParams to its own module): older files still load.
+# Classes that moved when the package was split by concern (and when its largest modules were
+# split by concept): files written before still load.
 RENAMED_CLASSES: dict[str, str] = {
     "kimera_multi_py.agent.agent.AgentParams": "kimera_multi_py.agent.params.AgentParams",
     "kimera_multi_py.agent.loop_closure.DescriptorSpec": "kimera_multi_py.frontend.loop_closure.DescriptorSpec",
@@ -110,6 +111,12 @@ RENAMED_CLASSES: dict[str, str] = {
     "kimera_multi_py.consensus.pgo.LocalGraph": "kimera_multi_py.pgo.local_graph.LocalGraph",
     "kimera_multi_py.consensus.pgo.PgoParams": "kimera_multi_py.pgo.params.PgoParams",
     "kimera_multi_py.consensus.pgo_params.PgoParams": "kimera_multi_py.pgo.params.PgoParams",
+    "kimera_multi_py.agent.agent.Closure": "kimera_multi_py.agent.closures.Closure",
+    "kimera_multi_py.agent.agent.Constellation": "kimera_multi_py.agent.closures.Constellation",
+    "kimera_multi_py.agent.agent.LoopClosureStats": "kimera_multi_py.agent.closures.LoopClosureStats",
+    "kimera_multi_py.mapping.objects.Landmark": "kimera_multi_py.mapping.landmark.Landmark",
+    "kimera_multi_py.mapping.semantic_octree.ObservationModel": "kimera_multi_py.mapping.observation.ObservationModel",
+    "kimera_multi_py.mapping.semantic_octree._Block": "kimera_multi_py.mapping.octree_block.OctreeBlock",
 }
 _ARRAY_KINDS = "biuf"  # bool, signed, unsigned, float: nothing that could hold a Python object
 

@@ -34,18 +34,18 @@ import networkx as nx
 
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.bus import Bus, BusClosedError, Closeable, PresenceEvent, Stream, Subscription
-from kimera_multi_py.comms.messages import (
-    AgentState,
+from kimera_multi_py.comms.bus import Bus, Closeable, PresenceEvent, Subscription
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.closures import (
     KeyframeDescriptor,
     LoopClosureReply,
     LoopClosureRequest,
     LoopClosures,
     LoopClosuresAck,
-    Message,
-    PgoEpoch,
-    PublicPoses,
 )
+from kimera_multi_py.comms.messages.pgo import PublicPoses
+from kimera_multi_py.comms.messages.team import AgentState, PgoEpoch
+from kimera_multi_py.comms.stream import BusClosedError, Stream
 from kimera_multi_py.core.errors import KimeraMultiError
 from kimera_multi_py.core.ids import MAX_AGENT_ID
 from kimera_multi_py.core.keyframe import KeyframeInput

@@ -47,16 +47,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.bus import (
-    Bus,
-    BusClosedError,
-    PresenceEvent,
-    Stream,
-    Subscription,
-    TopicCount,
-    TrafficCounters,
-)
+from kimera_multi_py.comms.bus import Bus, PresenceEvent, Subscription
 from kimera_multi_py.comms.codec import Codec, CodecError, Envelope, decode, encode
+from kimera_multi_py.comms.counters import TopicCount, TrafficCounters
 from kimera_multi_py.comms.loopback import (
     Faults,
     FaultStats,
@@ -64,25 +57,19 @@ from kimera_multi_py.comms.loopback import (
     LoopbackNetwork,
     Partition,
 )
-from kimera_multi_py.comms.messages import (
-    MESSAGE_TYPES,
-    SCHEMA_VERSION,
-    FrameLandmarks,
-    GncWeights,
-    Heartbeat,
+from kimera_multi_py.comms.messages import MESSAGE_TYPES, SCHEMA_VERSION
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.closures import (
     KeyframeDescriptor,
     LoopClosureReply,
     LoopClosureRequest,
     LoopClosures,
     LoopClosuresAck,
-    MapDelta,
-    Message,
-    ObjectUpdate,
-    PgoCommand,
-    PgoStatus,
-    Ping,
-    PublicPoses,
 )
+from kimera_multi_py.comms.messages.maps import MapDelta, ObjectUpdate
+from kimera_multi_py.comms.messages.pgo import FrameLandmarks, GncWeights, PgoCommand, PgoStatus, PublicPoses
+from kimera_multi_py.comms.messages.team import Heartbeat, Ping
+from kimera_multi_py.comms.stream import BusClosedError, Stream
 
 if TYPE_CHECKING:
     from kimera_multi_py.comms.zenoh_bus import ZenohBus as ZenohBus

@@ -1,9 +1,10 @@
-"""The async Bus Protocol, and the pieces both implementations share.
+"""The async Bus Protocol, and the bookkeeping both implementations share (:class:`BusBase`).
 
 A bus belongs to one robot of one team. It publishes and receives typed messages
 (:mod:`kimera_multi_py.comms.messages`) on key expressions (:mod:`kimera_multi_py.comms.keys`),
 serves and sends queries for large data, holds a presence token and tracks peers, and counts
-bytes and messages per topic. :class:`~kimera_multi_py.comms.loopback.LoopbackBus` and
+bytes and messages per topic (:mod:`.counters`); what it receives arrives on streams
+(:mod:`.stream`). :class:`~kimera_multi_py.comms.loopback.LoopbackBus` and
 :class:`~kimera_multi_py.comms.zenoh_bus.ZenohBus` implement it.
 
 Received bytes are decoded and validated on the asyncio thread (:meth:`BusBase.accept`):
@@ -17,216 +18,22 @@ from __future__ import annotations
 import asyncio
 import inspect
 import logging
-import threading
-from collections import deque
-from collections.abc import AsyncIterator, Awaitable, Callable, Collection, Iterable
+from collections.abc import Awaitable, Callable, Collection, Iterable
 from dataclasses import dataclass
-from typing import Any, Generic, Protocol, TypeVar, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec, CodecError, Envelope, Group
-from kimera_multi_py.comms.messages import Message
-from kimera_multi_py.core.errors import KimeraMultiError, MessageError
+from kimera_multi_py.comms.counters import TrafficCounters, share_range
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.stream import DEFAULT_QUEUE_SIZE, BusClosedError, Stream
+from kimera_multi_py.core.errors import MessageError
 
 log = logging.getLogger(__name__)
-
-DEFAULT_QUEUE_SIZE = 10_000
 
 Reply = Message | Iterable[Message] | None
 Handler = Callable[[str, Message | None], Awaitable[Reply] | Reply]
 """A queryable handler: ``(key, request or None) -> reply message(s) or None``; sync or async."""
-
-
-class BusClosedError(KimeraMultiError):
-    """An operation was attempted on a closed bus."""
-
-
-# ---------------------------------------------------------------------------- counters
-@dataclass
-class TopicCount:
-    """Messages and payload bytes for one topic."""
-
-    messages: int = 0
-    bytes: int = 0
-
-
-class TrafficCounters:
-    """Per-topic sent/received counters and drop counts by reason. Thread-safe.
-
-    Topics are labels from :func:`keys.topic_label` (``pgo/public_poses``, ``keyframe``, ...).
-    Byte counts are encoded payload sizes (what goes on the wire, before transport framing). A
-    batch payload (several messages in one put, see :func:`share`) is split evenly between its
-    messages, so per-topic byte totals are exactly the payload bytes on the wire.
-    """
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self.sent: dict[str, TopicCount] = {}
-        self.received: dict[str, TopicCount] = {}
-        self.dropped: dict[str, int] = {}
-
-    def count_sent(self, key: str, nbytes: int, messages: int = 1) -> None:
-        self._add(self.sent, key, nbytes, messages)
-
-    def count_received(self, key: str, nbytes: int, messages: int = 1) -> None:
-        self._add(self.received, key, nbytes, messages)
-
-    def count_dropped(self, reason: str) -> None:
-        with self._lock:
-            self.dropped[reason] = self.dropped.get(reason, 0) + 1
-
-    def _add(self, table: dict[str, TopicCount], key: str, nbytes: int, messages: int) -> None:
-        label = _topic_label(key)
-        with self._lock:
-            c = table.get(label)
-            if c is None:
-                c = table[label] = TopicCount()
-            c.messages += messages
-            c.bytes += nbytes
-
-    def total(self, direction: str = "sent") -> TopicCount:
-        """Sum over topics of ``"sent"`` or ``"received"``."""
-        table = self.sent if direction == "sent" else self.received
-        with self._lock:
-            return TopicCount(
-                sum(c.messages for c in table.values()), sum(c.bytes for c in table.values())
-            )
-
-    def snapshot(self) -> dict[str, Any]:
-        """A JSON-ready copy: ``{"sent": {topic: {messages, bytes}}, "received", "dropped"}``."""
-        with self._lock:
-            return {
-                "sent": _table(self.sent),
-                "received": _table(self.received),
-                "dropped": dict(self.dropped),
-            }
-
-
-_topic_label = keys.topic_label
-
-
-def share(nbytes: int, n: int, i: int) -> int:
-    """Message ``i``'s share of a payload of ``nbytes`` carrying ``n`` messages (sums exactly)."""
-    return nbytes // n + (i < nbytes % n)
-
-
-def share_range(nbytes: int, n: int, i: int, k: int) -> int:
-    """``sum(share(nbytes, n, j) for j in range(i, i + k))`` in O(1)."""
-    r = nbytes % n
-    return k * (nbytes // n) + max(0, min(i + k, r) - i)
-
-
-def _table(table: dict[str, TopicCount]) -> dict[str, dict[str, int]]:
-    return {k: {"messages": c.messages, "bytes": c.bytes} for k, c in table.items()}
-
-
-# ---------------------------------------------------------------------------- streams
-T = TypeVar("T")
-
-
-class Stream(Generic[T]):
-    """An async iterator over items pushed from the bus (on the event-loop thread).
-
-    ``push`` never blocks: when ``maxsize`` items are pending the new one is dropped and
-    counted. Iteration ends when the stream (or its bus) is closed; pending items are discarded.
-    Use as ``async with`` to close. (A deque plus waiter futures: cheaper than asyncio.Queue.)
-    """
-
-    def __init__(
-        self,
-        maxsize: int = DEFAULT_QUEUE_SIZE,
-        on_close: Callable[[Stream[T]], None] | None = None,
-        on_overflow: Callable[[], None] | None = None,
-    ) -> None:
-        self._items: deque[T] = deque()
-        self._waiters: deque[asyncio.Future[None]] = deque()
-        self._maxsize = maxsize
-        self._on_close = on_close
-        self._on_overflow = on_overflow
-        self.closed = False
-
-    def push(self, item: T) -> None:
-        if self.closed:
-            return
-        if len(self._items) >= self._maxsize:
-            if self._on_overflow is not None:
-                self._on_overflow()
-            return
-        self._items.append(item)
-        self._wake()
-
-    def _wake(self) -> None:
-        while self._waiters:
-            waiter = self._waiters.popleft()
-            if not waiter.done():
-                waiter.set_result(None)
-                return
-
-    async def recv(self, timeout: float | None = None) -> T:
-        """The next item; ``TimeoutError`` after ``timeout`` s, ``BusClosedError`` once closed."""
-        if self._items:
-            return self._items.popleft()
-        loop = asyncio.get_running_loop()
-        deadline = None if timeout is None else loop.time() + timeout
-        while not self._items:
-            if self.closed:
-                raise BusClosedError("stream closed")
-            waiter: asyncio.Future[None] = loop.create_future()
-            self._waiters.append(waiter)
-            timer = None
-            if deadline is not None:
-                timer = loop.call_at(deadline, _expire, waiter, timeout)
-            try:
-                await waiter
-            except BaseException:
-                if self._items:  # we were woken for an item but leave: pass the wake-up on
-                    self._wake()
-                raise
-            finally:
-                if timer is not None:
-                    timer.cancel()
-        return self._items.popleft()
-
-    def __aiter__(self) -> AsyncIterator[T]:
-        return self
-
-    async def __anext__(self) -> T:
-        try:
-            return await self.recv()
-        except BusClosedError:
-            raise StopAsyncIteration from None
-
-    def pending(self) -> int:
-        """Items queued and not yet consumed."""
-        return len(self._items)
-
-    def try_recv(self) -> T | None:
-        """The next queued item without waiting, or None when nothing is queued (or closed)."""
-        return self._items.popleft() if self._items else None
-
-    def close(self) -> None:
-        """Stop the stream: pending and future iterations end. Idempotent."""
-        if self.closed:
-            return
-        self.closed = True
-        self._items.clear()
-        while self._waiters:
-            waiter = self._waiters.popleft()
-            if not waiter.done():
-                waiter.set_result(None)
-        if self._on_close is not None:
-            self._on_close(self)
-
-    async def __aenter__(self) -> Stream[T]:
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        self.close()
-
-
-def _expire(waiter: asyncio.Future[None], timeout: float | None) -> None:
-    if not waiter.done():
-        waiter.set_exception(TimeoutError(f"nothing received within {timeout} s"))
 
 
 class Subscription(Stream[Message]):

@@ -34,13 +34,9 @@ import numpy as np
 from kimera_multi_py.comms import largemsg
 from kimera_multi_py.comms.columnar import BATCH_TYPE, from_columns, to_columns
 from kimera_multi_py.comms.keys import check_team
-from kimera_multi_py.comms.messages import (
-    INT64_MAX,
-    MESSAGE_TYPES,
-    SCHEMA_VERSION,
-    Message,
-    message_type,
-)
+from kimera_multi_py.comms.messages import MESSAGE_TYPES, SCHEMA_VERSION, message_type
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.fields import INT64_MAX
 from kimera_multi_py.comms.wire import (
     CodecError,
     _ext_hook,

@@ -31,17 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import (
-    INT64_MAX,
-    INT64_MIN,
-    MESSAGE_TYPES,
-    Array,
-    Bool,
-    Float,
-    Int,
-    Message,
-    Str,
-)
+from kimera_multi_py.comms.messages import MESSAGE_TYPES
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.fields import INT64_MAX, INT64_MIN, Array, Bool, Float, Int, Str
 from kimera_multi_py.comms.wire import CodecError
 from kimera_multi_py.core.errors import MessageError
 

@@ -18,7 +18,7 @@ import msgpack
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec
-from kimera_multi_py.comms.messages import Message
+from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.samples import all_random_messages
 
 _BAD_VALUES: tuple[object, ...] = (None, -1, 2**63, "x" * 70, 1.5, float("nan"), [], {})

@@ -34,14 +34,9 @@ from collections.abc import Callable, Collection, Iterable
 from dataclasses import dataclass, field, fields
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.bus import (
-    DEFAULT_QUEUE_SIZE,
-    BusBase,
-    Handler,
-    Stream,
-    Subscription,
-)
-from kimera_multi_py.comms.messages import Message
+from kimera_multi_py.comms.bus import BusBase, Handler, Subscription
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.stream import DEFAULT_QUEUE_SIZE, Stream
 from kimera_multi_py.core.errors import ConfigError, MessageError
 
 log = logging.getLogger(__name__)

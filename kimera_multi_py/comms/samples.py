@@ -7,15 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import (
-    MESSAGE_TYPES,
-    Array,
-    Bool,
-    Float,
-    Int,
-    Message,
-    Str,
-)
+from kimera_multi_py.comms.messages import MESSAGE_TYPES
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.fields import Array, Bool, Float, Int, Str
 
 
 def random_message(

@@ -44,9 +44,11 @@ from typing import Any
 import zenoh
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.bus import DEFAULT_QUEUE_SIZE, BusBase, Handler, Stream, Subscription
+from kimera_multi_py.comms.bus import BusBase, Handler, Subscription
 from kimera_multi_py.comms.codec import MAX_BATCH, batch_header
-from kimera_multi_py.comms.messages import MESSAGE_TYPES, Message
+from kimera_multi_py.comms.messages import MESSAGE_TYPES
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.stream import DEFAULT_QUEUE_SIZE, Stream
 from kimera_multi_py.core.errors import ConfigError, MessageError
 
 log = logging.getLogger(__name__)

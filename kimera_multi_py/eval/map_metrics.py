@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.mapping.semantic_octree import SCALE
+from kimera_multi_py.mapping.observation import SCALE
 from kimera_multi_py.mapshare.fusion import union_sorted
 
 Cells = tuple[np.ndarray, np.ndarray]

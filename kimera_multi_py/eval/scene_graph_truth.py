@@ -15,7 +15,8 @@ from scipy.sparse.csgraph import connected_components
 
 from kimera_multi_py.core.semantics import NUM_CLASSES
 from kimera_multi_py.mapping import morton
-from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
+from kimera_multi_py.mapping.observation import SCALE
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.world import World
 

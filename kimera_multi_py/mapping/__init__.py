@@ -6,9 +6,12 @@
 - :class:`ObjectMap` -- object landmarks from per-keyframe clusters and Hungarian association.
 """
 
-from kimera_multi_py.mapping.objects import Detection, Landmark, ObjectMap, detect_objects
+from kimera_multi_py.mapping.detection import Detection, detect_objects
+from kimera_multi_py.mapping.landmark import Landmark
+from kimera_multi_py.mapping.objects import ObjectMap
+from kimera_multi_py.mapping.observation import SCALE, ObservationModel
 from kimera_multi_py.mapping.raycast import ScanCells, scan_cells
-from kimera_multi_py.mapping.semantic_octree import SCALE, Leaves, ObservationModel, SemanticOctree
+from kimera_multi_py.mapping.semantic_octree import Leaves, SemanticOctree
 from kimera_multi_py.mapping.submaps import Submap, SubmapMap
 
 __all__ = [

@@ -1,53 +1,36 @@
-"""Object map: per-keyframe detections, Hungarian data association and landmarks (docs/algorithms/mapping.md).
+"""Object map: per-keyframe detections associated with landmarks (docs/algorithms/mapping.md).
 
-Detections
-    Euclidean clusters of the end points of one keyframe that share an object class
-    (structure and dynamic classes are not objects), linked at ``cluster_radius`` (about two
-    voxels) through *core* points, points with ``min_core`` neighbours (DBSCAN's rule), so a
-    few mislabelled points cannot chain two objects together. A cluster needs ``min_points``
-    points and must hold at least ``min_purity`` of all the points in the voxels it covers:
-    label noise on a large, densely sampled surface can form clusters, but it is always a
-    small minority where it lies.
-
-Association
-    Detections and landmarks are compatible when the landmark gives the detection's class a
-    posterior probability of at least ``min_class_prob``, and gated when their centroids are
-    within ``gate_distance`` or their boxes overlap (a partial view of a long table has a
-    centroid far from the table's). The assignment minimises the total centroid distance
-    (``scipy.optimize.linear_sum_assignment``). A detection left over that still gates with a
-    matched landmark is a second fragment of it and is absorbed; any other starts a tentative
-    landmark, which is confirmed after ``confirm_after`` sightings. Same-class landmarks are
-    merged when their boxes overlap strongly or one detection spans both, and, on request
-    (:meth:`ObjectMap.merge_fragments`), when the map shows that only unseen or occupied space
-    separates them (an object split by an occluder in every view).
-
-Landmarks
-    Each keeps a Dirichlet class posterior, a running centroid of its points, the voxels its
-    points fell in with hit counts, and its number of observations. Its box is the extent of
-    the voxels hit at least ``min_voxel_hits`` times (one-off mislabelled points do not grow
-    it), and its ``position`` is the box centre: surface points are biased toward the sides
-    that were seen, the union of views is not. The box is upright and aligned with the walls'
-    axes (:mod:`.axes`, estimated from the structure points of the same keyframes), or with
-    its submap's reference frame while the map has no clear walls. Geometry is stored in the
-    reference frame of the submap the landmark was created in, so it re-anchors exactly when
-    that submap moves.
+Detections (:mod:`.detection`) are clusters of the same-class end points of one keyframe;
+landmarks (:mod:`.landmark`) hold one object's evidence in its submap's reference frame.
+Detections and landmarks are compatible when the landmark gives the detection's class a
+posterior probability of at least ``min_class_prob``, and gated when their centroids are
+within ``gate_distance`` or their boxes overlap (a partial view of a long table has a
+centroid far from the table's). The assignment minimises the total centroid distance
+(``scipy.optimize.linear_sum_assignment``). A detection left over that still gates with a
+matched landmark is a second fragment of it and is absorbed; any other starts a tentative
+landmark, which is confirmed after ``confirm_after`` sightings. Same-class landmarks are
+merged when their boxes overlap strongly or one detection spans both, and, on request
+(:meth:`ObjectMap.merge_fragments`), when the map shows that only unseen or occupied space
+separates them (an object split by an occluder in every view). The walls' axes that orient
+the landmarks' boxes (:mod:`.axes`) are estimated from the structure points of the same
+keyframes.
 """
+
 from __future__ import annotations
 
 import logging
 from collections.abc import Iterable
-from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from kimera_multi_py.core.geometry import inverse, so3_exp, transform_points
+from kimera_multi_py.core.geometry import inverse, transform_points
 from kimera_multi_py.core.semantics import CLASS_NAMES, MAX_OBJECT_EXTENT
 from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.axes import StructureAxes
+from kimera_multi_py.mapping.detection import Detection, detect_objects
+from kimera_multi_py.mapping.landmark import Landmark
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 
 log = logging.getLogger(__name__)
@@ -62,209 +45,6 @@ def _max_extent(labels: np.ndarray) -> np.ndarray:
         table[CLASS_NAMES.index(name)] = ext
     return table[np.asarray(labels, dtype=int)]
 
-
-@dataclass
-class Detection:
-    """One cluster of same-class end points from one keyframe (world frame)."""
-
-    label: int
-    points: np.ndarray  # (n, 3)
-    centroid: np.ndarray  # (3,)
-    box_min: np.ndarray  # (3,)
-    box_max: np.ndarray  # (3,)
-
-    @property
-    def num_points(self) -> int:
-        return len(self.points)
-
-
-def _core_clusters(P: np.ndarray, radius: float, min_core: int) -> np.ndarray:
-    """Cluster id per point (-1 for noise): single linkage over *core* points only.
-
-    A core point has at least ``min_core`` neighbours within ``radius``; other points join
-    the cluster of a core neighbour. Isolated mislabelled points therefore cannot chain two
-    objects together (DBSCAN's rule).
-    """
-    n = len(P)
-    pairs = cKDTree(P).query_pairs(radius, output_type="ndarray")
-    degree = np.bincount(pairs.ravel(), minlength=n)
-    core = degree >= min_core
-    both = core[pairs[:, 0]] & core[pairs[:, 1]]
-    cp = pairs[both]
-    graph = coo_matrix((np.ones(len(cp)), (cp[:, 0], cp[:, 1])), shape=(n, n))
-    _, comp = connected_components(graph, directed=False)
-    out = np.where(core, comp, -1)
-    # border points take the cluster of a core neighbour
-    border = pairs[core[pairs[:, 0]] ^ core[pairs[:, 1]]]
-    src = np.where(core[border[:, 0]], border[:, 0], border[:, 1])
-    dst = np.where(core[border[:, 0]], border[:, 1], border[:, 0])
-    out[dst] = comp[src]
-    # relabel to 0..m-1
-    valid = out >= 0
-    _, out[valid] = np.unique(out[valid], return_inverse=True)
-    return out
-
-
-def detect_objects(
-    points: np.ndarray,
-    labels: np.ndarray,
-    object_classes: Iterable[int],
-    cluster_radius: float,
-    min_points: int = 8,
-    min_purity: float = 0.5,
-    purity_voxel: float | None = None,
-    min_core: int = 3,
-) -> list[Detection]:
-    """Euclidean clusters of same-class points, one detection per cluster of ``min_points``+.
-
-    Clustering links points within ``cluster_radius`` through core points (points with
-    ``min_core`` neighbours), so sparse label noise cannot bridge two objects.
-
-    A cluster is kept only if its class holds at least ``min_purity`` of all the points
-    (any class) in the voxels (edge ``purity_voxel``, default ``cluster_radius / 2``) it
-    occupies: label noise on a large surface chains into clusters at high point densities,
-    but it is always a small minority where it lies.
-    """
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    lab = np.asarray(labels).reshape(-1).astype(np.int64)
-    if len(pts) != len(lab):
-        raise ValueError(f"{len(pts)} points but {len(lab)} labels")
-    ok = np.all(np.isfinite(pts), axis=1)
-    pts, lab = pts[ok], lab[ok]
-    classes = np.array(sorted({int(x) for x in object_classes}), dtype=np.int64)
-    sel = np.isin(lab, classes)
-    if sel.sum() < min_points:
-        return []
-    P, L = pts[sel], lab[sel]
-    # one clustering for all classes: classes are moved far apart along x
-    comp = _core_clusters(
-        P + (L * 1.0e4)[:, None] * np.array([1.0, 0.0, 0.0]), cluster_radius, min_core
-    )
-    keep = comp >= 0
-    P, L, comp = P[keep], L[keep], comp[keep]
-    if len(P) == 0:
-        return []
-    order = np.argsort(comp, kind="stable")
-    P, L, comp = P[order], L[order], comp[order]
-    sizes = np.bincount(comp)
-    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    mins = np.minimum.reduceat(P, starts, axis=0)
-    maxs = np.maximum.reduceat(P, starts, axis=0)
-    sums = np.add.reduceat(P, starts, axis=0)
-    # purity: the cluster's points over all points in the voxels it occupies
-    voxel = cluster_radius / 2 if purity_voxel is None else purity_voxel
-    vox, vox_count = np.unique(morton.points_to_codes(pts, voxel), return_counts=True)
-    cells = np.unique(np.stack([comp, morton.points_to_codes(P, voxel)], axis=1), axis=0)
-    total = np.bincount(
-        cells[:, 0], weights=vox_count[np.searchsorted(vox, cells[:, 1])], minlength=len(sizes)
-    )
-    good = (sizes >= min_points) & (sizes >= min_purity * total)
-    return [
-        Detection(
-            int(L[starts[k]]),
-            P[starts[k] : starts[k] + sizes[k]],
-            sums[k] / sizes[k],
-            mins[k],
-            maxs[k],
-        )
-        for k in np.flatnonzero(good)
-    ]
-
-
-@dataclass
-class Landmark:
-    """An object landmark; geometry is kept in its anchor submap's reference frame."""
-
-    id: int
-    submap: int
-    class_counts: np.ndarray  # (K+1,) Dirichlet counts (prior included)
-    point_sum: np.ndarray  # (3,) sum of observed points, reference frame
-    num_points: int
-    voxels: np.ndarray  # sorted voxel codes hit, reference frame
-    voxel_hits: np.ndarray  # hits per voxel
-    num_observations: int = 1
-    first_seen: int = 0
-    last_seen: int = 0
-    confirmed: bool = False
-    T_world_ref: np.ndarray = field(default_factory=lambda: np.eye(4))
-    resolution: float = 0.1
-    min_voxel_hits: int = 2
-    axes_yaw: float | None = None  # world heading of the box's axes; None: the reference frame's
-    _cache: dict[str, object] = field(default_factory=dict, repr=False, compare=False)
-
-    def invalidate(self) -> None:
-        """Forget cached derived values after the landmark changed or moved."""
-        self._cache.clear()
-
-    @property
-    def label(self) -> int:
-        if "label" not in self._cache:
-            self._cache["label"] = int(np.argmax(self.class_counts))
-        return self._cache["label"]  # type: ignore[return-value]
-
-    @property
-    def posterior(self) -> np.ndarray:
-        """Class PMF (Dirichlet mean)."""
-        return self.class_counts / self.class_counts.sum()
-
-    @property
-    def centroid(self) -> np.ndarray:
-        """Running centroid of the observed points (world frame)."""
-        return transform_points(self.T_world_ref, (self.point_sum / self.num_points)[None])[0]
-
-    def supported_centers(self) -> np.ndarray:
-        """Reference-frame centres of the voxels hit at least ``min_voxel_hits`` times (all
-        voxels while none is)."""
-        keep = self.voxel_hits >= self.min_voxel_hits
-        codes = self.voxels[keep] if keep.any() else self.voxels
-        return morton.node_centers(codes, np.zeros(len(codes), np.int8), self.resolution)
-
-    def box(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Oriented box in the world, ``(center, size, R)``: the extent of the centres of the
-        well-supported voxels along the box's axes (upright at ``axes_yaw``, or the reference
-        frame's), one voxel wider."""
-        if "box" not in self._cache:
-            c = self.supported_centers()
-            if self.axes_yaw is None:
-                R, q, t = self.T_world_ref[:3, :3].copy(), c, self.T_world_ref[:3, 3]
-            else:
-                R, t = so3_exp(np.array([0.0, 0.0, self.axes_yaw])), np.zeros(3)
-                q = transform_points(self.T_world_ref, c) @ R  # coordinates along the axes
-            lo, hi = q.min(0), q.max(0)
-            self._cache["box"] = (R @ ((lo + hi) / 2) + t, hi - lo + self.resolution, R)
-        return self._cache["box"]  # type: ignore[return-value]
-
-    @property
-    def position(self) -> np.ndarray:
-        """Centre of the landmark's box (world frame): the object's position estimate."""
-        return self.box()[0].copy()
-
-    def ref_aabb(self) -> tuple[np.ndarray, np.ndarray]:
-        """World bounds of the box in the landmark's reference axes. Association, merging and
-        place descriptors use it (and :attr:`ref_position`), not the walls' axes: an estimate
-        of the axes that moves never changes which detections are one object or which places
-        look alike, so the front end does not depend on it."""
-        if "ref_aabb" not in self._cache:
-            c = self.supported_centers()
-            lo, hi = c.min(0), c.max(0)
-            center = transform_points(self.T_world_ref, ((lo + hi) / 2)[None])[0]
-            ext = np.abs(self.T_world_ref[:3, :3]) @ ((hi - lo + self.resolution) / 2)
-            self._cache["ref_aabb"] = (center - ext, center + ext)
-        return self._cache["ref_aabb"]  # type: ignore[return-value]
-
-    @property
-    def ref_position(self) -> np.ndarray:
-        """Centre of :meth:`ref_aabb` (world frame)."""
-        lo, hi = self.ref_aabb()
-        return (lo + hi) / 2
-
-    def aabb(self) -> tuple[np.ndarray, np.ndarray]:
-        """World axis-aligned bounds of the oriented box."""
-        if "aabb" not in self._cache:
-            center, size, R = self.box()
-            ext = np.abs(R) @ (size / 2)
-            self._cache["aabb"] = (center - ext, center + ext)
-        return self._cache["aabb"]  # type: ignore[return-value]
 
 
 class ObjectMap:
@@ -396,7 +176,7 @@ class ObjectMap:
                 assigned[int(r)] = ids[int(c)]
         matched_cols = sorted({ids.index(v) for v in assigned.values()})
         touched: list[int] = []
-        self._merged_into: dict[int, int] = {}
+        self._merged_into = {}
         for i, det in enumerate(detections):
             if i in assigned:
                 lid = assigned[i]

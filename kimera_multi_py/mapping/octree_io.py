@@ -32,12 +32,9 @@ import numpy as np
 
 from kimera_multi_py.core.errors import MapError
 from kimera_multi_py.mapping import morton
-from kimera_multi_py.mapping.semantic_octree import (
-    PRUNE_MAX_LEVEL,
-    SCALE,
-    SemanticOctree,
-    occupied_mask,
-)
+from kimera_multi_py.mapping.observation import SCALE, occupied_mask
+from kimera_multi_py.mapping.octree_block import PRUNE_MAX_LEVEL
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 
 log = logging.getLogger(__name__)
 

@@ -30,8 +30,10 @@ free cell in front of it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from kimera_multi_py.mapping import morton
 
@@ -100,22 +102,22 @@ def _mark_axis_crossings(
         cnt = counts[s:e]
         m = int(cum[e - 1] - (cum[s - 1] if s else 0))
         first = (np.cumsum(cnt) - cnt).astype(np.int32)
-        j = np.arange(m, dtype=itype)
+        j: np.ndarray = np.arange(m, dtype=itype)
         j -= np.repeat(first, cnt)
         jf = j.astype(np.float32)
-        ub = np.repeat(B1[s:e], cnt)
+        ub: npt.NDArray[np.float32] = np.repeat(B1[s:e], cnt)
         ub *= jf
         ub += np.repeat(B0[s:e], cnt)
-        uc = np.repeat(C1[s:e], cnt)
+        uc: npt.NDArray[np.float32] = np.repeat(C1[s:e], cnt)
         uc *= jf
         uc += np.repeat(C0[s:e], cnt)
         lin = np.repeat(A1[s:e], cnt)
         lin *= j
         lin += np.repeat(A0[s:e], cnt)
-        ib = ub.astype(itype)
+        ib: npt.NDArray[np.signedinteger[Any]] = ub.astype(itype)
         ib *= sb
         lin += ib
-        ic = uc.astype(itype)
+        ic: npt.NDArray[np.signedinteger[Any]] = uc.astype(itype)
         if sc != 1:
             ic *= sc
         lin += ic

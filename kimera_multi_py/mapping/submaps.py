@@ -22,7 +22,8 @@ import numpy as np
 
 from kimera_multi_py.core.geometry import inverse, transform_points
 from kimera_multi_py.mapping import morton
-from kimera_multi_py.mapping.semantic_octree import _BLOCK_SHIFT, SemanticOctree
+from kimera_multi_py.mapping.octree_block import BLOCK_SHIFT
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 
 log = logging.getLogger(__name__)
 
@@ -256,7 +257,7 @@ class _CellStore:
         self, codes: np.ndarray, rows: np.ndarray, support: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Add at sorted unique codes; returns touched live codes, their rows, and dead codes."""
-        bids = codes >> _BLOCK_SHIFT
+        bids = codes >> BLOCK_SHIFT
         cuts = np.flatnonzero(bids[1:] != bids[:-1]) + 1
         bounds = [0, *cuts.tolist(), len(codes)]
         live, live_rows, dead = [], [], []

@@ -42,14 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import (
-    MapState,
-    MapVersions,
-    Message,
-    RoamMap,
-    SubmapEvidence,
-    SubmapPoses,
-)
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.maps import MapState, MapVersions, RoamMap, SubmapEvidence, SubmapPoses
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.mapping.submaps import SubmapMap

@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 from kimera_multi_py.comms import codec
-from kimera_multi_py.comms.messages import Message
+from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.mapshare.consensus import MapConsensus
 
 Links = Mapping[int, set[int]]

@@ -1,4 +1,5 @@
-"""Submap evidence fused into a team map, per robot and centralised (docs/algorithms/map_consensus.md).
+"""Fusion of submap evidence into a team map: incremental (per robot) and centralised
+(docs/algorithms/map_consensus.md).
 
 A *record* is one submap of one robot: its reference pose ``T_ref`` (where its voxel grid was
 laid down), its current pose ``T`` and its integer evidence ``dh`` (fixed-point rows, column 0

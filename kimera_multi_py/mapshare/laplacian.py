@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import MapState
+from kimera_multi_py.comms.messages.maps import MapState
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.mapping.submaps import SubmapMap
 from kimera_multi_py.mapshare.fusion import union_sorted

@@ -1,9 +1,9 @@
 """Object sharing: one robot's pure step towards the team's object map (docs/algorithms/map_consensus.md, objects).
 
 Every robot publishes a versioned table of its confirmed object landmarks
-(:class:`~kimera_multi_py.comms.messages.ObjectUpdate`), each object anchored in one of its
+(:class:`~kimera_multi_py.comms.messages.maps.ObjectUpdate`), each object anchored in one of its
 submaps with its box in that submap's reference frame. Where a submap is comes from the map
-consensus's pose tables (:class:`~kimera_multi_py.comms.messages.SubmapPoses`), so a PGO
+consensus's pose tables (:class:`~kimera_multi_py.comms.messages.maps.SubmapPoses`), so a PGO
 correction moves every robot's copy of the objects exactly, and only a changed table travels.
 
 Tables spread by flooding: a robot publishes a table (its own, or a neighbour's newer one) once
@@ -25,11 +25,12 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import Message, ObjectUpdate, SubmapPoses
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.maps import ObjectUpdate, SubmapPoses
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.geometry import inverse, transform_points
+from kimera_multi_py.mapping.landmark import Landmark
 from kimera_multi_py.mapping.object_fusion import fuse_objects, team_id
-from kimera_multi_py.mapping.objects import Landmark
 
 OBJECT_MESSAGES = (ObjectUpdate,)
 

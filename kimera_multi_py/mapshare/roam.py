@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import RoamMap
+from kimera_multi_py.comms.messages.maps import RoamMap
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.mapping.submaps import SubmapMap

@@ -40,7 +40,8 @@ import gtsam
 import numpy as np
 
 from kimera_multi_py.alignment.map_check import MapAgreement
-from kimera_multi_py.comms.messages import GncWeights, Message, PgoCommand, PgoStatus, PublicPoses
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.pgo import GncWeights, PgoCommand, PgoStatus, PublicPoses
 from kimera_multi_py.core.geometry import to_gtsam
 from kimera_multi_py.core.robust import GncSchedule, tls_threshold
 from kimera_multi_py.pgo.chordal import edge_weights
@@ -86,7 +87,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         self.published = self.poses.copy()  # what neighbours see (extrapolated)
         self.aligned = self.root
         # the frame rests on the root or on >= align_min_places places of settled peers' poses
-        # (see :class:`kimera_multi_py.comms.messages.PublicPoses`); peers' flags, by robot, as last heard
+        # (see :class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`); peers' flags, by robot, as last heard
         self.settled = self.root
         self.peer_settled: dict[int, bool] = {}
         self.neighbour_poses: dict[int, np.ndarray] = {}

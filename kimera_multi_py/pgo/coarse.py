@@ -130,17 +130,18 @@ class CoarseSolver:
         allc = np.concatenate(chunks)
         self.order = np.sort(allc[allc < RECYCLE])
         m = len(self.order)
-        A = np.zeros((m, 6, m, 6))
+        A: np.ndarray = np.zeros((m, 6, m, 6))
         self.k = 0  # recycled directions in use
         for pair, blk in zip(ids, blocks, strict=True):
-            keep = (pair[:, 0] < RECYCLE) & (pair[:, 1] < RECYCLE) if len(pair) else None
+            keep = (pair[:, 0] < RECYCLE) & (pair[:, 1] < RECYCLE) if len(pair) else np.zeros(0, dtype=bool)
             if not len(pair) or not keep.any():
                 continue
             pair, blk = pair[keep], blk[keep]
             i, j = np.searchsorted(self.order, pair[:, 0]), np.searchsorted(self.order, pair[:, 1])
-            np.add.at(A, (i, slice(None), j, slice(None)), blk)
+            np.add.at(A, (i, slice(None), j, slice(None)), blk)  # type: ignore[arg-type]  # numpy's stubs: no slices
             off = i != j
-            np.add.at(A, (j[off], slice(None), i[off], slice(None)), np.swapaxes(blk[off], 1, 2))
+            np.add.at(A, (j[off], slice(None), i[off], slice(None)),  # type: ignore[arg-type]
+                      np.swapaxes(blk[off], 1, 2))
         A = A.reshape(6 * m, 6 * m)
         # A_c = PᵀHP is positive semi-definite up to the float32 rounding of its blocks (and
         # near-singular on degenerate information matrices): shift its diagonal until it factors
@@ -162,7 +163,8 @@ class CoarseSolver:
         if k <= 0:
             return
         m = len(self.order)
-        B, C = np.zeros((m, 6, k)), np.zeros((k, k))
+        B: np.ndarray = np.zeros((m, 6, k))
+        C = np.zeros((k, k))
         for pair, blk, own in zip(ids, blocks, chunks, strict=True):
             rec = pair[:, 0] >= RECYCLE if len(pair) else np.zeros(0, dtype=bool)
             if not rec.any():

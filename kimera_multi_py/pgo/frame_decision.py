@@ -12,7 +12,7 @@ number of distinct places its closures come from, over every neighbour at once. 
 the hypothesis that leads the runner-up by ``align_min_margin`` places (twice the runner-up's
 places, or twice the places only the runner-up explains, when it rests on several:
 :func:`kimera_multi_py.alignment.frames.decide`) and rests on at least
-``align_min_places``. Settled frames (:class:`kimera_multi_py.comms.messages.PublicPoses`): the robot decides on
+``align_min_places``. Settled frames (:class:`kimera_multi_py.comms.messages.pgo.PublicPoses`): the robot decides on
 settled peers' edges first; the rest decide only what those leave open, and evidence that leads
 to two frames (settled peers against the rest, or two settled peers against each other) is
 contested, no decision (:func:`kimera_multi_py.alignment.frames.settled_decision`). A lone single-place group with no
@@ -22,7 +22,7 @@ robot out until a second place agrees. Where closures leave groups of several pl
 (twin rooms: the truth and the frame one room over rest on as many places, or closures through
 different peers lead to different frames), the team's object
 landmarks may decide (:mod:`kimera_multi_py.alignment.landmark_check`; settled peers publish theirs as
-:class:`kimera_multi_py.comms.messages.FrameLandmarks` when an epoch opens): adopted when they clearly favour one
+:class:`kimera_multi_py.comms.messages.pgo.FrameLandmarks` when an epoch opens): adopted when they clearly favour one
 hypothesis, reported as such and not settled. Without such a hypothesis the robot stays out of the team
 frame for the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
 :attr:`PgoAgent.alignment` and the log. A robot already in a settled team frame switches frames
@@ -214,7 +214,7 @@ class FrameDecision:
         return refuted
 
     def _settled_edges(self) -> np.ndarray:
-        """Inter-robot edges to peers in a settled frame (:class:`~kimera_multi_py.comms.messages.PublicPoses`)."""
+        """Inter-robot edges to peers in a settled frame (:class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`)."""
         return np.array([self.peer_settled.get(int(r), True) for r in self.local.inter_peer], dtype=bool)
 
     def _evidence(self, known: np.ndarray) -> tuple[list[FrameHypothesis], FrameHypothesis | None, int, str]:

@@ -35,7 +35,8 @@ import logging
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import GncWeights, Message, PcgState, PgoStatus, PublicPoses
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.pgo import GncWeights, PcgState, PgoStatus, PublicPoses
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.coarse import (
     INDEX_MASK,
@@ -56,6 +57,9 @@ log = logging.getLogger(__name__)
 class GnPcgAgent(GnRobust, PgoAgent):
     """One robot of the distributed Levenberg–Marquardt / pipelined-PCG solve (see module;
     robust mode: :mod:`.gn_weights`)."""
+
+    gamma_prev: float  # the previous CG iteration's γ and α (set by the first one)
+    alpha_prev: float
 
     def __init__(self, local: LocalGraph, params: PgoParams | None = None) -> None:
         super().__init__(local, params)

@@ -35,7 +35,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import GncWeights, Message, PcgState
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.pgo import GncWeights, PcgState
 from kimera_multi_py.core.robust import GncSchedule
 from kimera_multi_py.pgo.linear import edge_costs
 

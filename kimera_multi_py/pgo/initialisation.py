@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING
 import gtsam
 import numpy as np
 
-from kimera_multi_py.comms.messages import Message, PgoCommand, PgoStatus
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.pgo import PgoCommand, PgoStatus
 from kimera_multi_py.pgo.centralised import chordal_initialization
 from kimera_multi_py.pgo.chordal import chordal_block, chordal_poses
 from kimera_multi_py.pgo.factors import to_values

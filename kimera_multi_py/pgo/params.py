@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 
 @dataclass
@@ -187,6 +187,6 @@ class PgoParams:
     """Rounds the leader repeats ``start`` (message loss)."""
 
 
-def team_params(**overrides: object) -> PgoParams:
+def team_params(**overrides: Any) -> PgoParams:
     """The PGO of a SLAM team's agents: robust, with 600 rounds per epoch, no μ₀ floor."""
     return dataclasses.replace(PgoParams(robust=True, max_rounds=600, gnc_mu0_min=0.0), **overrides)

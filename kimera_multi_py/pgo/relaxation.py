@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from kimera_multi_py.comms.messages import PgoStatus
+from kimera_multi_py.comms.messages.pgo import PgoStatus
 from kimera_multi_py.core.geometry import so3_exp, so3_log
 
 if TYPE_CHECKING:

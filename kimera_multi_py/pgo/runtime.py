@@ -18,8 +18,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.bus import Bus, BusClosedError, Subscription
-from kimera_multi_py.comms.messages import Message, PgoCommand, PgoStatus
+from kimera_multi_py.comms.bus import Bus, Subscription
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.pgo import PgoCommand, PgoStatus
+from kimera_multi_py.comms.stream import BusClosedError
 from kimera_multi_py.pgo.agent import PgoAgent
 
 log = logging.getLogger(__name__)

@@ -35,16 +35,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kimera_multi_py.alignment.map_check import MapAgreement
-from kimera_multi_py.comms.messages import (
-    AgentState,
-    FrameLandmarks,
-    GncWeights,
-    Message,
-    PgoCommand,
-    PgoEpoch,
-    PgoStatus,
-    PublicPoses,
-)
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.pgo import FrameLandmarks, GncWeights, PgoCommand, PgoStatus, PublicPoses
+from kimera_multi_py.comms.messages.team import AgentState, PgoEpoch
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.local_graph import LocalGraph, component_root
 from kimera_multi_py.pgo.params import PgoParams

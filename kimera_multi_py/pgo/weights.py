@@ -23,7 +23,8 @@ from typing import TYPE_CHECKING
 import gtsam
 import numpy as np
 
-from kimera_multi_py.comms.messages import GncWeights, Message, PgoCommand
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.pgo import GncWeights, PgoCommand
 from kimera_multi_py.core.geometry import to_gtsam
 from kimera_multi_py.core.posegraph import PoseGraph
 from kimera_multi_py.core.robust import GncSchedule

@@ -1,4 +1,5 @@
-"""The 3D scene graph (DSG paper; Hydra): objects, agents, places, rooms, building (docs/algorithms/scene_graph.md).
+"""The 3D scene graph (DSG paper; Hydra): objects and agents, places, rooms and building
+(docs/algorithms/scene_graph.md).
 
 - :func:`build_scene_graph` -- the layered graph of a semantic octree (:mod:`.places`, :mod:`.rooms`).
 - :class:`SceneGraph` -- the layers as arrays; :mod:`.queries` answers questions on it.

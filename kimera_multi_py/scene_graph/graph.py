@@ -6,7 +6,7 @@ agent -> nearest place in sight -> room -> building. Everything is in the map fr
 octree it was built from; the graph is pure data, with no file or network access.
 
 Inputs
-    ``objects``: object landmarks (:class:`~kimera_multi_py.mapping.objects.Landmark`, using
+    ``objects``: object landmarks (:class:`~kimera_multi_py.mapping.landmark.Landmark`, using
     ``id``, the most likely non-free class, ``position`` (the box centre) and ``aabb()``), or
     tuples ``(id, class, centroid, box_lo, box_hi)`` with ``class`` an id or a name, or dicts with
     those keys (``id``, ``class``, ``centroid``, ``lo``, ``hi``: a ``RobotOutcome``'s objects). Ids must

@@ -2,7 +2,7 @@
 
 The scene graph works on a dense voxel grid in the map frame (Hydra downsamples its 0.1 m
 TSDF to 0.2 m for the GVD). A leaf of the octree is *occupied* when its occupancy probability
-exceeds 0.5 (:func:`~kimera_multi_py.mapping.semantic_octree.occupied_mask`) and *free* when it
+exceeds 0.5 (:func:`~kimera_multi_py.mapping.observation.occupied_mask`) and *free* when it
 is observed and the free class dominates it (occupancy below 0.5). A coarse cell is occupied
 when any octree voxel in it is occupied, free when it holds free voxels and no occupied one,
 and unknown otherwise. Unknown space counts as an obstacle for the distance field, except small
@@ -20,7 +20,8 @@ import numpy as np
 from scipy import ndimage
 
 from kimera_multi_py.mapping import morton
-from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
+from kimera_multi_py.mapping.observation import SCALE
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 
 _MARGIN = 2  # cells kept around the free space, so the distance field sees a closed border
 

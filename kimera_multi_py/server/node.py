@@ -21,7 +21,10 @@ import numpy as np
 from kimera_multi_py.alignment.server_frames import FrameScreen, screen_frames
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Subscription
-from kimera_multi_py.comms.messages import AgentState, KeyframeOdometry, LoopClosures, Message, PgoEpoch, PublicPoses
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.closures import KeyframeOdometry, LoopClosures
+from kimera_multi_py.comms.messages.pgo import PublicPoses
+from kimera_multi_py.comms.messages.team import AgentState, PgoEpoch
 from kimera_multi_py.core.errors import KimeraMultiError
 from kimera_multi_py.core.ids import SERVER_ID as SERVER_ID  # re-exported: the server's id
 from kimera_multi_py.core.posegraph import PoseGraph, robot_key, split_key

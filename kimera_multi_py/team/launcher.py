@@ -31,7 +31,7 @@ from typing import Any
 
 from kimera_multi_py.comms import keys, runtime
 from kimera_multi_py.comms.loopback import Faults, Partition
-from kimera_multi_py.comms.messages import AgentState
+from kimera_multi_py.comms.messages.team import AgentState
 from kimera_multi_py.comms.team import free_ports
 from kimera_multi_py.core.errors import ConfigError, KimeraMultiError
 from kimera_multi_py.core.ids import MAX_ROBOTS, OBSERVER_ID

@@ -16,7 +16,7 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, cast
 
 import numpy as np
 
@@ -40,6 +40,7 @@ from kimera_multi_py.pgo.params import PgoParams
 from kimera_multi_py.pgo.runtime import RunStats, run_team
 
 log = logging.getLogger(__name__)
+Method = Literal["block_sor", "gn_pcg"]
 
 METHODS = ("block_sor", "gn_pcg")
 # the solver of ``run_pgo`` called without a method (the agents' team PGO uses PgoParams').
@@ -187,11 +188,11 @@ def run_pgo(inputs: Sequence[str | Path], robots: int | None = None,
     unless ``params`` is given, whose ``method`` then holds).
     """
     graph = _inject(load_graph(inputs, robots), outliers, seed)
-    params = params or PgoParams(method=DEFAULT_METHOD)
+    params = params or PgoParams(method=cast(Method, DEFAULT_METHOD))
     if method is not None:
         if method not in METHODS:
             raise ConfigError("method", f"must be one of {METHODS}, got {method!r}")
-        params.method = method
+        params.method = cast(Method, method)
     params.robust = robust
     params.max_rounds = max_rounds
     if graph.planar:

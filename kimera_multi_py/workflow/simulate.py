@@ -39,9 +39,10 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.agent.agent import Agent, AgentParams
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.agent.outputs import RobotOutcome, outcome_of, own_graph, write_outcome
+from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.comm_range import neighbours_within
 from kimera_multi_py.comms.faults import check_robots, cut_links
@@ -187,7 +188,7 @@ class SimRunner:
             config = config.updated({"run": {"scenario": DEFAULT_SCENARIO}})
         run = config.run
         assert run.scenario is not None
-        chosen = {"mode": run.mode, "transport": run.transport}  # null: SimRunner's own default
+        chosen: dict[str, Any] = {"mode": run.mode, "transport": run.transport}  # null: SimRunner's own default
         return cls(load_scenario(run.scenario, robots=run.robots), seed=run.seed, out_dir=out_dir, viz=viz,
                    on_progress=on_progress, join=run.join, leave=run.leave, comm_range=run.comm_range,
                    faults=run.faults.build(), config=config, **{k: v for k, v in chosen.items() if v is not None})

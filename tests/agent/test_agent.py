@@ -6,11 +6,13 @@ from collections import deque
 import numpy as np
 import pytest
 
-from kimera_multi_py.agent.agent import Agent, AgentParams
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.checkpoint import load_checkpoint, save_checkpoint
 from kimera_multi_py.agent.node import AgentNode
+from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.comms import Heartbeat, KeyframeDescriptor, LoopbackNetwork, codec
-from kimera_multi_py.comms.messages import LoopClosureRequest, Message
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.closures import LoopClosureRequest
 from kimera_multi_py.core.geometry import yaw_pose
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.eval.slam import score_closures

@@ -10,7 +10,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from kimera_multi_py.agent.agent import Agent, AgentParams
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.checkpoint import (
     FORMAT,
     FORMAT_VERSION,
@@ -21,6 +21,7 @@ from kimera_multi_py.agent.checkpoint import (
     save_checkpoint,
     snapshot,
 )
+from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.core.errors import CheckpointError, KimeraMultiError
 from kimera_multi_py.frontend.pcm import PcmNoise
 from kimera_multi_py.mapping.config import MappingConfig, ObjectMapConfig

@@ -9,7 +9,8 @@ import pytest
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode, NodeParams
 from kimera_multi_py.comms import LoopbackNetwork
-from kimera_multi_py.comms.messages import AgentState, PgoEpoch, PgoStatus
+from kimera_multi_py.comms.messages.pgo import PgoStatus
+from kimera_multi_py.comms.messages.team import AgentState, PgoEpoch
 from kimera_multi_py.eval.metrics import ate_rmse
 from kimera_multi_py.pgo.params import PgoParams
 from kimera_multi_py.pgo.team import EPOCH_ROUNDS, ScheduleParams

@@ -7,11 +7,12 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from kimera_multi_py.agent.agent import Agent, AgentParams
+from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode, NodeParams
 from kimera_multi_py.agent.outputs import outcome_of
+from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.comms import LoopbackNetwork
-from kimera_multi_py.comms.messages import PublicPoses
+from kimera_multi_py.comms.messages.pgo import PublicPoses
 from kimera_multi_py.core.geometry import yaw_pose
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.core.posegraph import robot_key

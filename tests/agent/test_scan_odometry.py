@@ -3,7 +3,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from kimera_multi_py.agent.agent import Agent, AgentParams
+from kimera_multi_py.agent.agent import Agent
+from kimera_multi_py.agent.params import AgentParams
+from kimera_multi_py.agent.pose_graph import information
 from kimera_multi_py.eval.metrics import ate_rmse
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.source import keyframe_input
@@ -39,7 +41,7 @@ def test_fused_steps_are_the_trusted_edges(small_robot):
     assert np.all(odo[: n - 1]) and not np.any(odo[n - 1:])  # after the steps: closures only
     assert np.allclose(Z[: n - 1], np.array(agent.steps[1:]))
     assert not np.allclose(Z[: n - 1], np.array(agent.odometry[1:]))  # registration refined them
-    assert np.allclose(info[: n - 1], agent._info(agent.params.odom_sigmas))
+    assert np.allclose(info[: n - 1], information(agent.params.odom_sigmas))
 
 
 def test_registration_factors_join_the_odometry_as_trusted_edges(small_robot):

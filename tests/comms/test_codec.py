@@ -13,7 +13,10 @@ from hypothesis import strategies as st
 
 from kimera_multi_py.comms import codec, wire
 from kimera_multi_py.comms.codec import Codec, CodecError, Envelope
-from kimera_multi_py.comms.messages import MESSAGE_TYPES, Heartbeat, Message, PublicPoses
+from kimera_multi_py.comms.messages import MESSAGE_TYPES
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.pgo import PublicPoses
+from kimera_multi_py.comms.messages.team import Heartbeat
 from kimera_multi_py.comms.samples import all_random_messages, random_message
 from kimera_multi_py.core.errors import MessageError
 

@@ -17,24 +17,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from kimera_multi_py.comms import codec, columnar, keys, wire
-from kimera_multi_py.comms.bus import BusBase, Subscription, share, share_range
+from kimera_multi_py.comms.bus import BusBase, Subscription
 from kimera_multi_py.comms.codec import MAX_BATCH, Codec, CodecError, Envelope, Group
-from kimera_multi_py.comms.messages import (
-    INT64_MAX,
-    INT64_MIN,
-    MESSAGE_TYPES,
-    SCHEMA_VERSION,
-    Array,
-    Bool,
-    Float,
-    GncWeights,
-    Heartbeat,
-    Int,
-    Message,
-    Ping,
-    PublicPoses,
-    Str,
-)
+from kimera_multi_py.comms.counters import share, share_range
+from kimera_multi_py.comms.messages import MESSAGE_TYPES, SCHEMA_VERSION
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.fields import INT64_MAX, INT64_MIN, Array, Bool, Float, Int, Str
+from kimera_multi_py.comms.messages.pgo import GncWeights, PublicPoses
+from kimera_multi_py.comms.messages.team import Heartbeat, Ping
 from kimera_multi_py.comms.samples import _random_array, random_message
 from kimera_multi_py.core.errors import MessageError
 

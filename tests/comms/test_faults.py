@@ -8,7 +8,7 @@ import pytest
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.faults import boundaries, check_robots, cut_links, parse_partition, sim_faults
 from kimera_multi_py.comms.loopback import LoopbackNetwork
-from kimera_multi_py.comms.messages import Heartbeat
+from kimera_multi_py.comms.messages.team import Heartbeat
 from kimera_multi_py.core.errors import ConfigError
 
 

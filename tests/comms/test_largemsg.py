@@ -21,7 +21,9 @@ from hypothesis.extra import numpy as hnp
 
 from kimera_multi_py.comms import codec, largemsg, wire
 from kimera_multi_py.comms.codec import Codec, CodecError
-from kimera_multi_py.comms.messages import MESSAGE_TYPES, Message, Ping
+from kimera_multi_py.comms.messages import MESSAGE_TYPES
+from kimera_multi_py.comms.messages.base import Message
+from kimera_multi_py.comms.messages.team import Ping
 from kimera_multi_py.comms.samples import all_random_messages, random_message
 from kimera_multi_py.core.errors import MessageError
 

@@ -10,10 +10,13 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.bus import Bus, BusClosedError
+from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.loopback import Faults, LoopbackNetwork, Partition
-from kimera_multi_py.comms.messages import Heartbeat, LoopClosureReply, Ping, PublicPoses
+from kimera_multi_py.comms.messages.closures import LoopClosureReply
+from kimera_multi_py.comms.messages.pgo import PublicPoses
+from kimera_multi_py.comms.messages.team import Heartbeat, Ping
+from kimera_multi_py.comms.stream import BusClosedError
 from kimera_multi_py.core.errors import ConfigError, MessageError
 
 

@@ -8,15 +8,10 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.comms import codec
-from kimera_multi_py.comms.messages import (
-    MESSAGE_TYPES,
-    GncWeights,
-    Heartbeat,
-    MapDelta,
-    PgoCommand,
-    PgoStatus,
-    PublicPoses,
-)
+from kimera_multi_py.comms.messages import MESSAGE_TYPES
+from kimera_multi_py.comms.messages.maps import MapDelta
+from kimera_multi_py.comms.messages.pgo import GncWeights, PgoCommand, PgoStatus, PublicPoses
+from kimera_multi_py.comms.messages.team import Heartbeat
 from kimera_multi_py.comms.samples import random_message
 from kimera_multi_py.core.errors import MessageError
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.comms import codec
-from kimera_multi_py.comms.messages import PcgState
+from kimera_multi_py.comms.messages.pgo import PcgState
 from kimera_multi_py.core.errors import MessageError
 
 

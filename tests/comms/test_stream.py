@@ -6,7 +6,7 @@ import asyncio
 
 import pytest
 
-from kimera_multi_py.comms.bus import BusClosedError, Stream
+from kimera_multi_py.comms.stream import BusClosedError, Stream
 
 
 async def test_fifo_overflow_and_timeout() -> None:

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.comms.comm_range import neighbours_within
-from kimera_multi_py.comms.messages import SubmapEvidence, SubmapPoses
+from kimera_multi_py.comms.messages.maps import SubmapEvidence, SubmapPoses
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp, transform_points
 from kimera_multi_py.eval.map_metrics import agreement, occupancy_logodds, phi
 from kimera_multi_py.mapping import SemanticOctree, SubmapMap
-from kimera_multi_py.mapping.semantic_octree import SCALE
+from kimera_multi_py.mapping.observation import SCALE
 from kimera_multi_py.mapshare.consensus import MapConsensus, MapConsensusParams
 from kimera_multi_py.mapshare.exchange import MapExchange, full_links
 from kimera_multi_py.mapshare.fusion import centralised_team_map, octree_cells

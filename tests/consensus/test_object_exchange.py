@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from kimera_multi_py.comms.messages import ObjectUpdate, SubmapPoses
+from kimera_multi_py.comms.messages.maps import ObjectUpdate, SubmapPoses
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.geometry import make_pose
 from kimera_multi_py.mapping import ObjectMap

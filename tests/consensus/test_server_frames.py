@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from kimera_multi_py.alignment.server_frames import screen_frames
-from kimera_multi_py.comms.messages import KeyframeOdometry, LoopClosures
+from kimera_multi_py.comms.messages.closures import KeyframeOdometry, LoopClosures
 from kimera_multi_py.core.geometry import inverse
 from kimera_multi_py.core.posegraph import robot_key
 from kimera_multi_py.server.node import Server

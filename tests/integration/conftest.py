@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from kimera_multi_py.comms.bus import TrafficCounters
+from kimera_multi_py.comms.counters import TrafficCounters
 
 pytestmark = pytest.mark.integration
 
@@ -85,7 +85,7 @@ async def _heartbeat_link(a: Any, b: Any, timeout: float = 10.0) -> Any:
     heartbeat route from ``a`` to ``b`` carries messages; return ``b``'s heartbeat subscription."""
     from kimera_multi_py.comms import keys
     from kimera_multi_py.comms.codec import Codec
-    from kimera_multi_py.comms.messages import Heartbeat
+    from kimera_multi_py.comms.messages.team import Heartbeat
 
     await a.announce()
     await b.announce()

@@ -22,7 +22,7 @@ from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.fuzz import fuzz_payloads, stranger_traffic
-from kimera_multi_py.comms.messages import AgentState
+from kimera_multi_py.comms.messages.team import AgentState
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.source import keyframe_input
@@ -145,7 +145,7 @@ async def test_an_epoch_at_the_wires_limit_does_not_stop_the_node() -> None:
     """A peer's state claims the largest epoch a message may carry: the leader cannot open the
     next one (it would not fit a round tag), and the node counts that instead of crashing."""
     from kimera_multi_py.comms.loopback import LoopbackNetwork
-    from kimera_multi_py.comms.messages import MAX_EPOCH
+    from kimera_multi_py.comms.messages.team import MAX_EPOCH
 
     net = LoopbackNetwork(team=TEAM)
     mine, peer = net.bus(0), net.bus(1)

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.messages import Heartbeat
+from kimera_multi_py.comms.messages.team import Heartbeat
 from kimera_multi_py.comms.zenoh_bus import Tls, ZenohBus, tls_settings
 from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.team.certs import make_certs

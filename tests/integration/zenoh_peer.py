@@ -16,7 +16,7 @@ import json
 import time
 
 from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.messages import Heartbeat, Ping
+from kimera_multi_py.comms.messages.team import Heartbeat, Ping
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 
 

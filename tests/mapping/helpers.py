@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from kimera_multi_py.mapping import morton
-from kimera_multi_py.mapping.semantic_octree import PRUNE_MAX_LEVEL
+from kimera_multi_py.mapping.octree_block import PRUNE_MAX_LEVEL
 
 WALL, FLOOR, CEILING, CHAIR, TABLE, HUMAN = 1, 2, 3, 5, 6, 12
 K = 12

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from kimera_multi_py.mapping import morton
-from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
+from kimera_multi_py.mapping.observation import SCALE
+from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 
 RES = 0.1
 HEIGHT = 2.5

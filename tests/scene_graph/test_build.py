@@ -112,7 +112,8 @@ def test_ceiling_cut_needs_clearance_above_the_doors_half_width() -> None:
 def _holed(c: np.ndarray, free: np.ndarray, fraction: float, seed: int) -> object:
     """The map with a random ``fraction`` of its free cells never observed (holes between rays)."""
     from kimera_multi_py.mapping import morton
-    from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
+    from kimera_multi_py.mapping.observation import SCALE
+    from kimera_multi_py.mapping.semantic_octree import SemanticOctree
     from tests.scene_graph.helpers import RES, WALL, K
 
     rng = np.random.default_rng(seed)
@@ -161,7 +162,8 @@ def _tilted(c: np.ndarray, free: np.ndarray, R: np.ndarray, t: np.ndarray) -> ob
     binned into the map's grid (occupied wins where two cells land in one)."""
     from kimera_multi_py.core.semantics import CLASS_IDS
     from kimera_multi_py.mapping import morton
-    from kimera_multi_py.mapping.semantic_octree import SCALE, SemanticOctree
+    from kimera_multi_py.mapping.observation import SCALE
+    from kimera_multi_py.mapping.semantic_octree import SemanticOctree
     from tests.scene_graph.helpers import HEIGHT, RES, WALL, K
 
     cls = np.where(c[:, 2] < 0.0, CLASS_IDS["floor"], np.where(c[:, 2] > HEIGHT, CLASS_IDS["ceiling"], WALL))

@@ -9,7 +9,7 @@ import pytest
 
 from kimera_multi_py.eval.scene_graph import graphs_agree, scene_graph_and_outputs, scene_graph_outputs
 from kimera_multi_py.mapping import morton
-from kimera_multi_py.mapping.objects import Landmark
+from kimera_multi_py.mapping.landmark import Landmark
 from kimera_multi_py.scene_graph import load_scene_graph
 from kimera_multi_py.scene_graph.viz import log_scene_graph
 from tests.scene_graph.helpers import RES, TWO_ROOMS, K, box_world, octree_of

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from kimera_multi_py.comms.messages import KeyframeOdometry, LoopClosures
+from kimera_multi_py.comms.messages.closures import KeyframeOdometry, LoopClosures
 from kimera_multi_py.core.geometry import inverse, yaw_pose
 from kimera_multi_py.core.posegraph import robot_key
 from kimera_multi_py.io.tum import read_tum

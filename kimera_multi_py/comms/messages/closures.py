@@ -1,0 +1,99 @@
+"""The loop-closure protocol (docs/architecture.md): place descriptors, the request and reply that
+fetch a keyframe for geometric verification, verified closures sent until acknowledged, and in
+centralised mode the keyframe odometry a robot streams to the server (with the closures, the
+server's pose graph).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kimera_multi_py.comms import keys
+from kimera_multi_py.comms.messages.base import Message, message
+from kimera_multi_py.comms.messages.fields import (
+    Bool,
+    Float,
+    Int,
+    Str,
+    arr,
+    count,
+    robot_id,
+    spec_field,
+)
+
+
+@message("KeyframeDescriptor", keys.DESCRIPTORS)
+class KeyframeDescriptor(Message):
+    """A compact place descriptor of one keyframe (flattened); full data is served on request."""
+
+    robot: int = robot_id()
+    keyframe: int = spec_field(Int())
+    stamp: float = spec_field(Float())
+    kind: str = spec_field(Str(max_len=64))
+    descriptor: np.ndarray = arr("float32", "d")
+
+
+@message("LoopClosureRequest", keys.LC_REQUEST)
+class LoopClosureRequest(Message):
+    """Ask ``target`` for keyframe ``keyframe`` to verify it against our ``query_keyframe``."""
+
+    robot: int = robot_id()
+    target: int = robot_id()
+    request_id: int = count()
+    keyframe: int = spec_field(Int())
+    query_keyframe: int = spec_field(Int())
+
+
+@message("LoopClosureReply", keys.LC_REPLY)
+class LoopClosureReply(Message):
+    """A keyframe's data for geometric verification: semantic points and objects.
+
+    ``pose`` is the keyframe's pose in the owner's odometry frame; points and object centroids
+    are in the keyframe's frame. ``found`` is False (with empty arrays) for unknown keyframes.
+    """
+
+    robot: int = robot_id()
+    request_id: int = count()
+    keyframe: int = spec_field(Int())
+    found: bool = spec_field(Bool())
+    pose: np.ndarray = arr("float64", 4, 4)
+    points: np.ndarray = arr("float32", "n", 3)
+    labels: np.ndarray = arr("int32", "n", lo=0)
+    object_centroids: np.ndarray = arr("float32", "m", 3)
+    object_classes: np.ndarray = arr("int32", "m", lo=0)
+
+
+@message("LoopClosures", keys.LOOP_CLOSURES)
+class LoopClosures(Message):
+    """Verified inter-robot loop closures, sent until ``peer`` acknowledges ``batch``.
+
+    Closure ``i``: relative pose ``poses[i]`` = T(keys_a[i] -> keys_b[i]) with diagonal
+    noise ``sigmas[i]`` (rotation rad x3, then translation m x3) and ``inliers[i]`` support.
+    """
+
+    robot: int = robot_id()
+    peer: int = robot_id()
+    batch: int = count()
+    keys_a: np.ndarray = arr("int64", "n")
+    keys_b: np.ndarray = arr("int64", "n")
+    poses: np.ndarray = arr("float64", "n", 4, 4)
+    sigmas: np.ndarray = arr("float64", "n", 6, lo=0.0)
+    inliers: np.ndarray = arr("int32", "n", lo=0)
+
+
+@message("LoopClosuresAck", keys.LOOP_CLOSURES_ACK)
+class LoopClosuresAck(Message):
+    """Acknowledges receipt of ``LoopClosures`` batch ``batch`` from ``peer``."""
+
+    robot: int = robot_id()
+    peer: int = robot_id()
+    batch: int = count()
+
+
+@message("KeyframeOdometry", keys.ODOMETRY)
+class KeyframeOdometry(Message):
+    """Centralised mode: a robot's keyframe odometry ``T_{k-1,k}`` streamed to the server."""
+
+    robot: int = robot_id()
+    keyframes: np.ndarray = arr("int64", "n", lo=0)
+    odometry: np.ndarray = arr("float64", "n", 4, 4)
