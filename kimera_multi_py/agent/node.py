@@ -312,9 +312,9 @@ class AgentNode:
             if self.pgo.completed != before:
                 self.epochs_seen += 1
                 last = self.pgo.last_pgo
-                if last is not None and last.excluded:  # kept out: its poses are in its own frame
+                if last is not None and last.frame.excluded:  # kept out: its poses are in its own frame
                     self.frame = self.robot
-                elif last is not None and last.aligned:
+                elif last is not None and last.frame.aligned:
                     self.frame = self._component_root(last.local.robot_graph)
                 out.append(self._state())
                 if self.pgo.final_done and self.finished:
@@ -351,7 +351,7 @@ class AgentNode:
         out: dict[str, object] = {}
         if self.pgo is not None:
             last = self.pgo.last_pgo
-            out = dict(last.alignment) if last is not None else {}
+            out = dict(last.frame.alignment) if last is not None else {}
         elif self.server_settled is not None:
             status = "excluded" if not self.server_settled else "root" if self.frame == self.robot else "aligned"
             out = {"status": status, "settled": self.server_settled, "source": "server"}

@@ -11,9 +11,9 @@ import typer
 from kimera_multi_py.core.errors import KimeraMultiError
 
 # the distributed solver of ``kimera-multi pgo`` (and of benchmarks/pgo.py): distributed
-# Levenberg–Marquardt (consensus.pgo_gn) reaches a 1e-3 gap within the 500-round cap on every
+# Levenberg–Marquardt (pgo.gn) reaches a 1e-3 gap within the 500-round cap on every
 # graph of shared/datasets/pgo, where block SOR stalls on parking-garage and cubicle; robust
-# runs put GNC on its outer loop (consensus.pgo_gn_weights). The team PGO inside the agents
+# runs put GNC on its outer loop (pgo.gn_weights). The team PGO inside the agents
 # keeps block SOR (PgoParams' default), and so does run_pgo called without a method
 # (workflow.DEFAULT_METHOD).
 CLI_METHOD = "gn_pcg"

@@ -1,6 +1,5 @@
 """Frame decision of one distributed-PGO robot: which team frame it joins, and whether its
-estimate is adopted at the end of the epoch (a mixin of :class:`.pgo.PgoAgent`, whose state it
-reads and writes; docs/algorithms/pgo.md).
+estimate is adopted at the end of the epoch (docs/algorithms/pgo.md).
 
 Plain alignment: the lowest id of each connected robot graph is the team frame; the others align
 to an aligned neighbour by GNC rotation + translation averaging over the inter-robot edges
@@ -12,8 +11,8 @@ number of distinct places its closures come from, over every neighbour at once. 
 the hypothesis that leads the runner-up by ``align_min_margin`` places (twice the runner-up's
 places, or twice the places only the runner-up explains, when it rests on several:
 :func:`.alignment.decide`) and rests on at least
-``align_min_places``. Settled frames (:class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`): the robot decides on
-settled peers' edges first; the rest decide only what those leave open, and evidence that leads
+``align_min_places``. Settled frames (:class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`): the
+robot decides on settled peers' edges first; the rest decide only what those leave open, and evidence that leads
 to two frames (settled peers against the rest, or two settled peers against each other) is
 contested, no decision (:func:`.alignment.settled_decision`). A lone single-place group with no
 competitor (one room seen by both robots, which an alias looks exactly like) is adopted once no
@@ -22,24 +21,23 @@ robot out until a second place agrees. Where closures leave groups of several pl
 (twin rooms: the truth and the frame one room over rest on as many places, or closures through
 different peers lead to different frames), the team's object
 landmarks may decide (:mod:`.landmark_check`; settled peers publish theirs as
-:class:`~kimera_multi_py.comms.messages.pgo.FrameLandmarks` when an epoch opens): adopted when they clearly favour one
-hypothesis, reported as such and not settled. Without such a hypothesis the robot stays out of the team
-frame for the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
-:attr:`PgoAgent.alignment` and the log. A robot already in a settled team frame switches frames
+:class:`~kimera_multi_py.comms.messages.pgo.FrameLandmarks` when an epoch opens): adopted when they
+clearly favour one hypothesis, reported as such and not settled. Without such a hypothesis the
+robot stays out of the team frame for the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
+:attr:`FrameDecision.alignment` and the log. A robot already in a settled team frame switches frames
 only once every neighbour's poses are known (or patience ran out): at an epoch's start only the
 root has published. Every epoch builds a fresh agent, so the decision is revisited as closures
 accumulate: a robot aligned into an alias frame switches once the true hypothesis leads. Edges
 outside the adopted hypothesis start at weight 0. At the end of an epoch
-(:meth:`PgoAgent.final_poses`) an estimate that bends away from the robot's own odometry beyond
+(:meth:`FrameDecision.final_poses`) an estimate that bends away from the robot's own odometry beyond
 its drift model (:func:`.alignment.odometry_disagreement`) is not adopted either.
 """
 
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
+from collections.abc import Callable
 
-import gtsam
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -55,55 +53,56 @@ from kimera_multi_py.alignment.frames import (
 )
 from kimera_multi_py.alignment.landmark_check import LandmarkScore, landmark_lead, landmark_scores
 from kimera_multi_py.core.geometry import inverse
-from kimera_multi_py.pgo.factors import to_values
-
-if TYPE_CHECKING:
-    from kimera_multi_py.pgo.local_graph import LocalGraph
-    from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.pgo.local_graph import LocalGraph
+from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.pgo.state import SolveState
 
 log = logging.getLogger(__name__)
 
 
 class FrameDecision:
-    """The frame-alignment part of :class:`.pgo.PgoAgent`: align, screen, exclude, settle."""
+    """The frame-alignment part of :class:`.agent.PgoAgent`: align, screen, exclude, settle.
 
-    # state of the agent (set by PgoAgent.__init__)
-    local: LocalGraph
-    params: PgoParams
-    robot: int
-    root: bool
-    root_robot: int
-    landmark_anchor: np.ndarray | None
-    landmark_offset: np.ndarray
-    landmark_classes: np.ndarray
-    peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]]
-    poses: np.ndarray
-    prev_poses: np.ndarray
-    published: np.ndarray
-    neighbour_poses: dict[int, np.ndarray]
-    inter_weights: np.ndarray
-    intra_weights: np.ndarray
-    aligned: bool
-    excluded: bool
-    in_team_frame: bool
-    settled: bool
-    peer_settled: dict[int, bool]
-    screened: bool
-    alignment: dict[str, object]
-    alignment_inliers: np.ndarray | None
-    wait_rounds: int
-    _no_peer_rounds: int
-    _tried: bytes
-    _values: gtsam.Values
+    It moves the shared estimate into the team frame and starts the inter-robot edges the frame
+    does not rest on at weight 0 (:class:`~.state.SolveState`). ``root_robot`` is the root of the
+    robot's team frame (the robot itself: it is the team frame); ``in_team_frame``: its poses
+    are already in the team frame (an earlier epoch aligned it), so a tie between frame
+    hypotheses keeps the frame.
+    """
 
-    if TYPE_CHECKING:
-        def _solve_alone(self) -> np.ndarray: ...
+    def __init__(self, local: LocalGraph, params: PgoParams, state: SolveState, root_robot: int,
+                 in_team_frame: bool = False) -> None:
+        self.local = local
+        self.params = params
+        self.robot = local.robot
+        self.state = state
+        self.root_robot = root_robot
+        self.root = root_robot == local.robot
+        self.in_team_frame = in_team_frame
+        self.aligned = self.root
+        # the frame rests on the root or on >= align_min_places places of settled peers' poses
+        # (see :class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`)
+        self.settled = self.root
+        self.excluded = False  # kept out of the team frame this epoch (see :attr:`alignment`)
+        self.screened = False  # robust mode: inter-robot edges checked for consistency
+        # what the frame rests on (JSON-ready): status, hypothesis, support, margin, reason
+        self.alignment: dict[str, object] = {"status": "root" if self.root else "unaligned"}
+        self.alignment_inliers: np.ndarray | None = None
+        self.wait_rounds = 0
+        self._no_peer_rounds = 0
+        self._tried = b""  # the known-edge mask of the last alignment attempt
+        # object landmarks (:meth:`set_landmarks`): own ones anchored to their nearest keyframes,
+        # so they move with the estimate; settled peers' by robot
+        self.landmark_anchor: np.ndarray | None = None
+        self.landmark_offset = np.zeros((0, 3))
+        self.landmark_classes = np.zeros(0, dtype=np.int32)
+        self.peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
 
     # ---------------------------------------------------------------- alignment
-    def _try_align(self) -> None:
+    def try_align(self) -> None:
         """Align to the team frame from inter-robot edges whose other end is known."""
         lg = self.local
-        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        known = np.array([int(k) in self.state.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
         if not known.any():
             self._no_peer_rounds += 1
             if self.params.robust and self.params.align_hypotheses and \
@@ -113,8 +112,8 @@ class FrameDecision:
         if self.params.robust and self.params.align_hypotheses:
             self._align_hypothesis(known)
             return
-        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
-        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+        nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.state.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
                            lg.inter_own_is_i[known])
         self.wait_rounds += 1
         everything = bool(known.all())  # no further edge can arrive
@@ -126,8 +125,8 @@ class FrameDecision:
     def _align_consensus(self, known: np.ndarray) -> None:
         """Align by the robust consensus of every known edge (:func:`.alignment.align_frames`)."""
         lg = self.local
-        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
-        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known], lg.inter_own_is_i[known])
+        nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.state.poses[lg.inter_own[known]], nb, lg.inter_meas[known], lg.inter_own_is_i[known])
         self._adopt_consensus(known, res)
         self.settled = False
         self.alignment = {"status": "aligned", "settled": False, "support": int(res.inliers.sum()),
@@ -146,7 +145,7 @@ class FrameDecision:
         if self.params.robust and self.params.screen != "none":
             # edges the screen rejects start as outliers; GNC revisits them
             keep = inliers if self.params.screen == "alignment" else self._supported(known)
-            self.inter_weights = np.where(known & ~keep, 0.0, 1.0)
+            self.state.inter_weights = np.where(known & ~keep, 0.0, 1.0)
         self.screened = bool(known.all())
         log.info("robot %d aligned with %d/%d inter-robot edges", self.robot,
                  int(inliers.sum()), int(known.sum()))
@@ -154,10 +153,7 @@ class FrameDecision:
     def _move_into(self, T: np.ndarray, inliers: np.ndarray) -> None:
         """Adopt frame ``T`` (own -> team): move the estimate and restart from it; ``inliers`` (an
         array the caller may still extend) are the inter-robot edges the frame rests on."""
-        self.poses = T @ self.poses
-        self.prev_poses = self.poses.copy()
-        self.published = self.poses.copy()
-        self._values = to_values(self.local.keys, self.poses)
+        self.state.restart_from(T @ self.state.poses)
         self.alignment_inliers = inliers
         self.aligned = True
         self.excluded = False
@@ -166,8 +162,8 @@ class FrameDecision:
         """Frame hypotheses of the known inter-robot edges (edge indices into the local graph)."""
         lg = self.local
         idx = np.flatnonzero(known)
-        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[idx]])
-        hyps = frame_hypotheses(self.poses[lg.inter_own[idx]], nb, lg.inter_meas[idx], lg.inter_own_is_i[idx],
+        nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[idx]])
+        hyps = frame_hypotheses(self.state.poses[lg.inter_own[idx]], nb, lg.inter_meas[idx], lg.inter_own_is_i[idx],
                                 lg.inter_peer[idx], place_radius=self.params.place_radius)
         for h in hyps:
             h.edges = idx[h.edges]
@@ -176,7 +172,7 @@ class FrameDecision:
     def _settled_edges(self) -> np.ndarray:
         """The inter-robot edges to peers whose frames are settled
         (:class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`)."""
-        return np.array([self.peer_settled.get(int(r), True) for r in self.local.inter_peer], dtype=bool)
+        return np.array([self.state.peer_settled.get(int(r), True) for r in self.local.inter_peer], dtype=bool)
 
     def _evidence(self, known: np.ndarray) -> tuple[list[FrameHypothesis], FrameHypothesis | None, int, str]:
         """The frame hypotheses over every known edge, the one that clearly leads (or None), its
@@ -269,7 +265,7 @@ class FrameDecision:
             if near_identity(h.T):
                 inliers[h.edges] = True
         # edges outside the hypothesis start as outliers; GNC and its rechecks revisit them
-        self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
+        self.state.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
         self.screened = bool(known.all())
         self.settled = settles
         self.alignment = self._report("aligned", best, margin, len(hyps))
@@ -304,7 +300,7 @@ class FrameDecision:
         if self.landmark_anchor is None or not team or not hyps:
             return None, []
         k = self.landmark_anchor
-        own = np.einsum("nij,nj->ni", self.poses[k, :3, :3], self.landmark_offset) + self.poses[k, :3, 3]
+        own = np.einsum("nij,nj->ni", self.state.poses[k, :3, :3], self.landmark_offset) + self.state.poses[k, :3, 3]
         scores = landmark_scores(own, self.landmark_classes, np.concatenate([x for _, x in team]),
                                  np.concatenate([c for c, _ in team]), [h.T for h in hyps],
                                  place_radius=self.params.place_radius)
@@ -329,21 +325,21 @@ class FrameDecision:
         if self.excluded:
             return
         self.excluded = True
-        self.inter_weights[:] = 0.0
+        self.state.inter_weights[:] = 0.0
         self.alignment = self._report("excluded", h, margin, len(hyps or []), reason)
         # every competing hypothesis: distinct places, edges, peers, and where it moves the robot's origin
         self.alignment["competitors"] = _competitors(hyps or [])
         log.log(level, "robot %d: kept out of the team frame (%s; best support %d places, margin %d)", self.robot,
                 reason, h.places if h is not None else 0, margin)
 
-    def _screen(self) -> None:
+    def screen(self) -> None:
         """Robust mode, aligned robot: start inconsistent inter-robot edges at weight 0.
 
         The same GNC rotation/translation consensus as the alignment (whose transform should
         now be the identity) flags the edges that disagree with the majority; GNC revisits them.
         """
         lg = self.local
-        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        known = np.array([int(k) in self.state.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
         self.wait_rounds += 1
         if not known.any() or (not known.all() and self.wait_rounds < self.params.align_patience):
             return
@@ -354,23 +350,23 @@ class FrameDecision:
             keep = np.zeros(len(lg.inter_edge), dtype=bool)
             for h in here:
                 keep[h.edges] = True
-            self.inter_weights = np.where(known & ~keep, 0.0, 1.0)
+            self.state.inter_weights = np.where(known & ~keep, 0.0, 1.0)
             self.screened = True
             if self.root and here:
                 others = [h.places for h in hyps if not near_identity(h.T)]
                 self.alignment = self._report("root", here[0], here[0].places - max(others, default=0), len(hyps))
             return
         if self.params.screen == "support":
-            self.inter_weights = np.where(known & ~self._supported(known), 0.0, 1.0)
+            self.state.inter_weights = np.where(known & ~self._supported(known), 0.0, 1.0)
             self.screened = True
             return
-        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
-        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+        nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.state.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
                            lg.inter_own_is_i[known])
         if res.ok:
             inliers = np.zeros(len(lg.inter_edge), dtype=bool)
             inliers[np.flatnonzero(known)[res.inliers]] = True
-            self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
+            self.state.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
             self.alignment_inliers = inliers
         self.screened = True
 
@@ -380,14 +376,15 @@ class FrameDecision:
         lg = self.local
         out = np.zeros(len(lg.inter_edge), dtype=bool)
         if known.any():
-            nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
-            out[known] = supported_edges(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+            nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+            out[known] = supported_edges(self.state.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
                                          lg.inter_own_is_i[known])
         return out
 
     # ---------------------------------------------------------------- end of the epoch
-    def final_poses(self) -> np.ndarray:
-        """The poses to adopt at the end of the epoch.
+    def final_poses(self, solve_alone: Callable[[], np.ndarray]) -> np.ndarray:
+        """The poses to adopt at the end of the epoch (``solve_alone``: the robot's own graph
+        solved alone, see :meth:`_own_solution`).
 
         Robust mode also settles the safety property here: a robot that never aligned (or that
         was excluded) returns its estimate in its own frame (first pose at the identity) with
@@ -395,10 +392,10 @@ class FrameDecision:
         beyond its drift model is not adopted either (the robot's own solution is).
         """
         if not self.params.robust:
-            return self.poses
+            return self.state.poses
         lg = self.local
-        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
-        self.inter_weights[~known] = 0.0
+        known = np.array([int(k) in self.state.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        self.state.inter_weights[~known] = 0.0
         if not self.aligned and not self.excluded:
             self._exclude("not aligned when the epoch ended", None, 0)
         if self.params.drift_check and not self.excluded:
@@ -409,10 +406,10 @@ class FrameDecision:
                             self.robot, ratio)
                 self._exclude(f"estimate disagrees with odometry ({ratio:.2f} x drift model)", None, 0)
                 self.alignment["drift_ratio"] = round(ratio, 3)
-                self.poses = self._own_solution()
+                self.state.poses = self._own_solution(solve_alone)
         if self.excluded:
-            return inverse(self.poses[0]) @ self.poses
-        return self.poses
+            return inverse(self.state.poses[0]) @ self.state.poses
+        return self.state.poses
 
     def _odometry_chain(self) -> tuple[np.ndarray, float, float]:
         """Dead reckoning from the odometry edges (first pose at the identity) and its sigmas."""
@@ -431,17 +428,18 @@ class FrameDecision:
 
     def _odometry_disagreement(self) -> float:
         D, s_rot, s_trans = self._odometry_chain()
-        return odometry_disagreement(self.poses, D, s_rot, s_trans, self.params.drift_z, self.params.drift_floor)
+        return odometry_disagreement(self.state.poses, D, s_rot, s_trans, self.params.drift_z, self.params.drift_floor)
 
-    def _own_solution(self) -> np.ndarray:
-        """The robot's own graph alone (odometry and the intra-robot closures GNC kept), or its
-        dead reckoning when its own closures bend it away from the odometry too."""
+    def _own_solution(self, solve_alone: Callable[[], np.ndarray]) -> np.ndarray:
+        """The robot's own graph alone (odometry and the intra-robot closures GNC kept, solved by
+        ``solve_alone``), or its dead reckoning when its own closures bend it away from the
+        odometry too."""
         lg = self.local
-        own = self._solve_alone()
+        own = solve_alone()
         D, s_rot, s_trans = self._odometry_chain()
         if odometry_disagreement(own, D, s_rot, s_trans, self.params.drift_z, self.params.drift_floor) > 1.0:
-            self.intra_weights[~lg.intra_odometry] = 0.0  # its own closures bend it too: dead reckoning
-            return self.poses[0] @ D
+            self.state.intra_weights[~lg.intra_odometry] = 0.0  # its own closures bend it too: dead reckoning
+            return self.state.poses[0] @ D
         return own
 
 

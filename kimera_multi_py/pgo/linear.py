@@ -9,7 +9,7 @@ first). Poses are perturbed on the right, ``X ← X Exp(δ)`` (full SE(3) expone
 of its own poses (its intra-robot edges plus its side of every inter-robot edge), its gradient,
 and the 6x6 coupling blocks of its inter-robot edges, which multiply the neighbours' pieces of
 a direction vector (only their public poses). Its block is factored once (SuperLU) and is the
-block-Jacobi preconditioner of the distributed conjugate gradients (:mod:`.pgo_gn`).
+block-Jacobi preconditioner of the distributed conjugate gradients (:mod:`.gn`).
 """
 
 from __future__ import annotations

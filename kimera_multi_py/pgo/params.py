@@ -1,4 +1,4 @@
-"""The distributed solver's knobs (:class:`PgoParams`), shared by both methods (:mod:`.pgo`, :mod:`.pgo_gn`)."""
+"""The distributed solver's knobs (:class:`PgoParams`), shared by both methods (:mod:`.agent`, :mod:`.gn`)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ class PgoParams:
 
     max_rounds: int = 500
     # "block_sor": block Gauss–Seidel with adaptive over-relaxation (this module);
-    # "gn_pcg": Levenberg–Marquardt with pipelined block-Jacobi CG across the robots (.pgo_gn)
+    # "gn_pcg": Levenberg–Marquardt with pipelined block-Jacobi CG across the robots (.gn)
     method: str = "block_sor"
     gn_forcing: float = 0.25  # CG stops when the preconditioned residual fell by this factor
     # (measured on cubicle, 5 robots, with recycling: 0.25 reaches 1e-3 in 191 rounds, 0.1 in
