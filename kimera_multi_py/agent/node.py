@@ -324,9 +324,9 @@ class AgentNode:
             if self.pgo.completed != before:
                 self.epochs_seen += 1
                 last = self.pgo.last_pgo
-                if last is not None and last.excluded:  # kept out: its poses are in its own frame
+                if last is not None and last.frame.excluded:  # kept out: its poses are in its own frame
                     self.frame = self.robot
-                elif last is not None and last.aligned:
+                elif last is not None and last.frame.aligned:
                     self.frame = self._component_root(last.local.robot_graph)
                     # after the peers' new pose tables had time to arrive: right after an epoch
                     # their maps may still sit where the epoch found them, ours where it left us
@@ -363,13 +363,13 @@ class AgentNode:
                             p.map_coarse, p.map_occupancy)
         if check is None:
             return False
-        last.alignment = {**last.alignment, "safety_net": check.as_dict()}
+        last.frame.alignment = {**last.frame.alignment, "safety_net": check.as_dict()}
         if not check.refuted:
             return False
         log.warning("robot %d: leaves team frame %d: its map contradicts robots %s there (agrees with %s)",
                     self.robot, self.frame, check.conflicting, check.agreeing, extra={"robot": self.robot})
-        last.excluded = True
-        last.alignment.update(status="excluded", settled=False,
+        last.frame.excluded = True
+        last.frame.alignment.update(status="excluded", settled=False,
                               reason=f"safety net: its map contradicts the team's in frame {self.frame}")
         self.frame = self.robot
         return True
@@ -401,7 +401,7 @@ class AgentNode:
         out: dict[str, object] = {}
         if self.pgo is not None:
             last = self.pgo.last_pgo
-            out = dict(last.alignment) if last is not None else {}
+            out = dict(last.frame.alignment) if last is not None else {}
         elif self.server_settled is not None:
             status = "excluded" if not self.server_settled else "root" if self.frame == self.robot else "aligned"
             out = {"status": status, "settled": self.server_settled, "source": "server"}

@@ -57,7 +57,7 @@ class RobotOutcome:
     front_end: dict[str, int]
     traffic: dict[str, Any] = field(default_factory=dict)
     pgo_epochs: int = 0
-    # the frame decision of the last PGO epoch (pgo.agent.PgoAgent.alignment; in centralised
+    # the frame decision of the last PGO epoch (pgo.frame_decision.FrameDecision.alignment; in centralised
     # mode the server's, from its settled flag): status (root / aligned / excluded / unaligned),
     # hypothesis, support (places), margin, reason; and frame (the root robot of the poses' frame)
     alignment: dict[str, Any] = field(default_factory=dict)
@@ -75,9 +75,9 @@ def _weights(node: Any) -> dict[tuple[int, int, int], float]:
     lg = pgo.local
     for e in range(len(lg.inter_own)):
         out[(int(lg.inter_own[e]), int(lg.inter_peer[e]), split_key(int(lg.inter_peer_key[e]))[1])] = \
-            float(pgo.inter_weights[e])
+            float(pgo.state.inter_weights[e])
     for e in np.flatnonzero(~lg.intra_odometry).tolist():
-        out[(int(lg.intra_i[e]), node.robot, int(lg.intra_j[e]))] = float(pgo.intra_weights[e])
+        out[(int(lg.intra_i[e]), node.robot, int(lg.intra_j[e]))] = float(pgo.state.intra_weights[e])
     return out
 
 

@@ -1,4 +1,4 @@
-"""The ``kimera-multi pgo`` command. ``cli/main.py`` calls :func:`register`."""
+"""The ``kimera-multi pgo`` command. The lead's ``cli.py`` calls :func:`register`."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ from kimera_multi_py.core.errors import KimeraMultiError
 
 # the distributed solver of ``kimera-multi pgo`` (and of benchmarks/pgo.py): distributed
 # Levenberg–Marquardt (pgo.gn) reaches a 1e-3 gap within the 500-round cap on every
-# benchmark graph (docs/benchmarks.md), where block SOR stalls on parking-garage and cubicle; robust
+# graph of shared/datasets/pgo, where block SOR stalls on parking-garage and cubicle; robust
 # runs put GNC on its outer loop (pgo.gn_weights). The team PGO inside the agents
 # keeps block SOR (PgoParams' default), and so does run_pgo called without a method
-# (workflow.pgo_benchmark.DEFAULT_METHOD).
+# (workflow.DEFAULT_METHOD).
 CLI_METHOD = "gn_pcg"
 
 

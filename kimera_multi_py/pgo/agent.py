@@ -29,39 +29,47 @@ team first runs block Gauss–Seidel on the chordal relaxation until every robot
 Robust mode: GNC-TLS weights on loop closures and inter-robot edges, one ``μ`` for the team
 (:mod:`.weights`). The lowest robot id is the leader: it orders the weight updates and
 sends ``stop`` when the team is done.
+
+The agent owns its parts: :class:`~.initialisation.Initialisation`,
+:class:`~.frame_decision.FrameDecision`, :class:`~.weights.RobustWeights` and
+:class:`~.relaxation.Relaxation`. What several of them read or move (the estimate, the edge
+weights, what was heard of the neighbours) is one :class:`~.state.SolveState`; everything else
+belongs to one of them, and each takes what else it needs as arguments.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 
 import gtsam
 import numpy as np
 
-from kimera_multi_py.alignment.map_check import MapAgreement
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.pgo import GncWeights, PgoCommand, PgoStatus, PublicPoses
 from kimera_multi_py.core.geometry import to_gtsam
-from kimera_multi_py.core.robust import GncSchedule, tls_threshold
-from kimera_multi_py.pgo.chordal import edge_weights
 from kimera_multi_py.pgo.factors import between, neighbour_factor, neighbour_parts, to_values
 from kimera_multi_py.pgo.frame_decision import FrameDecision
 from kimera_multi_py.pgo.initialisation import Initialisation
 from kimera_multi_py.pgo.local_graph import LocalGraph, colour_robots, component_root
 from kimera_multi_py.pgo.params import PgoParams
 from kimera_multi_py.pgo.relaxation import Relaxation, extrapolate
+from kimera_multi_py.pgo.state import SolveState
 from kimera_multi_py.pgo.weights import RobustWeights
 
 log = logging.getLogger(__name__)
 
 
-class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
-    """One robot's distributed-PGO state and its pure round step (its initialisation, frame
-    decision, robust weights and step-size control are the mixins of :mod:`.initialisation`,
-    :mod:`.frame_decision`, :mod:`.weights` and :mod:`.relaxation`)."""
+class PgoAgent:
+    """One robot's distributed-PGO state and its pure round step (see the module docstring).
 
-    def __init__(self, local: LocalGraph, params: PgoParams | None = None) -> None:
+    ``neighbour_poses`` (pose key -> public pose) and ``peer_settled`` (robot -> settled) seed
+    what the robot has heard; ``in_team_frame``: its poses are already in the team frame (an
+    earlier epoch aligned it; :class:`~.frame_decision.FrameDecision`).
+    """
+
+    def __init__(self, local: LocalGraph, params: PgoParams | None = None, *,
+                 neighbour_poses: dict[int, np.ndarray] | None = None, peer_settled: dict[int, bool] | None = None,
+                 in_team_frame: bool = False) -> None:
         self.local = local
         self.params = params or PgoParams()
         self.robot = local.robot
@@ -74,70 +82,38 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         self.num_colours = max(colours.values()) + 1
         self.root_robot = component_root(self.robot, team, local.robot_graph)  # the team frame's root
         self.root = self.root_robot == self.robot
-        # state
-        self.kappa_intra, self.tau_intra = edge_weights(local.intra_info)
-        self.kappa_inter, self.tau_inter = edge_weights(local.inter_info)
-        self.poses = self._initial_poses()
+        # the parts (module docstring) and what they share
+        self.initialisation = Initialisation(local, p)
+        self.state = SolveState.start(local, self.initialisation.initial_poses())
+        self.state.neighbour_poses.update(neighbour_poses or {})
+        self.state.peer_settled.update(peer_settled or {})
+        self.frame = FrameDecision(local, p, self.state, self.root_robot, in_team_frame)
+        self.weights = RobustWeights(local, p, self.state)
+        self.relaxation = Relaxation(p)
         # stage: "init" (distributed chordal relaxation) until the leader's start, then "solve"
         self.stage = "init" if p.distributed_init and local.robot_graph else "solve"
         self.solve_from: int | None = None  # round the BCD starts (from the leader's command)
         self.solve_round = 0  # statuses older than this belong to the init stage
-        self.start_sent: int | None = None
-        self.prev_poses = self.poses.copy()  # previous iterate (momentum)
-        self.published = self.poses.copy()  # what neighbours see (extrapolated)
-        self.aligned = self.root
-        # the frame rests on the root or on >= align_min_places places of settled peers' poses
-        # (see :class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`); peers' flags, by robot, as last heard
-        self.settled = self.root
-        self.peer_settled: dict[int, bool] = {}
-        self.neighbour_poses: dict[int, np.ndarray] = {}
-        self.inter_weights = np.ones(len(local.inter_edge))
-        self.intra_weights = np.ones(len(local.intra_edge))
-        self.gnc = GncSchedule(tls_threshold(p.inlier_probability, p.tls_dof), mu_step=p.gnc_mu_step)
-        self.gnc_pending: int | None = None  # round of a pending weight update
-        self.gnc_last_round = 0
-        self.mu_proposals: dict[int, float] = {}  # robot -> proposed μ₀ (team-wide GNC)
-        self.rechecks = 0
         self.updates = 0
         self.updates_since_weights = 0
         self.ready = False
         self.rel_change = np.inf
         self.cost = 0.0
         self.done = False
-        self.wait_rounds = 0
         self.wait_updates = 0
         self.relaxed = 0
-        self.omega = 1.0
-        self.last_step = 0.0
-        self.step_ratios: list[float] = []
-        self.recent_steps: list[float] = []  # block steps since the last weight update (divergence check)
-        self.gamma = 1.0
-        self.last_team_cost = np.inf
         self.statuses: dict[int, PgoStatus] = {}
         self.last_sent_round = -10**9
-        self.alignment_inliers: np.ndarray | None = None
-        # object landmarks (set by TeamPgo, :meth:`set_landmarks`): own ones anchored to their
-        # nearest keyframes, so they move with the estimate; settled peers' by robot
-        self.landmark_anchor: np.ndarray | None = None
-        self.landmark_offset = np.zeros((0, 3))
-        self.landmark_classes = np.zeros(0, dtype=np.int32)
-        self.peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
-        self.screened = False  # robust mode: inter-robot edges checked for consistency
-        self.excluded = False  # kept out of the team frame this epoch (see :attr:`alignment`)
-        # the poses are already in the team frame (an earlier epoch aligned this robot); set by
-        # the epoch runner (TeamPgo); a tie between frame hypotheses then keeps the frame
-        self.in_team_frame = False
-        # what the frame rests on (JSON-ready): status, hypothesis, support, margin, reason
-        self.alignment: dict[str, object] = {"status": "root" if self.root else "unaligned"}
-        self._no_peer_rounds = 0
-        self._tried = b""  # the known-edge mask of the last alignment attempt
-        # occupancy agreement of a frame hypothesis (set by TeamPgo, :meth:`set_map_view`)
-        self.map_view: Callable[[np.ndarray], MapAgreement | None] | None = None
-        self._map_scores: dict[tuple[int, ...], MapAgreement | None] = {}
-        self.map_refuted: list[dict[str, object]] = []
         self._base: gtsam.NonlinearFactorGraph | None = None
         self._parts: dict[int, tuple[float, tuple[gtsam.Pose3, gtsam.noiseModel.Base]]] = {}
-        self._values = to_values(local.keys, self.poses)
+
+    def drop(self, robots: set[int]) -> None:
+        """Robots that left the epoch: no longer waited for nor counted in the team's sums."""
+        self.team = tuple(r for r in self.team if r not in robots)
+
+    def final_poses(self) -> np.ndarray:
+        """The poses to adopt at the end of the epoch (:meth:`.frame_decision.FrameDecision.final_poses`)."""
+        return self.frame.final_poses(self._solve_alone)
 
     def dependencies(self) -> set[int]:
         """The robots whose previous round this one waits for: its neighbours (the leader: all)."""
@@ -152,8 +128,8 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
             if msg.robot == self.robot:
                 return
             for k, T in zip(msg.keys.tolist(), msg.poses, strict=False):
-                self.neighbour_poses[int(k)] = np.array(T)
-            self.peer_settled[msg.robot] = bool(msg.settled)
+                self.state.neighbour_poses[int(k)] = np.array(T)
+            self.state.peer_settled[msg.robot] = bool(msg.settled)
         elif isinstance(msg, PgoStatus):
             old = self.statuses.get(msg.robot)
             if old is None or msg.round >= old.round:
@@ -161,23 +137,12 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         elif isinstance(msg, PgoCommand):
             if msg.command == "stop":
                 self.done = True
-            elif msg.command == "update_weights" and msg.round > self.gnc_last_round:
-                self.gnc_pending = msg.round
+            elif msg.command == "update_weights":
+                self.weights.order(msg.round)
             elif msg.command == "start" and self.stage == "init" and self.solve_from is None:
                 self.solve_from = msg.round
         elif isinstance(msg, GncWeights):
-            if msg.peer == msg.robot:  # a μ₀ proposal, for the whole team
-                self.mu_proposals[msg.robot] = float(msg.mu)
-                return
-            if msg.peer != self.robot:
-                return
-            own_keys = self.local.keys[self.local.inter_own]
-            lookup = {(int(a), int(b)): w
-                      for a, b, w in zip(msg.keys_b, msg.keys_a, msg.weights, strict=True)}
-            for e, (a, b) in enumerate(zip(own_keys, self.local.inter_peer_key, strict=False)):
-                w = lookup.get((int(a), int(b)))
-                if w is not None:
-                    self.inter_weights[e] = float(w)
+            self.weights.absorb(msg)
 
     # ---------------------------------------------------------------- the step
     def active(self, rnd: int) -> bool:
@@ -188,18 +153,18 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         out: list[Message] = []
         if self.done:
             return out
-        if not self.aligned:
-            self._try_align()
-            if not self.aligned:
+        if not self.frame.aligned:
+            self.frame.try_align()
+            if not self.frame.aligned:
                 out.append(self._status(rnd))
                 return out
-            out.append(self._public(rnd, self.poses))
-        if self.params.robust and not self.screened and self.params.screen != "none":
-            self._screen()
+            out.append(self._public(rnd, self.state.poses))
+        if self.params.robust and not self.frame.screened and self.params.screen != "none":
+            self.frame.screen()
         if self.stage == "init" and self.solve_from is not None and rnd >= self.solve_from:
             self._start_solve(rnd)
-        if (self.params.robust and self.stage == "solve" and self.gnc_pending is not None
-                and rnd >= self.gnc_pending):
+        if (self.params.robust and self.stage == "solve" and self.weights.pending is not None
+                and rnd >= self.weights.pending):
             out.extend(self._update_weights(rnd))
         updated = False
         if self.active(rnd) and self._neighbours_known():
@@ -209,7 +174,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
                 self._update(rnd)
             updated = True
         if updated or rnd - self.last_sent_round >= self.params.resend_interval:
-            out.append(self._public(rnd, self.published if self.stage == "solve" else self.poses))
+            out.append(self._public(rnd, self.state.published if self.stage == "solve" else self.state.poses))
         out.append(self._status(rnd))
         if self.robot == self.leader:
             out.extend(self._lead(rnd))
@@ -218,7 +183,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
     def _neighbours_known(self) -> bool:
         """Update only once every neighbour pose is known (or after ``align_patience`` waits):
         a block solved against a partial separator drifts far from the team's solution."""
-        if self.updates > 0 or all(int(k) in self.neighbour_poses for k in self.local.inter_peer_key):
+        if self.updates > 0 or all(int(k) in self.state.neighbour_poses for k in self.local.inter_peer_key):
             return True
         self.wait_updates += 1
         return self.wait_updates > self.params.align_patience
@@ -226,14 +191,47 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
     def _status(self, rnd: int) -> PgoStatus:
         rel = float(self.rel_change) if np.isfinite(self.rel_change) else 1e300
         # an excluded robot has nothing to converge: it never holds the team up
-        return PgoStatus(robot=self.robot, round=rnd, ready=bool((self.ready and self.aligned) or self.excluded),
-                         cost=float(self.cost), rel_change=rel)
+        ready = (self.ready and self.frame.aligned) or self.frame.excluded
+        return PgoStatus(robot=self.robot, round=rnd, ready=bool(ready), cost=float(self.cost), rel_change=rel)
 
     def _public(self, rnd: int, poses: np.ndarray) -> PublicPoses:
         self.last_sent_round = rnd
         pub = self.local.public
         return PublicPoses(robot=self.robot, round=rnd, keys=self.local.keys[pub],
-                           poses=poses[pub], settled=bool(self.settled and not self.excluded))
+                           poses=poses[pub], settled=bool(self.frame.settled and not self.frame.excluded))
+
+    # ---------------------------------------------------------------- stages
+    def _init_update(self) -> None:
+        """One block of the team's chordal relaxation (:meth:`.initialisation.Initialisation.update`)."""
+        st = self.state
+        new = self.initialisation.update(st, self.root)
+        change = np.sqrt(np.sum((new - st.poses) ** 2) / max(np.sum(st.poses**2), 1e-300))
+        self.rel_change = float(change)
+        self.ready = self.rel_change < self.params.init_rel_tol
+        st.poses = new
+        self.updates += 1
+
+    def _start_solve(self, rnd: int) -> None:
+        """Leave the initialisation: the BCD starts from the relaxation's poses."""
+        self.stage = "solve"
+        self.solve_round = rnd
+        self.state.restart_from(self.state.poses)
+        self.ready = False
+        self.rel_change = np.inf
+        self.updates = 0
+        self.updates_since_weights = 0
+        self.relaxation.restart(team_cost=True)
+
+    def _update_weights(self, rnd: int) -> list[Message]:
+        """The ordered weight update (:meth:`.weights.RobustWeights.update`); new weights are a
+        new problem: the block graph is rebuilt and the robot converges anew."""
+        out, changed = self.weights.update(rnd)
+        if changed:
+            self._base = None
+            self.updates_since_weights = 0
+            self.ready = False
+            self.relaxation.restart()
+        return out
 
     # ---------------------------------------------------------------- local solve
     def _base_graph(self) -> gtsam.NonlinearFactorGraph:
@@ -241,7 +239,7 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
             lg = self.local
             fg = gtsam.NonlinearFactorGraph()
             for e in range(len(lg.intra_i)):
-                w = self.intra_weights[e]
+                w = self.state.intra_weights[e]
                 if w > 0:
                     fg.add(between(lg.keys[lg.intra_i[e]], lg.keys[lg.intra_j[e]],
                                    lg.intra_meas[e], lg.intra_info[e], w))
@@ -253,8 +251,8 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         fg = gtsam.NonlinearFactorGraph()
         follows = self._followers()
         for e in range(len(lg.inter_edge)):
-            w = self.inter_weights[e]
-            nb = self.neighbour_poses.get(int(lg.inter_peer_key[e]))
+            w = self.state.inter_weights[e]
+            nb = self.state.neighbour_poses.get(int(lg.inter_peer_key[e]))
             if w <= 0 or nb is None or int(lg.inter_peer[e]) in follows:
                 continue
             fg.add(neighbour_factor(lg.keys[lg.inter_own[e]], nb, self._neighbour_parts(e, float(w))))
@@ -279,71 +277,65 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
         the GNC schedule is over: the re-checks and the final solve are the joint ones, so the
         converged estimate is the team's optimum over the closures GNC kept."""
         p = self.params
-        if not (p.robust and p.align_hypotheses and self.settled and not self.excluded) \
-                or self.gnc.steps >= p.gnc_max_steps:
+        if not (p.robust and p.align_hypotheses and self.frame.settled and not self.frame.excluded) \
+                or self.weights.gnc.steps >= p.gnc_max_steps:
             return set()
-        return {r for r, ok in self.peer_settled.items() if not ok}
+        return {r for r, ok in self.state.peer_settled.items() if not ok}
 
     def _update(self, rnd: int) -> None:
         lg = self.local
+        st = self.state
         inter = self._inter_graph()
         fg = gtsam.NonlinearFactorGraph(self._base_graph())
         fg.push_back(inter)
         if inter.size() == 0:
-            fg.add(gtsam.PriorFactorPose3(int(lg.keys[0]), to_gtsam(self.poses[0]),
+            fg.add(gtsam.PriorFactorPose3(int(lg.keys[0]), to_gtsam(st.poses[0]),
                                           gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
         lm = gtsam.LevenbergMarquardtParams()
         lm.setMaxIterations(self.params.lm_iterations)
         lm.setRelativeErrorTol(self.params.lm_rel_tol)
         lm.setAbsoluteErrorTol(0.0)
-        values = gtsam.LevenbergMarquardtOptimizer(fg, self._values, lm).optimize()
+        values = gtsam.LevenbergMarquardtOptimizer(fg, st.values, lm).optimize()
         new = _poses_of(values)
-        change = np.sqrt(np.sum((new - self.poses) ** 2) / max(np.sum(self.poses**2), 1e-300))
+        change = np.sqrt(np.sum((new - st.poses) ** 2) / max(np.sum(st.poses**2), 1e-300))
         self.rel_change = float(change)
         self.ready = self.rel_change < self.params.rel_tol and self.updates_since_weights > 0
-        omega = self._omega(float(np.sqrt(np.sum((new - self.poses) ** 2))))
+        omega = self.relaxation.factor(float(np.sqrt(np.sum((new - st.poses) ** 2))), self.updates_since_weights)
         if omega != 1.0 and self.updates_since_weights > 0:
             # block over-relaxation: on a quadratic cost X ⊕ ω(X* ⊖ X) lowers the cost by
             # ω(2−ω) times the exact step's decrease; kept only when it does lower it here
-            relaxed = extrapolate(new, self.poses, omega - 1.0)
+            relaxed = extrapolate(new, st.poses, omega - 1.0)
             relaxed_values = to_values(lg.keys, relaxed)
-            if fg.error(relaxed_values) <= fg.error(self._values):
+            if fg.error(relaxed_values) <= fg.error(st.values):
                 new, values = relaxed, relaxed_values
                 self.relaxed += 1
             else:
-                self.omega = 1.0 + 0.5 * (self.omega - 1.0)
-                self.step_ratios.clear()
+                self.relaxation.back_off()
         self.cost = float(self._base_graph().error(values) + 0.5 * inter.error(values))
         # Nesterov momentum on what neighbours see; restart on a team cost rise or interval
         self.updates += 1
         self.updates_since_weights += 1
-        if self.params.acceleration and self._should_restart():
-            self.gamma = 1.0
-        if self.params.acceleration:
-            gamma_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * self.gamma**2))
-            beta = (self.gamma - 1.0) / gamma_next
-            self.gamma = gamma_next
-            self.published = extrapolate(new, self.poses, beta)
-        else:
-            self.published = new
-        self.prev_poses = self.poses
-        self.poses = new
-        self._values = values
+        st.published = self.relaxation.momentum(new, st.poses, self.updates, self.cost, self.statuses, self.team,
+                                                self.robot)
+        st.prev_poses = st.poses
+        st.poses = new
+        st.values = values
 
     def _solve_alone(self) -> np.ndarray:
         """The robot's own graph alone (odometry and the intra-robot closures GNC kept), its
         first pose held."""
         lg = self.local
+        poses = self.state.poses
         fg = gtsam.NonlinearFactorGraph(self._base_graph())
-        fg.add(gtsam.PriorFactorPose3(int(lg.keys[0]), to_gtsam(self.poses[0]),
+        fg.add(gtsam.PriorFactorPose3(int(lg.keys[0]), to_gtsam(poses[0]),
                                       gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-        values = gtsam.LevenbergMarquardtOptimizer(fg, to_values(lg.keys, self.poses)).optimize()
+        values = gtsam.LevenbergMarquardtOptimizer(fg, to_values(lg.keys, poses)).optimize()
         return _poses_of(values)
 
     # ---------------------------------------------------------------- leader
     def _lead(self, rnd: int) -> list[Message]:
         p = self.params
-        if self.stage == "init" or self.start_sent is not None:
+        if self.stage == "init" or self.initialisation.start_sent is not None:
             starting = self._lead_init(rnd)
             if self.stage == "init" or starting:
                 return starting
@@ -355,9 +347,28 @@ class PgoAgent(Initialisation, FrameDecision, RobustWeights, Relaxation):
             return self._lead_weights(rnd, all_ready)
         return self._stop(rnd) if all_ready else []
 
+    def _lead_init(self, rnd: int) -> list[Message]:
+        """Start the BCD when the team's relaxation has settled (:meth:`.initialisation.Initialisation.lead`)."""
+        start = self.initialisation.lead(rnd, self.team, self.ready and self.frame.aligned, self.statuses)
+        if start is None:
+            return []
+        return self._command(start, "start", np.array(self.team, dtype=np.int64))
+
+    def _lead_weights(self, rnd: int, all_ready: bool) -> list[Message]:
+        """Robust mode: weight updates, then ``stop`` (:meth:`.weights.RobustWeights.lead`)."""
+        order = self.weights.lead(rnd, all_ready)
+        if order == "stop":
+            return self._stop(rnd)
+        if order == "update_weights":
+            return self._command(rnd + 1, "update_weights", np.array(self.team, dtype=np.int64))
+        return []
+
     def _stop(self, rnd: int) -> list[Message]:
-        cmd = PgoCommand(robot=self.robot, round=rnd, command="stop",
-                         active=np.zeros(0, dtype=np.int64))
+        return self._command(rnd, "stop", np.zeros(0, dtype=np.int64))
+
+    def _command(self, rnd: int, command: str, active: np.ndarray) -> list[Message]:
+        """A leader's command: applied to this robot too, and sent."""
+        cmd = PgoCommand(robot=self.robot, round=rnd, command=command, active=active)
         self.handle(cmd)
         return [cmd]
 

@@ -1,46 +1,43 @@
 """Frame decision of one distributed-PGO robot: which team frame it joins, and whether its
-estimate is adopted at the end of the epoch (a mixin of :class:`.agent.PgoAgent`, whose state it
-reads and writes; docs/algorithms/pgo.md).
+estimate is adopted at the end of the epoch (docs/algorithms/pgo.md).
 
 Plain alignment: the lowest id of each connected robot graph is the team frame; the others align
 to an aligned neighbour by GNC rotation + translation averaging over the inter-robot edges
-(:mod:`kimera_multi_py.alignment.frames`). A robot publishes public poses only once aligned.
+(:mod:`.alignment`). A robot publishes public poses only once aligned.
 
 Robust frame alignment (``align_hypotheses``): the known inter-robot edges are
-clustered into frame hypotheses (:func:`kimera_multi_py.alignment.frames.frame_hypotheses`), each supported by the
+clustered into frame hypotheses (:func:`.alignment.frame_hypotheses`), each supported by the
 number of distinct places its closures come from, over every neighbour at once. A robot adopts
 the hypothesis that leads the runner-up by ``align_min_margin`` places (twice the runner-up's
 places, or twice the places only the runner-up explains, when it rests on several:
-:func:`kimera_multi_py.alignment.frames.decide`) and rests on at least
-``align_min_places``. Settled frames (:class:`kimera_multi_py.comms.messages.pgo.PublicPoses`): the robot decides on
-settled peers' edges first; the rest decide only what those leave open, and evidence that leads
+:func:`.alignment.decide`) and rests on at least
+``align_min_places``. Settled frames (:class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`): the
+robot decides on settled peers' edges first; the rest decide only what those leave open, and evidence that leads
 to two frames (settled peers against the rest, or two settled peers against each other) is
-contested, no decision (:func:`kimera_multi_py.alignment.frames.settled_decision`). A lone single-place group with no
+contested, no decision (:func:`.alignment.settled_decision`). A lone single-place group with no
 competitor (one room seen by both robots, which an alias looks exactly like) is adopted once no
 more edges can arrive, and reported as such (not settled); ``align_lone_place=False`` keeps the
 robot out until a second place agrees. Where closures leave groups of several places competing
 (twin rooms: the truth and the frame one room over rest on as many places, or closures through
 different peers lead to different frames), the team's object
-landmarks may decide (:mod:`kimera_multi_py.alignment.landmark_check`; settled peers publish theirs as
-:class:`kimera_multi_py.comms.messages.pgo.FrameLandmarks` when an epoch opens): adopted when they clearly favour one
-hypothesis, reported as such and not settled. Without such a hypothesis the robot stays out of the team
-frame for the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
-:attr:`PgoAgent.alignment` and the log. A robot already in a settled team frame switches frames
+landmarks may decide (:mod:`.landmark_check`; settled peers publish theirs as
+:class:`~kimera_multi_py.comms.messages.pgo.FrameLandmarks` when an epoch opens): adopted when they
+clearly favour one hypothesis, reported as such and not settled. Without such a hypothesis the
+robot stays out of the team frame for the epoch (own frame, inter-robot weights 0, ready so nobody waits) and says so in
+:attr:`FrameDecision.alignment` and the log. A robot already in a settled team frame switches frames
 only once every neighbour's poses are known (or patience ran out): at an epoch's start only the
 root has published. Every epoch builds a fresh agent, so the decision is revisited as closures
 accumulate: a robot aligned into an alias frame switches once the true hypothesis leads. Edges
 outside the adopted hypothesis start at weight 0. At the end of an epoch
-(:meth:`PgoAgent.final_poses`) an estimate that bends away from the robot's own odometry beyond
-its drift model (:func:`kimera_multi_py.alignment.frames.odometry_disagreement`) is not adopted either.
+(:meth:`FrameDecision.final_poses`) an estimate that bends away from the robot's own odometry beyond
+its drift model (:func:`.alignment.odometry_disagreement`) is not adopted either.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -57,58 +54,60 @@ from kimera_multi_py.alignment.frames import (
 from kimera_multi_py.alignment.landmark_check import LandmarkScore, landmark_lead, landmark_scores
 from kimera_multi_py.alignment.map_check import MapAgreement
 from kimera_multi_py.core.geometry import inverse, so3_log
-from kimera_multi_py.pgo.factors import to_values
-
-if TYPE_CHECKING:
-    from kimera_multi_py.pgo.local_graph import LocalGraph
-    from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.pgo.local_graph import LocalGraph
+from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.pgo.state import SolveState
 
 log = logging.getLogger(__name__)
 
 
 class FrameDecision:
-    """The frame-alignment part of :class:`.agent.PgoAgent`: align, screen, exclude, settle."""
+    """The frame-alignment part of :class:`.agent.PgoAgent`: align, screen, exclude, settle.
 
-    # state of the agent (set by PgoAgent.__init__)
-    local: LocalGraph
-    params: PgoParams
-    robot: int
-    root: bool
-    root_robot: int
-    landmark_anchor: np.ndarray | None
-    landmark_offset: np.ndarray
-    landmark_classes: np.ndarray
-    peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]]
-    poses: np.ndarray
-    prev_poses: np.ndarray
-    published: np.ndarray
-    neighbour_poses: dict[int, np.ndarray]
-    inter_weights: np.ndarray
-    intra_weights: np.ndarray
-    aligned: bool
-    excluded: bool
-    in_team_frame: bool
-    settled: bool
-    peer_settled: dict[int, bool]
-    screened: bool
-    alignment: dict[str, object]
-    alignment_inliers: np.ndarray | None
-    wait_rounds: int
-    _no_peer_rounds: int
-    _tried: bytes
-    _values: gtsam.Values
-    map_view: Callable[[np.ndarray], MapAgreement | None] | None
-    _map_scores: dict[tuple[int, ...], MapAgreement | None]
-    map_refuted: list[dict[str, object]]
+    It moves the shared estimate into the team frame and starts the inter-robot edges the frame
+    does not rest on at weight 0 (:class:`~.state.SolveState`). ``root_robot`` is the root of the
+    robot's team frame (the robot itself: it is the team frame); ``in_team_frame``: its poses
+    are already in the team frame (an earlier epoch aligned it), so a tie between frame
+    hypotheses keeps the frame.
+    """
 
-    if TYPE_CHECKING:
-        def _solve_alone(self) -> np.ndarray: ...
+    def __init__(self, local: LocalGraph, params: PgoParams, state: SolveState, root_robot: int,
+                 in_team_frame: bool = False) -> None:
+        self.local = local
+        self.params = params
+        self.robot = local.robot
+        self.state = state
+        self.root_robot = root_robot
+        self.root = root_robot == local.robot
+        self.in_team_frame = in_team_frame
+        self.aligned = self.root
+        # the frame rests on the root or on >= align_min_places places of settled peers' poses
+        # (see :class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`)
+        self.settled = self.root
+        self.excluded = False  # kept out of the team frame this epoch (see :attr:`alignment`)
+        self.screened = False  # robust mode: inter-robot edges checked for consistency
+        # what the frame rests on (JSON-ready): status, hypothesis, support, margin, reason
+        self.alignment: dict[str, object] = {"status": "root" if self.root else "unaligned"}
+        self.alignment_inliers: np.ndarray | None = None
+        self.wait_rounds = 0
+        self._no_peer_rounds = 0
+        self._tried = b""  # the known-edge mask of the last alignment attempt
+        # object landmarks (:meth:`set_landmarks`): own ones anchored to their nearest keyframes,
+        # so they move with the estimate; settled peers' by robot
+        self.landmark_anchor: np.ndarray | None = None
+        self.landmark_offset = np.zeros((0, 3))
+        self.landmark_classes = np.zeros(0, dtype=np.int32)
+        self.peer_landmarks: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
+        # occupancy agreement of a frame hypothesis (:meth:`set_map_view`), cached per frame
+        self.map_view: Callable[[np.ndarray], MapAgreement | None] | None = None
+        self._map_scores: dict[tuple[int, ...], MapAgreement | None] = {}
+        self.map_refuted: list[dict[str, object]] = []  # hypotheses the maps refuted, for the report
 
     # ---------------------------------------------------------------- alignment
-    def _try_align(self) -> None:
+    def try_align(self) -> None:
         """Align to the team frame from inter-robot edges whose other end is known."""
         lg = self.local
-        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        known = np.array([int(k) in self.state.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
         if not known.any():
             self._no_peer_rounds += 1
             if self.params.robust and self.params.align_hypotheses and \
@@ -118,8 +117,8 @@ class FrameDecision:
         if self.params.robust and self.params.align_hypotheses:
             self._align_hypothesis(known)
             return
-        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
-        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+        nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.state.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
                            lg.inter_own_is_i[known])
         self.wait_rounds += 1
         everything = bool(known.all())  # no further edge can arrive
@@ -129,13 +128,12 @@ class FrameDecision:
         self.settled = True  # without frame hypotheses every aligned frame counts
 
     def _align_consensus(self, known: np.ndarray) -> None:
-        """Align by the robust consensus of every known edge (:func:`kimera_multi_py.alignment.frames.align_frames`)."""
+        """Align by the robust consensus of every known edge (:func:`.alignment.align_frames`)."""
         lg = self.local
-        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
-        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known], lg.inter_own_is_i[known])
+        nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.state.poses[lg.inter_own[known]], nb, lg.inter_meas[known], lg.inter_own_is_i[known])
         if self.params.robust and self._map_refutes(res.T):
             self._exclude("the maps refute the consensus frame of every edge", None, 0)
-            self.alignment["map_refuted"] = self.map_refuted
             return
         self._adopt_consensus(known, res)
         self.settled = False
@@ -155,7 +153,7 @@ class FrameDecision:
         if self.params.robust and self.params.screen != "none":
             # edges the screen rejects start as outliers; GNC revisits them
             keep = inliers if self.params.screen == "alignment" else self._supported(known)
-            self.inter_weights = np.where(known & ~keep, 0.0, 1.0)
+            self.state.inter_weights = np.where(known & ~keep, 0.0, 1.0)
         self.screened = bool(known.all())
         log.info("robot %d aligned with %d/%d inter-robot edges", self.robot,
                  int(inliers.sum()), int(known.sum()))
@@ -163,10 +161,7 @@ class FrameDecision:
     def _move_into(self, T: np.ndarray, inliers: np.ndarray) -> None:
         """Adopt frame ``T`` (own -> team): move the estimate and restart from it; ``inliers`` (an
         array the caller may still extend) are the inter-robot edges the frame rests on."""
-        self.poses = T @ self.poses
-        self.prev_poses = self.poses.copy()
-        self.published = self.poses.copy()
-        self._values = to_values(self.local.keys, self.poses)
+        self.state.restart_from(T @ self.state.poses)
         self.alignment_inliers = inliers
         self.aligned = True
         self.excluded = False
@@ -175,8 +170,8 @@ class FrameDecision:
         """Frame hypotheses of the known inter-robot edges (edge indices into the local graph)."""
         lg = self.local
         idx = np.flatnonzero(known)
-        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[idx]])
-        hyps = frame_hypotheses(self.poses[lg.inter_own[idx]], nb, lg.inter_meas[idx], lg.inter_own_is_i[idx],
+        nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[idx]])
+        hyps = frame_hypotheses(self.state.poses[lg.inter_own[idx]], nb, lg.inter_meas[idx], lg.inter_own_is_i[idx],
                                 lg.inter_peer[idx], place_radius=self.params.place_radius)
         for h in hyps:
             h.edges = idx[h.edges]
@@ -185,7 +180,7 @@ class FrameDecision:
     # ---------------------------------------------------------------- maps
     def set_map_view(self, view: Callable[[np.ndarray], MapAgreement | None] | None) -> None:
         """How the robot's map agrees with the team's under a frame ``T`` (own estimate -> team
-        frame), or None where the maps cannot tell (:mod:`.map_check`)."""
+        frame), or None where the maps cannot tell (:mod:`kimera_multi_py.alignment.map_check`)."""
         self.map_view = view if self.params.map_check else None
         self._map_scores.clear()
 
@@ -214,12 +209,13 @@ class FrameDecision:
         return refuted
 
     def _settled_edges(self) -> np.ndarray:
-        """Inter-robot edges to peers in a settled frame (:class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`)."""
-        return np.array([self.peer_settled.get(int(r), True) for r in self.local.inter_peer], dtype=bool)
+        """The inter-robot edges to peers whose frames are settled
+        (:class:`~kimera_multi_py.comms.messages.pgo.PublicPoses`)."""
+        return np.array([self.state.peer_settled.get(int(r), True) for r in self.local.inter_peer], dtype=bool)
 
     def _evidence(self, known: np.ndarray) -> tuple[list[FrameHypothesis], FrameHypothesis | None, int, str]:
         """The frame hypotheses over every known edge, the one that clearly leads (or None), its
-        margin, and the verdict of :func:`kimera_multi_py.alignment.frames.settled_decision` (edges to peers whose own
+        margin, and the verdict of :func:`.alignment.settled_decision` (edges to peers whose own
         frames are not settled decide only what settled peers' edges do not)."""
         p = self.params
         lg = self.local
@@ -308,7 +304,7 @@ class FrameDecision:
             if near_identity(h.T):
                 inliers[h.edges] = True
         # edges outside the hypothesis start as outliers; GNC and its rechecks revisit them
-        self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
+        self.state.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
         self.screened = bool(known.all())
         self.settled = settles
         self.alignment = self._report("aligned", best, margin, len(hyps))
@@ -337,13 +333,13 @@ class FrameDecision:
         self.landmark_classes = np.asarray(classes)
 
     def _landmark_lead(self, hyps: list[FrameHypothesis]) -> tuple[FrameHypothesis | None, list[LandmarkScore]]:
-        """The hypothesis the team's landmarks clearly favour (:mod:`kimera_multi_py.alignment.landmark_check`), among
+        """The hypothesis the team's landmarks clearly favour (:mod:`.landmark_check`), among
         those resting on ``align_tie_min_places`` places, and every hypothesis's score."""
         team = [(c, x) for r, (f, c, x) in self.peer_landmarks.items() if f == self.root_robot and r != self.robot]
         if self.landmark_anchor is None or not team or not hyps:
             return None, []
         k = self.landmark_anchor
-        own = np.einsum("nij,nj->ni", self.poses[k, :3, :3], self.landmark_offset) + self.poses[k, :3, 3]
+        own = np.einsum("nij,nj->ni", self.state.poses[k, :3, :3], self.landmark_offset) + self.state.poses[k, :3, 3]
         scores = landmark_scores(own, self.landmark_classes, np.concatenate([x for _, x in team]),
                                  np.concatenate([c for c, _ in team]), [h.T for h in hyps],
                                  place_radius=self.params.place_radius)
@@ -373,21 +369,21 @@ class FrameDecision:
         if self.excluded:
             return
         self.excluded = True
-        self.inter_weights[:] = 0.0
+        self.state.inter_weights[:] = 0.0
         self.alignment = self._report("excluded", h, margin, len(hyps or []), reason)
         # every competing hypothesis: distinct places, edges, peers, and where it moves the robot's origin
         self.alignment["competitors"] = _competitors(hyps or [])
         log.log(level, "robot %d: kept out of the team frame (%s; best support %d places, margin %d)", self.robot,
                 reason, h.places if h is not None else 0, margin)
 
-    def _screen(self) -> None:
+    def screen(self) -> None:
         """Robust mode, aligned robot: start inconsistent inter-robot edges at weight 0.
 
         The same GNC rotation/translation consensus as the alignment (whose transform should
         now be the identity) flags the edges that disagree with the majority; GNC revisits them.
         """
         lg = self.local
-        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        known = np.array([int(k) in self.state.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
         self.wait_rounds += 1
         if not known.any() or (not known.all() and self.wait_rounds < self.params.align_patience):
             return
@@ -398,40 +394,41 @@ class FrameDecision:
             keep = np.zeros(len(lg.inter_edge), dtype=bool)
             for h in here:
                 keep[h.edges] = True
-            self.inter_weights = np.where(known & ~keep, 0.0, 1.0)
+            self.state.inter_weights = np.where(known & ~keep, 0.0, 1.0)
             self.screened = True
             if self.root and here:
                 others = [h.places for h in hyps if not near_identity(h.T)]
                 self.alignment = self._report("root", here[0], here[0].places - max(others, default=0), len(hyps))
             return
         if self.params.screen == "support":
-            self.inter_weights = np.where(known & ~self._supported(known), 0.0, 1.0)
+            self.state.inter_weights = np.where(known & ~self._supported(known), 0.0, 1.0)
             self.screened = True
             return
-        nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
-        res = align_frames(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+        nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+        res = align_frames(self.state.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
                            lg.inter_own_is_i[known])
         if res.ok:
             inliers = np.zeros(len(lg.inter_edge), dtype=bool)
             inliers[np.flatnonzero(known)[res.inliers]] = True
-            self.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
+            self.state.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
             self.alignment_inliers = inliers
         self.screened = True
 
     def _supported(self, known: np.ndarray) -> np.ndarray:
         """The known inter-robot edges some other known edge agrees with (own poses in the team
-        frame), see :func:`kimera_multi_py.alignment.frames.supported_edges`."""
+        frame), see :func:`.alignment.supported_edges`."""
         lg = self.local
         out = np.zeros(len(lg.inter_edge), dtype=bool)
         if known.any():
-            nb = np.stack([self.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
-            out[known] = supported_edges(self.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
+            nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[known]])
+            out[known] = supported_edges(self.state.poses[lg.inter_own[known]], nb, lg.inter_meas[known],
                                          lg.inter_own_is_i[known])
         return out
 
     # ---------------------------------------------------------------- end of the epoch
-    def final_poses(self) -> np.ndarray:
-        """The poses to adopt at the end of the epoch.
+    def final_poses(self, solve_alone: Callable[[], np.ndarray]) -> np.ndarray:
+        """The poses to adopt at the end of the epoch (``solve_alone``: the robot's own graph
+        solved alone, see :meth:`_own_solution`).
 
         Robust mode also settles the safety property here: a robot that never aligned (or that
         was excluded) returns its estimate in its own frame (first pose at the identity) with
@@ -439,10 +436,10 @@ class FrameDecision:
         beyond its drift model is not adopted either (the robot's own solution is).
         """
         if not self.params.robust:
-            return self.poses
+            return self.state.poses
         lg = self.local
-        known = np.array([int(k) in self.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
-        self.inter_weights[~known] = 0.0
+        known = np.array([int(k) in self.state.neighbour_poses for k in lg.inter_peer_key], dtype=bool)
+        self.state.inter_weights[~known] = 0.0
         if not self.aligned and not self.excluded:
             self._exclude("not aligned when the epoch ended", None, 0)
         if self.params.drift_check and not self.excluded:
@@ -453,10 +450,10 @@ class FrameDecision:
                             self.robot, ratio)
                 self._exclude(f"estimate disagrees with odometry ({ratio:.2f} x drift model)", None, 0)
                 self.alignment["drift_ratio"] = round(ratio, 3)
-                self.poses = self._own_solution()
+                self.state.poses = self._own_solution(solve_alone)
         if self.excluded:
-            return inverse(self.poses[0]) @ self.poses
-        return self.poses
+            return inverse(self.state.poses[0]) @ self.state.poses
+        return self.state.poses
 
     def _odometry_chain(self) -> tuple[np.ndarray, float, float]:
         """Dead reckoning from the odometry edges (first pose at the identity) and its sigmas."""
@@ -475,17 +472,18 @@ class FrameDecision:
 
     def _odometry_disagreement(self) -> float:
         D, s_rot, s_trans = self._odometry_chain()
-        return odometry_disagreement(self.poses, D, s_rot, s_trans, self.params.drift_z, self.params.drift_floor)
+        return odometry_disagreement(self.state.poses, D, s_rot, s_trans, self.params.drift_z, self.params.drift_floor)
 
-    def _own_solution(self) -> np.ndarray:
-        """The robot's own graph alone (odometry and the intra-robot closures GNC kept), or its
-        dead reckoning when its own closures bend it away from the odometry too."""
+    def _own_solution(self, solve_alone: Callable[[], np.ndarray]) -> np.ndarray:
+        """The robot's own graph alone (odometry and the intra-robot closures GNC kept, solved by
+        ``solve_alone``), or its dead reckoning when its own closures bend it away from the
+        odometry too."""
         lg = self.local
-        own = self._solve_alone()
+        own = solve_alone()
         D, s_rot, s_trans = self._odometry_chain()
         if odometry_disagreement(own, D, s_rot, s_trans, self.params.drift_z, self.params.drift_floor) > 1.0:
-            self.intra_weights[~lg.intra_odometry] = 0.0  # its own closures bend it too: dead reckoning
-            return self.poses[0] @ D
+            self.state.intra_weights[~lg.intra_odometry] = 0.0  # its own closures bend it too: dead reckoning
+            return self.state.poses[0] @ D
         return own
 
 

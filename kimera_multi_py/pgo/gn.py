@@ -54,9 +54,9 @@ from kimera_multi_py.pgo.params import PgoParams
 log = logging.getLogger(__name__)
 
 
-class GnPcgAgent(GnRobust, PgoAgent):
+class GnPcgAgent(PgoAgent):
     """One robot of the distributed Levenberg–Marquardt / pipelined-PCG solve (see module;
-    robust mode: :mod:`.gn_weights`)."""
+    robust mode: its part :class:`~.gn_weights.GnRobust`)."""
 
     gamma_prev: float  # the previous CG iteration's γ and α (set by the first one)
     alpha_prev: float
@@ -86,7 +86,7 @@ class GnPcgAgent(GnRobust, PgoAgent):
         self._anchor_built: bool | None = None  # the anchoring the coarse space was built for
         self.joined = False  # aligned, or excluded for good: the robot takes part in the solve
         self.unaligned_rounds = 0
-        self._robust_setup()
+        self.gn_weights = GnRobust(local, self.params, self.state, self.root)
 
     def dependencies(self) -> set[int]:
         """Every step needs every robot's shares of the team sums."""
@@ -104,7 +104,7 @@ class GnPcgAgent(GnRobust, PgoAgent):
                 return  # the solve tracks neighbour poses itself (from their steps)
         if isinstance(msg, GncWeights):
             if self.kind in ("start", "begin"):  # only the owners' screened weights, at the start
-                self._absorb_start_weights(msg)
+                self.gn_weights.absorb_start_weights(msg)
             return
         super().handle(msg)
 
@@ -114,30 +114,29 @@ class GnPcgAgent(GnRobust, PgoAgent):
         if self.done:
             return out
         p = self.params
-        if not self.aligned and not self.joined:
+        if not self.frame.aligned and not self.joined:
             # an excluded robot keeps deciding while evidence arrives; it takes part (edges off)
             # once the exclusion is final: every far end known, or waited long enough
-            self._try_align()
-            self.joined = self.aligned or (self.excluded and self._exclusion_final())
+            self.frame.try_align()
+            self.joined = self.frame.aligned or (self.frame.excluded and self._exclusion_final())
             if not self.joined:
                 return [self._status(rnd)]
-            out.append(self._public(rnd, self.poses))
+            out.append(self._public(rnd, self.state.poses))
         elif self.peer_X is None and rnd - self.last_sent_round >= p.resend_interval:
-            out.append(self._public(rnd, self.poses))
-        if p.robust and not self.screened and not self.excluded and p.screen != "none":
-            self._screen()
+            out.append(self._public(rnd, self.state.poses))
+        if p.robust and not self.frame.screened and not self.frame.excluded and p.screen != "none":
+            self.frame.screen()
         msg = self._advance(rnd)
         if msg is not None:
             out.append(msg)
             if msg.step == 0:
-                out.extend(self._start_weight_messages(rnd))
+                out.extend(self.gn_weights.start_weight_messages(rnd))
         elif self.sent and rnd - self.sent[-1].round >= p.resend_interval:
             # another robot may still miss either of the last two steps (it is one behind at most)
             self.sent = [dataclasses.replace(m, round=rnd) for m in self.sent]
             out.extend(self.sent)
             if self.kind == "begin":
-                self.start_weights = [dataclasses.replace(m, round=rnd) for m in self.start_weights]
-                out.extend(self.start_weights)
+                out.extend(self.gn_weights.resend_start_weights(rnd))
         out.append(self._status(rnd))
         return out
 
@@ -145,7 +144,7 @@ class GnPcgAgent(GnRobust, PgoAgent):
         """No more evidence can change the exclusion: every inter-robot edge's far end is known
         (the frame decision has seen them all), or ``3·align_patience`` rounds have passed."""
         self.unaligned_rounds += 1
-        known = all(int(k) in self.neighbour_poses for k in self.local.inter_peer_key)
+        known = all(int(k) in self.state.neighbour_poses for k in self.local.inter_peer_key)
         return known or self.unaligned_rounds >= 3 * self.params.align_patience
 
     def _status(self, rnd: int) -> PgoStatus:
@@ -195,28 +194,28 @@ class GnPcgAgent(GnRobust, PgoAgent):
     def _advance(self, rnd: int) -> PcgState | None:
         p = self.params
         if self.kind == "start":
-            if not all(int(k) in self.neighbour_poses for k in self.local.inter_peer_key):
+            if not all(int(k) in self.state.neighbour_poses for k in self.local.inter_peer_key):
                 return None
             if not all(int(r) in self.peer_public for r in self.local.neighbours):
                 return None
-            self.peer_X = np.stack([self.neighbour_poses[int(k)] for k in self.local.inter_peer_key]) \
+            self.peer_X = np.stack([self.state.neighbour_poses[int(k)] for k in self.local.inter_peer_key]) \
                 if len(self.local.inter_peer_key) else np.zeros((0, 4, 4))
             self._gather = self._gather_index()
             # far ends that are a frame root's first pose: the team's gauge, never moved
             roots = np.array([frame_root(int(r), self.team, self.local.robot_graph)
                               for r in self.local.inter_peer], dtype=bool)
             self._peer_anchor = roots & ((self.local.inter_peer_key & INDEX_MASK) == 0)
-            if p.robust and not (self.screened or self.excluded or p.screen == "none"):
+            if p.robust and not (self.frame.screened or self.frame.excluded or p.screen == "none"):
                 return None
             self.kind = "begin"
-            return self._send(rnd, self._start_scalars())
+            return self._send(rnd, self.gn_weights.start_scalars(self.state.poses, self.peer_X, self.frame.excluded))
         got = self._received(self.k - 1, rnd)
         if got is None:
             return None
         if self.kind == "begin":
-            if not self._start_weights_in():
+            if not self.gn_weights.start_weights_in():
                 return None
-            self._apply_start(got)
+            self.gn_weights.apply_start(got, self.frame.excluded)
             return self._linearise(rnd)
         if self.kind == "cg0":
             return self._cg_start(rnd, got)
@@ -253,24 +252,25 @@ class GnPcgAgent(GnRobust, PgoAgent):
     def _cost(self, poses: np.ndarray, peer_X: np.ndarray) -> float:
         """The robot's share of the team cost: its intra edges and half of each inter edge."""
         lg = self.local
-        c = float(edge_costs(poses[lg.intra_i], poses[lg.intra_j], lg.intra_meas, self.w_intra_info).sum()) \
+        c = float(edge_costs(poses[lg.intra_i], poses[lg.intra_j], lg.intra_meas, self.gn_weights.w_intra_info).sum()) \
             if len(lg.intra_i) else 0.0
         if len(lg.inter_own):
             own = poses[lg.inter_own]
             sel = lg.inter_own_is_i[:, None, None]
             Ti, Tj = np.where(sel, own, peer_X), np.where(sel, peer_X, own)
-            c += 0.5 * float(edge_costs(Ti, Tj, lg.inter_meas, self.w_inter_info).sum())
+            c += 0.5 * float(edge_costs(Ti, Tj, lg.inter_meas, self.gn_weights.w_inter_info).sum())
         return c
 
     def _linearise(self, rnd: int) -> PcgState:
         lg = self.local
         assert self.peer_X is not None
-        anchored = self._anchored()
-        self.sys = LocalSystem(self.poses, lg.intra_i, lg.intra_j, lg.intra_meas, self.w_intra_info,
+        rw = self.gn_weights
+        anchored = rw.anchored()
+        self.sys = LocalSystem(self.state.poses, lg.intra_i, lg.intra_j, lg.intra_meas, rw.w_intra_info,
                                lg.inter_own, lg.inter_own_is_i, self.peer_X, lg.inter_meas,
-                               self.w_inter_info, anchor=anchored, damping=self.lam)
+                               rw.w_inter_info, anchor=anchored, damping=self.lam)
         # the robot's share of the team cost (at the current weights) and its non-binary weights
-        self.cost = self._cost(self.poses, self.peer_X)
+        self.cost = self._cost(self.state.poses, self.peer_X)
         size = self.params.gn_coarse_size
         # the coarse space (its maps P and A_c = PᵀHP) is rebuilt every gn_coarse_refresh outer
         # steps (sooner while the team cost still falls by more than 1% a step: the poses,
@@ -281,7 +281,7 @@ class GnPcgAgent(GnRobust, PgoAgent):
                                 or anchored != self._anchor_built)
         self._anchor_built = anchored
         if rebuild:
-            self.coarse_rows = CoarseRows(self.robot, self.poses, self.peer_X, lg.inter_peer,
+            self.coarse_rows = CoarseRows(self.robot, self.state.poses, self.peer_X, lg.inter_peer,
                                           lg.inter_peer_key, size, self.sys.keep, self._peer_anchor)
             self.coarse = None
             self.coarse_built = self.outer
@@ -293,7 +293,7 @@ class GnPcgAgent(GnRobust, PgoAgent):
         self.ub = _single(self.sys.precondition(self.r))
         self.kind = "cg0"
         self.cg_i = 0
-        scalars = [self.cost, float(self._nonbinary()), float(self.flipped)] if self.params.robust else [self.cost]
+        scalars = [self.cost, float(rw.nonbinary()), float(rw.flipped)] if self.params.robust else [self.cost]
         return self._send(rnd, scalars, self.ub, restrict=self.r, rows=rebuild, recycled=True)
 
     def _apply(self, got: dict[int, PcgState], own_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -326,8 +326,7 @@ class GnPcgAgent(GnRobust, PgoAgent):
     def _cg_start(self, rnd: int, got: dict[int, PcgState]) -> PcgState:
         self.team_cost = self.cost + sum(float(m.scalars[0]) for m in got.values())
         if self.params.robust:
-            self.team_nonbinary = self._nonbinary() + sum(int(m.scalars[1]) for m in got.values())
-            self.team_flipped = self.flipped + sum(int(m.scalars[2]) for m in got.values())
+            self.gn_weights.count_team(got)
         self.u, u_peer = self._apply(got, self.ub)
         self.w = self.sys.multiply(self.u, u_peer)
         self.p = np.zeros_like(self.x)
@@ -373,7 +372,7 @@ class GnPcgAgent(GnRobust, PgoAgent):
     def _trial(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Own and far-end poses after ``t`` times the step."""
         assert self.peer_X is not None
-        poses = self.poses @ se3_expmap(t * self.x.reshape(-1, 6))
+        poses = self.state.poses @ se3_expmap(t * self.x.reshape(-1, 6))
         peer = self.peer_X @ se3_expmap(t * self.x_peer) if len(self.peer_X) else self.peer_X
         return poses, peer
 
@@ -396,9 +395,9 @@ class GnPcgAgent(GnRobust, PgoAgent):
         accepted = new_cost < self.team_cost
         if accepted:
             poses, peer = self._trial(t)
-            change = np.sqrt(np.sum((poses - self.poses) ** 2) / max(np.sum(self.poses**2), 1e-300))
+            change = np.sqrt(np.sum((poses - self.state.poses) ** 2) / max(np.sum(self.state.poses**2), 1e-300))
             self.rel_change = float(change)
-            self.poses, self.peer_X = poses, peer
+            self.state.poses, self.peer_X = poses, peer
             self.cost, self.team_cost = self.trial_costs[best], new_cost
             if t >= 1.0:
                 self.lam = max(self.lam / p.gn_damping_factor, p.gn_damping_min)
@@ -411,11 +410,12 @@ class GnPcgAgent(GnRobust, PgoAgent):
             converged = self.lam > p.gn_damping_max
         log.debug("robot %d round %d outer %d: cost %.9g t %g lambda %.2e cg %d", self.robot, rnd,
                   self.outer, self.team_cost, t, self.lam, self.cg_i)
-        done = self._robust_after_step(accepted, converged, self.outer, decrease)
-        if self.weights_outer == self.outer:  # the weights changed: a new problem to converge
+        done = self.gn_weights.after_step(accepted, converged, self.outer, decrease, self.state.poses, self.peer_X,
+                                          self.frame.excluded)
+        if self.gn_weights.weights_outer == self.outer:  # the weights changed: a new problem to converge
             self.small_steps = 0
             self.lam = min(self.lam, p.gn_damping)
-        if done or self.outer - self.weights_outer >= p.gn_max_outer:
+        if done or self.outer - self.gn_weights.weights_outer >= p.gn_max_outer:
             self.ready = True
             self.done = True
             return None

@@ -133,7 +133,7 @@ async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, 
             if rnd < start:
                 await asyncio.sleep(0)
                 await drain()
-                round_log.report(agent.robot, rnd, agent.poses)
+                round_log.report(agent.robot, rnd, agent.state.poses)
                 continue
             # wait for the statuses of round rnd-1 from the robots this one depends on
             deadline = time.perf_counter() + timeout
@@ -155,7 +155,7 @@ async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, 
                 break
             for msg in agent.step(rnd):
                 await bus.publish(bus.key(msg.TOPIC), msg)
-            round_log.report(agent.robot, rnd, agent.poses)
+            round_log.report(agent.robot, rnd, agent.state.poses)
             await asyncio.sleep(0)
             if agent.done:
                 break

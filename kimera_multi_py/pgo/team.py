@@ -188,18 +188,18 @@ class TeamPgo:
         local = self._build()
         keyframes = len(local.keys)
         local, seeded = self._restrict(local, members, pairs)
-        pgo = PgoAgent(local, self.params)
-        pgo.neighbour_poses.update(seeded)
-        pgo.peer_settled.update(self.last_settled)
         last = self.last_pgo
         # a frame an earlier epoch settled is kept against a tie or an early lead; an unsettled
         # one (adopted on one place) is decided afresh
-        pgo.in_team_frame = last is not None and (last.root or (last.aligned and not last.excluded and last.settled))
+        kept = last is not None and (last.root or (last.frame.aligned and not last.frame.excluded
+                                                   and last.frame.settled))
+        pgo = PgoAgent(local, self.params, neighbour_poses=seeded, peer_settled=self.last_settled,
+                       in_team_frame=kept)
         if self._landmarks is not None:
             self._share_landmarks(pgo, last, members, local.robot_graph)
         root = component_root(self.robot, members, local.robot_graph)
         if self._map_view is not None and root != self.robot:
-            pgo.set_map_view(self._map_view(root))
+            pgo.frame.set_map_view(self._map_view(root))
         leader = min(members)
         # the epoch's leader waits for everyone; the others for their neighbours and the leader
         # (which paces a robot without neighbours yet, instead of it racing to the round cap)
@@ -243,16 +243,17 @@ class TeamPgo:
         are in this epoch's team frame on settled evidence (the last epoch's, rooted alike)."""
         assert self._landmarks is not None
         classes, centres = self._landmarks()
-        pgo.set_landmarks(classes, centres, self.peer_landmarks)
+        pgo.frame.set_landmarks(classes, centres, self.peer_landmarks)
         root = component_root(self.robot, members, pairs)
-        settled = pgo.in_team_frame and last is not None and last.root_robot == root
+        settled = pgo.frame.in_team_frame and last is not None and last.root_robot == root
         if len(classes) and (pgo.root or settled):
             self._outbox.append(FrameLandmarks(robot=self.robot, frame=root, classes=classes,
                                                centroids=np.asarray(centres, dtype=np.float32)))
 
     def _finish(self, s: Session) -> None:
         log.info("robot %d: PGO epoch %d ends after %d rounds (%s; %d timeouts so far, GNC step %d)", self.robot,
-                 s.epoch, s.rnd, "stopped" if s.pgo.done else "round cap", self.stats.timeouts, s.pgo.gnc.steps,
+                 s.epoch, s.rnd, "stopped" if s.pgo.done else "round cap", self.stats.timeouts,
+                 s.pgo.weights.gnc.steps,
                  extra={"robot": self.robot})
         self._apply(s.pgo.final_poses())
         self.last_pgo = s.pgo
@@ -279,7 +280,7 @@ class TeamPgo:
         pgo = s.pgo
         gone = set(s.members) - set(alive) - {self.robot}
         if gone:  # robots that left are not waited for
-            pgo.team = tuple(r for r in pgo.team if r not in gone)
+            pgo.drop(gone)
             s.depends -= gone
         waiting = [r for r in s.depends if s.seen.get(r, -1) < s.rnd - 1 and r not in s.stopped]
         if waiting and not pgo.done and s.rnd > 0:

@@ -241,7 +241,7 @@ async def _distributed(graph: PoseGraph, params: PgoParams, transport: str, drop
     stats.dropped = dropped
     full = np.empty_like(graph.poses)
     for a, idx in zip(agents, index, strict=True):
-        full[idx] = a.poses
+        full[idx] = a.state.poses
     return full, stats, history, agents
 
 
@@ -292,9 +292,9 @@ def distributed_weights(graph: PoseGraph, agents: Sequence[PgoAgent]) -> np.ndar
     its lower-id robot's, which decides it)."""
     weights = np.ones(graph.num_edges)
     for a in agents:
-        weights[a.local.intra_edge] = a.intra_weights
+        weights[a.local.intra_edge] = a.state.intra_weights
         owned = a.local.inter_peer > a.robot
-        weights[a.local.inter_edge[owned]] = a.inter_weights[owned]
+        weights[a.local.inter_edge[owned]] = a.state.inter_weights[owned]
     return weights
 
 

@@ -57,7 +57,7 @@ def test_free_running_nodes_finish_together_and_optimise(small_free):
     assert all(n.pgo.final_done for n in nodes)
     # the inter-robot closures reached the solver, and robot 1 was aligned into robot 0's frame
     last = nodes[1].pgo.last_pgo
-    assert last is not None and last.aligned and len(last.local.inter_edge) > 0
+    assert last is not None and last.frame.aligned and len(last.local.inter_edge) > 0
     for n in nodes:
         assert n.agent.num_keyframes == len(sim.plans[n.robot].poses)
         assert sum(n.errors.values()) == 0

@@ -131,8 +131,8 @@ def epoch(status: str, aligned: bool, excluded: bool, pairs: list[tuple[int, int
     """An epoch's solver as the node reads it (no edges: the outcome's closure weights are empty)."""
     none = np.zeros(0, int)
     local = SimpleNamespace(robot_graph=pairs, inter_own=none, intra_odometry=np.zeros(0, bool))
-    return SimpleNamespace(aligned=aligned, excluded=excluded, local=local,
-                           alignment={"status": status, "settled": False})
+    frame = SimpleNamespace(aligned=aligned, excluded=excluded, alignment={"status": status, "settled": False})
+    return SimpleNamespace(frame=frame, local=local)
 
 
 def test_distributed_node_excluded_in_the_last_epoch_reports_its_own_frame_until_it_is_aligned_again():

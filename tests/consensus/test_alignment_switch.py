@@ -119,16 +119,16 @@ def test_aliased_robot_switches_to_the_true_frame() -> None:
     # epoch 1: only the aliased group (robot 0 in room A, robot 1 in room B; and across the ring)
     g1 = _graph(trajs, odo + alias, _odometry_start(trajs, odo))
     agents, poses = asyncio.run(_epoch(g1))
-    assert agents[1].aligned and agents[1].alignment["support"] == 2
+    assert agents[1].frame.aligned and agents[1].frame.alignment["support"] == 2
     assert abs(_frame_error(trajs, poses, first) - OFFSET) < 1.5  # merged into the alias frame
     # epoch 2: true closures in room A, at the corner and in the far corridor, warm-started from epoch 1
     true = _closures(trajs, first, [(a, a, False), (CORNER, CORNER, False), (np.array([4.0, 8.0]),) * 2 + (False,),
                                     (np.array([0.0, 8.0]),) * 2 + (False,)], rng, per_place=2)
     g2 = _graph(trajs, odo + alias + true, poses)
     agents, poses = asyncio.run(_epoch(g2))
-    assert agents[1].alignment["status"] == "aligned" and agents[1].alignment["support"] >= 2
+    assert agents[1].frame.alignment["status"] == "aligned" and agents[1].frame.alignment["support"] >= 2
     assert _frame_error(trajs, poses, first) < 0.5
-    w = agents[0].inter_weights  # robot 0 owns (decides) the 0-1 edges
+    w = agents[0].state.inter_weights  # robot 0 owns (decides) the 0-1 edges
     outlier = g2.outlier[agents[0].local.inter_edge]
     assert outlier.sum() == len(alias) and np.all(w[outlier] < 0.5) and np.all(w[~outlier] > 0.5)
 
@@ -143,14 +143,14 @@ def test_a_lone_group_from_one_place() -> None:
     edges = _closures(trajs, first, [(np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0]), True)], rng)
     graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
     agents, poses = asyncio.run(_epoch(graph))
-    assert agents[1].alignment["status"] == "aligned" and agents[1].alignment["support"] == 1
-    assert not agents[1].settled and not agents[1].alignment["settled"]  # one place settles nothing
+    assert agents[1].frame.alignment["status"] == "aligned" and agents[1].frame.alignment["support"] == 1
+    assert not agents[1].frame.settled and not agents[1].frame.alignment["settled"]  # one place settles nothing
     assert abs(_frame_error(trajs, poses, first) - OFFSET) < 1.5  # merged into the alias frame
     agents, poses = asyncio.run(_epoch(graph, align_lone_place=False))
-    report = agents[1].alignment
+    report = agents[1].frame.alignment
     assert report["status"] == "excluded" and report["support"] == 1, report
     assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)
-    assert np.all(agents[0].inter_weights == 0.0)  # the owner of the edges drops them too
+    assert np.all(agents[0].state.inter_weights == 0.0)  # the owner of the edges drops them too
 
 
 def test_a_tie_between_single_place_groups_keeps_the_robot_out_of_the_team_frame() -> None:
@@ -162,7 +162,7 @@ def test_a_tie_between_single_place_groups_keeps_the_robot_out_of_the_team_frame
     a, b = np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0])
     edges = _closures(trajs, first, [(a, b, True), (a, a, False)], rng)
     agents, poses = asyncio.run(_epoch(_graph(trajs, odo + edges, _odometry_start(trajs, odo))))
-    report = agents[1].alignment
+    report = agents[1].frame.alignment
     assert report["status"] == "excluded", report
     assert [c[0] for c in report["competitors"]] == [1, 1]  # two hypotheses, one place each
     assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)  # returned in its own frame
@@ -182,7 +182,7 @@ def test_a_tie_between_multi_place_groups_keeps_the_robot_out_instead_of_letting
     edges += _closures(trajs, first, [(a, a, False), (CORNER, CORNER, False)], rng, per_place=3)
     graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
     agents, poses = asyncio.run(_epoch(graph))
-    report = agents[1].alignment
+    report = agents[1].frame.alignment
     assert report["status"] == "excluded" and report["reason"] == "no frame hypothesis leads", report
     assert sorted(c[0] for c in report["competitors"])[-2:] == [2, 2], report  # two groups of two places
     assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)  # returned in its own frame
@@ -222,31 +222,34 @@ def test_a_tie_between_multi_place_groups_is_decided_by_the_teams_landmarks() ->
     def decide(peer_frame: int, contested: bool = False) -> PgoAgent:
         pgo = PgoAgent(split_local(graph, frames="given")[1], team_params())
         for k in graph.robot_indices(0):  # the root's poses: the team frame
-            pgo.neighbour_poses[int(graph.ids[k])] = graph.poses[k]
-        pgo.set_landmarks(classes, _landmarks(graph, trajs, 1, world), {0: (peer_frame, *team)})
+            pgo.state.neighbour_poses[int(graph.ids[k])] = graph.poses[k]
+        pgo.frame.set_landmarks(classes, _landmarks(graph, trajs, 1, world), {0: (peer_frame, *team)})
         if contested:  # as if two settled peers' own closures each led to a different frame
-            evidence = pgo._evidence
-            pgo._evidence = lambda known: (*evidence(known)[:3], "contested")  # type: ignore[method-assign]
-        pgo._try_align()
+            evidence = pgo.frame._evidence
+            pgo.frame._evidence = lambda known: (*evidence(known)[:3], "contested")  # type: ignore[method-assign]
+        pgo.frame.try_align()
         return pgo
 
     pgo = decide(peer_frame=0)
-    report = pgo.alignment
-    assert pgo.aligned and not pgo.settled and report["status"] == "aligned", report
+    report = pgo.frame.alignment
+    assert pgo.frame.aligned and not pgo.frame.settled and report["status"] == "aligned", report
     assert report["reason"] == "closures do not decide: the team's landmarks do", report
     assert sorted(c[0] for c in report["competitors"])[-2:] == [2, 2], report  # closures: two places each
     t = np.array(report["landmarks"])  # per hypothesis: places, matched, conflicts
     assert t[:, 0].max() >= 2 * np.sort(t[:, 0])[-2]
-    error = np.linalg.norm(pgo.poses[:, :3, 3] - (inverse(trajs[0][0]) @ trajs[1])[:, :3, 3], axis=1).mean()
+    error = np.linalg.norm(pgo.state.poses[:, :3, 3] - (inverse(trajs[0][0]) @ trajs[1])[:, :3, 3], axis=1).mean()
     assert error < 0.5  # the true frame
     other = decide(peer_frame=5)
-    assert other.excluded and other.alignment["reason"] == "no frame hypothesis leads", other.alignment
+    report = other.frame.alignment
+    assert other.frame.excluded and report["reason"] == "no frame hypothesis leads", report
     # contested closures (aliased_wing, 8 robots, seed 9: robot 2 kept out): the landmarks decide too
     contested = decide(peer_frame=0, contested=True)
-    assert contested.aligned and contested.alignment["reason"] == "closures do not decide: the team's landmarks do"
-    assert np.allclose(contested.poses, pgo.poses)
+    report = contested.frame.alignment
+    assert contested.frame.aligned and report["reason"] == "closures do not decide: the team's landmarks do"
+    assert np.allclose(contested.state.poses, pgo.state.poses)
     alone = decide(peer_frame=5, contested=True)
-    assert alone.excluded and alone.alignment["reason"] == "closures through different peers lead to different frames"
+    report = alone.frame.alignment
+    assert alone.frame.excluded and report["reason"] == "closures through different peers lead to different frames"
 
 
 def test_a_robot_in_the_team_frame_switches_only_on_every_neighbours_evidence() -> None:
@@ -267,26 +270,26 @@ def test_a_robot_in_the_team_frame_switches_only_on_every_neighbours_evidence() 
     truth = np.concatenate(trajs)
     graph = _graph(trajs, odo + edges, inverse(truth[0]) @ truth)  # everyone in the team frame
     local = split_local(graph, frames="given")[1]
-    pgo = PgoAgent(local, team_params())
-    pgo.in_team_frame = True
+    pgo = PgoAgent(local, team_params(), in_team_frame=True)
     team = graph.poses
 
     def publish(robot: int) -> None:
         for k in graph.robot_indices(robot):
-            pgo.neighbour_poses[int(graph.ids[k])] = team[k]
+            pgo.state.neighbour_poses[int(graph.ids[k])] = team[k]
 
     publish(0)  # the root only
-    hyps = pgo._hypotheses(np.isin(local.inter_peer, [0]))
+    hyps = pgo.frame._hypotheses(np.isin(local.inter_peer, [0]))
     assert [h.places for h in hyps][:2] == [2, 1]  # the alias leads the root's evidence by one place
-    pgo._try_align()
-    assert not pgo.aligned and not pgo.excluded  # waits instead of switching frames
+    pgo.frame.try_align()
+    assert not pgo.frame.aligned and not pgo.frame.excluded  # waits instead of switching frames
     publish(2)
-    pgo._try_align()
-    assert pgo.aligned and pgo.alignment["status"] == "aligned", pgo.alignment
-    T = np.array(pgo.alignment["hypothesis"])
+    pgo.frame.try_align()
+    assert pgo.frame.aligned and pgo.frame.alignment["status"] == "aligned", pgo.frame.alignment
+    T = np.array(pgo.frame.alignment["hypothesis"])
     assert np.linalg.norm(T[:3, 3]) < 0.5  # kept the true frame
     alias = graph.outlier[local.inter_edge]
-    assert alias.sum() == 6 and np.all(pgo.inter_weights[alias] == 0.0) and np.all(pgo.inter_weights[~alias] == 1.0)
+    w = pgo.state.inter_weights
+    assert alias.sum() == 6 and np.all(w[alias] == 0.0) and np.all(w[~alias] == 1.0)
 
 
 def test_a_robot_does_not_align_through_a_peer_whose_frame_is_not_settled() -> None:
@@ -314,28 +317,28 @@ def test_a_robot_does_not_align_through_a_peer_whose_frame_is_not_settled() -> N
             team[first[2]:] = alias @ team[first[2]:]  # robot 2 sits 6 m off
         pgo = PgoAgent(local, team_params())
         for k in np.concatenate([graph.robot_indices(0), graph.robot_indices(2)]):
-            pgo.neighbour_poses[int(graph.ids[k])] = team[k]
-        pgo.peer_settled.update({0: True, 2: robot2_settled})
-        pgo._try_align()
+            pgo.state.neighbour_poses[int(graph.ids[k])] = team[k]
+        pgo.state.peer_settled.update({0: True, 2: robot2_settled})
+        pgo.frame.try_align()
         return pgo
 
     pgo = decided(True)
-    every = pgo._hypotheses(np.ones(len(local.inter_edge), dtype=bool))
+    every = pgo.frame._hypotheses(np.ones(len(local.inter_edge), dtype=bool))
     assert [h.places for h in every][:2] == [3, 2]  # the alias leads every edge's count
     assert np.linalg.norm(every[0].T[:3, 3] - alias[:3, 3]) < 1.0
-    assert pgo.excluded and not pgo.settled and not pgo._public(0, pgo.poses).settled
-    assert "different frames" in str(pgo.alignment["reason"]), pgo.alignment
-    assert np.all(pgo.inter_weights == 0.0)
+    assert pgo.frame.excluded and not pgo.frame.settled and not pgo._public(0, pgo.state.poses).settled
+    assert "different frames" in str(pgo.frame.alignment["reason"]), pgo.frame.alignment
+    assert np.all(pgo.state.inter_weights == 0.0)
     pgo = decided(False)
-    T = np.array(pgo.alignment["hypothesis"])
-    assert pgo.aligned and pgo.settled and np.linalg.norm(T[:3, 3]) < 0.5, pgo.alignment
-    assert pgo.alignment["peers"] == [0]
+    T = np.array(pgo.frame.alignment["hypothesis"])
+    assert pgo.frame.aligned and pgo.frame.settled and np.linalg.norm(T[:3, 3]) < 0.5, pgo.frame.alignment
+    assert pgo.frame.alignment["peers"] == [0]
     to_robot2 = local.inter_peer == 2
-    assert np.all(pgo.inter_weights[to_robot2] == 0.0) and np.all(pgo.inter_weights[~to_robot2] == 1.0)
+    assert np.all(pgo.state.inter_weights[to_robot2] == 0.0) and np.all(pgo.state.inter_weights[~to_robot2] == 1.0)
     fixed = decided(True, robot2_off=False)
-    T = np.array(fixed.alignment["hypothesis"])
-    assert fixed.aligned and fixed.settled and np.linalg.norm(T[:3, 3]) < 0.5, fixed.alignment
-    assert fixed.alignment["support"] == 5 and fixed._public(0, fixed.poses).settled
+    T = np.array(fixed.frame.alignment["hypothesis"])
+    assert fixed.frame.aligned and fixed.frame.settled and np.linalg.norm(T[:3, 3]) < 0.5, fixed.frame.alignment
+    assert fixed.frame.alignment["support"] == 5 and fixed._public(0, fixed.state.poses).settled
 
 
 def test_a_settled_robot_is_not_pulled_by_a_peer_whose_frame_is_not_settled() -> None:
@@ -354,14 +357,14 @@ def test_a_settled_robot_is_not_pulled_by_a_peer_whose_frame_is_not_settled() ->
 
     def root_after(settled: bool) -> np.ndarray:
         pgo = PgoAgent(split_local(graph, frames="given")[0], team_params())
-        assert pgo.root and pgo.settled
+        assert pgo.root and pgo.frame.settled
         for k, T in zip(graph.robot_indices(1), robot1, strict=True):
-            pgo.neighbour_poses[int(graph.ids[k])] = T
-        pgo.peer_settled[1] = settled
-        start = pgo.poses.copy()
+            pgo.state.neighbour_poses[int(graph.ids[k])] = T
+        pgo.state.peer_settled[1] = settled
+        start = pgo.state.poses.copy()
         for rnd in range(5):
             pgo._update(rnd)
-        return np.asarray(np.linalg.norm(pgo.poses[:, :3, 3] - start[:, :3, 3], axis=1).max())
+        return np.asarray(np.linalg.norm(pgo.state.poses[:, :3, 3] - start[:, :3, 3], axis=1).max())
 
     assert root_after(False) < 1e-6
     assert root_after(True) > 0.05

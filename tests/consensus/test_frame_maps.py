@@ -43,7 +43,7 @@ def _run(edges_at: list, map_check: bool, seed: int = 3, alias_per_place: int = 
     params = team_params(max_rounds=300, map_check=map_check)
     agents = [PgoAgent(local, params) for local in split_local(graph, frames="given")]
     maps = [seen(RING_FLOOR, T[:, :2, 3], T_world_own=T[0]) for T in trajs]
-    agents[1].set_map_view(lambda T: refined_agreement(maps[1], maps[0], T))
+    agents[1].frame.set_map_view(lambda T: refined_agreement(maps[1], maps[0], T))
 
     async def epoch() -> None:
         net = LoopbackNetwork(team="maps", seed=0, robots=[a.robot for a in agents])
@@ -58,7 +58,7 @@ def _run(edges_at: list, map_check: bool, seed: int = 3, alias_per_place: int = 
     poses = np.empty_like(graph.poses)
     for a in agents:
         poses[graph.robot_indices(a.robot)] = a.final_poses()
-    return _frame_error(trajs, poses, first), agents[1].alignment
+    return _frame_error(trajs, poses, first), agents[1].frame.alignment
 
 
 ALIAS_PLACES = [(np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0]), True),

@@ -115,8 +115,8 @@ def test_colouring_separates_neighbours(datasets_dir: Path) -> None:
 def test_robot_without_inter_robot_edges_is_its_own_frame(datasets_dir: Path) -> None:
     g = load_graph([pgo(datasets_dir, "robot_a"), pgo(datasets_dir, "robot_b")])
     agents = [PgoAgent(lg) for lg in split_local(g)]
-    assert all(a.root and a.aligned for a in agents)
-    assert np.allclose(agents[1].poses[0], np.eye(4), atol=1e-9)
+    assert all(a.root and a.frame.aligned for a in agents)
+    assert np.allclose(agents[1].state.poses[0], np.eye(4), atol=1e-9)
 
 
 def test_cli_writes_json_g2o_and_tum(datasets_dir: Path, tmp_path: Path) -> None:
@@ -154,24 +154,23 @@ def test_distributed_chordal_initialisation_then_bcd(datasets_dir: Path) -> None
 
 def test_over_relaxation_follows_youngs_estimate(datasets_dir: Path) -> None:
     agent = PgoAgent(split_local(load_graph([pgo(datasets_dir, "smallGrid3D")], 3))[0])
-    agent.updates_since_weights = 5
     for k in range(4):  # Gauss-Seidel contracting by 0.9 per update
-        omega = agent._omega(0.9**k)
+        omega = agent.relaxation.factor(0.9**k, updates_since_weights=5)
     assert omega == pytest.approx(2.0 / (1.0 + np.sqrt(1.0 - 0.9)))
     fixed = PgoAgent(agent.local, PgoParams(over_relaxation=1.0))
-    assert fixed._omega(1.0) == 1.0
+    assert fixed.relaxation.factor(1.0, updates_since_weights=0) == 1.0
 
 
 def test_over_relaxation_backs_off_when_the_steps_grow(datasets_dir: Path) -> None:
     """ω fitted to one problem diverges on a changed one (a held peer that starts to move): a step
     twice the one a window of updates before halves ω − 1; steps that oscillate do not."""
     agent = PgoAgent(split_local(load_graph([pgo(datasets_dir, "smallGrid3D")], 3))[0])
-    agent.updates_since_weights = 5
+    relaxation = agent.relaxation
     for k in range(4):
-        omega = agent._omega(0.9**k)
+        omega = relaxation.factor(0.9**k, updates_since_weights=5)
     assert omega > 1.5
     for k in range(30):  # over-relaxed steps: shrinking on the whole, up and down between updates
-        assert agent._omega(0.9**k * (1.5 if k % 2 else 1.0)) >= omega
-    omega = agent.omega
-    omegas = [agent._omega(0.1 * 1.1**k) for k in range(20)]  # growing: diverging
+        assert relaxation.factor(0.9**k * (1.5 if k % 2 else 1.0), updates_since_weights=5) >= omega
+    omega = relaxation.omega
+    omegas = [relaxation.factor(0.1 * 1.1**k, updates_since_weights=5) for k in range(20)]  # growing: diverging
     assert 1.0 < omegas[-1] <= 1.0 + 0.5 * (omega - 1.0)  # halved, once or more

@@ -132,10 +132,10 @@ async def distributed(graph: PoseGraph, params: PgoParams,
     poses = np.empty_like(graph.poses)
     weights = np.ones(graph.num_edges)
     for a in agents:
-        poses[graph.robot_indices(a.robot)] = a.poses
-        weights[a.local.intra_edge] = a.intra_weights
+        poses[graph.robot_indices(a.robot)] = a.state.poses
+        weights[a.local.intra_edge] = a.state.intra_weights
         owned = a.local.inter_peer > a.robot
-        weights[a.local.inter_edge[owned]] = a.inter_weights[owned]
+        weights[a.local.inter_edge[owned]] = a.state.inter_weights[owned]
     return poses, weights
 
 

@@ -67,7 +67,7 @@ def test_make_agent_picks_the_method(datasets_dir: Path) -> None:
     local = split_local(load_graph([pgo(datasets_dir, "tinyGrid3D")], robots=3))[0]
     assert isinstance(make_agent(local, PgoParams(method="gn_pcg")), GnPcgAgent)
     assert type(make_agent(local, PgoParams())) is PgoAgent
-    # robust runs too: GNC rides on the Levenberg–Marquardt outer loop (pgo_gn_weights)
+    # robust runs too: GNC rides on the Levenberg–Marquardt outer loop (pgo.gn_weights)
     assert isinstance(make_agent(local, PgoParams(method="gn_pcg", robust=True)), GnPcgAgent)
 
 
@@ -206,7 +206,7 @@ def test_robust_gn_pcg_weights_agree_across_robots(datasets_dir: Path) -> None:
     assert stats.rounds < 600
     weight: dict[int, float] = {}
     for a in agents:
-        for e, w in zip(a.local.inter_edge.tolist(), a.inter_weights.tolist(), strict=True):
+        for e, w in zip(a.local.inter_edge.tolist(), a.state.inter_weights.tolist(), strict=True):
             assert weight.setdefault(e, w) == w
     assert set(weight.values()) <= {0.0, 1.0}
     kept = np.array([weight[e] > 0.5 for e in sorted(weight)])
@@ -222,9 +222,10 @@ def test_robust_mu0_proposal_is_clamped(datasets_dir: Path, floor: float, expect
     agent = GnPcgAgent(split_local(graph)[0], PgoParams(method="gn_pcg", robust=True, gnc_mu0_min=floor,
                                                              gnc_mu0_trusted=False))
     worst = 1e8  # one closure with a huge residual
-    agent._robust_r2_all = lambda: (np.array([worst]), np.zeros(0))  # type: ignore[method-assign]
-    mu0, _ = agent._start_scalars()
-    raw = agent.gnc.initial_mu(np.array([worst]))
+    robust = agent.gn_weights
+    robust.robust_r2_all = lambda poses, peer_X: (np.array([worst]), np.zeros(0))  # type: ignore[method-assign]
+    mu0, _ = robust.start_scalars(agent.state.poses, agent.peer_X, agent.frame.excluded)
+    raw = robust.gnc.initial_mu(np.array([worst]))
     assert raw < 1e-6
     assert mu0 == pytest.approx(raw if expected is None else expected)
 
@@ -237,7 +238,7 @@ def test_rechecks_wait_for_a_settled_solve_not_a_converged_one(datasets_dir: Pat
     for tol in (0.0, 1e-4):
         params = PgoParams(method="gn_pcg", robust=True, max_rounds=800, gn_recheck_tol=tol)
         _, stats, _, agents = asyncio.run(_distributed(graph, params, "loopback", 0.0, 0, 0.2, None))
-        assert all(a.phase == "final" for a in agents)
+        assert all(a.gn_weights.phase == "final" for a in agents)
         runs[tol] = (stats.rounds, distributed_weights(graph, agents) > 0.5)
     assert runs[1e-4][0] < runs[0.0][0]
     assert np.array_equal(runs[1e-4][1], runs[0.0][1])

@@ -22,7 +22,7 @@ def test_a_robot_joining_late_is_aligned_and_in_pgo(tmp_path):
     late = runner.nodes[2]
     assert late.agent.stamps[0] == pytest.approx(JOIN)
     last = late.pgo.last_pgo
-    assert last is not None and last.aligned and len(last.local.inter_edge) > 0
+    assert last is not None and last.frame.aligned and len(last.local.inter_edge) > 0
     # robot 2 is a member of the first epoch after it joined, within one PGO period
     first = next(h for h in runner.nodes[0].pgo.history if 2 in h[1])
     assert JOIN <= first[3] <= JOIN + runner.schedule.period

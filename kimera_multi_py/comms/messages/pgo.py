@@ -65,7 +65,7 @@ class PgoStatus(Message):
 
 @message("PcgState", keys.PCG_STATE)
 class PcgState(Message):
-    """One lock-step of the distributed Gauss–Newton solve (``consensus.pgo_gn``).
+    """One lock-step of the distributed Gauss–Newton solve (:mod:`kimera_multi_py.pgo.gn`).
 
     ``scalars`` are the robot's shares of the team-wide sums of this step (costs, CG inner
     products); ``vectors`` a tangent vector at its public poses, in the order of its
