@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 from kimera_multi_py.comms import codec, wire
 from kimera_multi_py.comms.codec import Codec, CodecError, Envelope
 from kimera_multi_py.comms.messages import MESSAGE_TYPES, Heartbeat, Message, PublicPoses
-from kimera_multi_py.comms.samples import all_random_messages, random_message
 from kimera_multi_py.core.errors import MessageError
+from tests.support.samples import all_random_messages, random_message
 
 ROBOTS = frozenset(range(4))
 SEEDS = [codec.encode(m, team="t0", src=1, seq=i, stamp=1.0)

@@ -35,8 +35,8 @@ from kimera_multi_py.comms.messages import (
     PublicPoses,
     Str,
 )
-from kimera_multi_py.comms.samples import _random_array, random_message
 from kimera_multi_py.core.errors import MessageError
+from tests.support.samples import _random_array, random_message
 
 TEAM = "t0"
 ROBOTS = frozenset(range(4))

@@ -17,8 +17,8 @@ from kimera_multi_py.comms.messages import (
     PgoStatus,
     PublicPoses,
 )
-from kimera_multi_py.comms.samples import random_message
 from kimera_multi_py.core.errors import MessageError
+from tests.support.samples import random_message
 
 
 @pytest.mark.parametrize("type_name", sorted(MESSAGE_TYPES))

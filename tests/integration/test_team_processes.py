@@ -118,6 +118,7 @@ def test_a_killed_agent_resumes_and_loses_no_keyframe(tmp_path, odometry_ate):
     assert res["team"]["ate_rmse_m"] < odometry_ate
 
 
+@pytest.mark.slow
 def test_a_lone_agent_runs_a_recorded_folder_to_the_end(tmp_path):
     rec = tmp_path / "rec"
     res = cli("record", str(TINY), "--robots", "1", "--seed", "3", "--out", str(rec))
