@@ -180,6 +180,7 @@ def assert_same_agent(a: Agent, b: Agent) -> None:
                         [c.descriptor for c in b.constellations.values()])
 
 
+@pytest.mark.slow
 def test_restored_agents_continue_bit_identical_to_ones_that_never_stopped(tmp_path):
     """Two robots exchange descriptors, queries and closures; at keyframe ``k`` of the merged
     stream both are checkpointed and restored, and the restored team and a team that never stopped
