@@ -48,7 +48,6 @@ from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.faults import sim_faults
-from kimera_multi_py.comms.fuzz import fuzz_payloads, stranger_traffic
 from kimera_multi_py.comms.loopback import Faults
 from kimera_multi_py.comms.messages.team import AgentState
 from kimera_multi_py.comms.team import free_ports
@@ -60,6 +59,10 @@ from kimera_multi_py.team.certs import make_certs
 from kimera_multi_py.workflow.simulate import SimRunner
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # tests.support: the fuzzer is a test helper, not in the package
+
+from tests.support.fuzz import fuzz_payloads, stranger_traffic  # noqa: E402
+
 FAULTS = ROOT / "sims" / "faults.toml"
 TINY = ROOT / "sims" / "tiny.toml"
 TEAM = "t0"

@@ -56,7 +56,7 @@ def test_a_corrupt_dpgo_csv_folder(tmp_path, cut):
     from kimera_multi_py.io.g2o import read_g2o
 
     folder = tmp_path / "csv"
-    write_dpgo_csv(folder, read_g2o(REPO.parent / "shared" / "datasets" / "pgo" / "robot_a.g2o"))
+    write_dpgo_csv(folder, read_g2o(REPO / "tests" / "data" / "pgo" / "robot_a.g2o"))
     victim = sorted(folder.glob("robot*/measurements.csv"))[-1]
     data = victim.read_bytes()
     if cut == "half":

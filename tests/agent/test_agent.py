@@ -74,6 +74,7 @@ def test_apply_poses_moves_the_map_exactly_and_back(office):
         agent.apply_poses(np.concatenate([poses, poses[:1]]))
 
 
+@pytest.mark.slow
 def test_two_nodes_find_true_inter_robot_closures_over_loopback(office):
     """Robot 0 starts in office_a, robot 2 passes through it after the meeting room."""
     async def main():
@@ -181,6 +182,7 @@ def assert_same_agent(a: Agent, b: Agent) -> None:
                         [c.descriptor for c in b.constellations.values()])
 
 
+@pytest.mark.slow
 def test_restored_agents_continue_bit_identical_to_ones_that_never_stopped(tmp_path):
     """Two robots exchange descriptors, queries and closures; at keyframe ``k`` of the merged
     stream both are checkpointed and restored, and the restored team and a team that never stopped
@@ -216,6 +218,7 @@ def test_restored_agents_continue_bit_identical_to_ones_that_never_stopped(tmp_p
         assert_same_agent(team.agents[r], restored.agents[r])
 
 
+@pytest.mark.slow
 def test_the_front_end_sends_the_same_messages_whatever_the_back_end_estimates():
     """The front end works in each robot's odometric frame: a team whose estimates a back end
     keeps moving (a shift and a bend every 10 keyframes) sends the same messages, byte for byte,

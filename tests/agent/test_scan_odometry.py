@@ -115,6 +115,7 @@ def test_tiny_end_to_end_reports_accuracy_by_cause():
     assert n - len(d["robots"]) <= so["heading_corrected"] + so["heading_missing"] + so["heading_gated"] <= n
 
 
+@pytest.mark.slow
 def test_the_walls_keep_the_agents_chain_at_its_heading(small_robot):
     sim, _ = small_robot
     kfs = list(sim.keyframes(0))  # the whole run: yaw drift needs distance to show

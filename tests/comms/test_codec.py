@@ -17,8 +17,8 @@ from kimera_multi_py.comms.messages import MESSAGE_TYPES
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.pgo import PublicPoses
 from kimera_multi_py.comms.messages.team import Heartbeat
-from kimera_multi_py.comms.samples import all_random_messages, random_message
 from kimera_multi_py.core.errors import MessageError
+from tests.support.samples import all_random_messages, random_message
 
 ROBOTS = frozenset(range(4))
 SEEDS = [codec.encode(m, team="t0", src=1, seq=i, stamp=1.0)

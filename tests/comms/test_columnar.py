@@ -25,8 +25,8 @@ from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.fields import INT64_MAX, INT64_MIN, Array, Bool, Float, Int, Str
 from kimera_multi_py.comms.messages.pgo import GncWeights, PublicPoses
 from kimera_multi_py.comms.messages.team import Heartbeat, Ping
-from kimera_multi_py.comms.samples import _random_array, random_message
 from kimera_multi_py.core.errors import MessageError
+from tests.support.samples import _random_array, random_message
 
 TEAM = "t0"
 ROBOTS = frozenset(range(4))

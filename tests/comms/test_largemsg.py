@@ -24,8 +24,8 @@ from kimera_multi_py.comms.codec import Codec, CodecError
 from kimera_multi_py.comms.messages import MESSAGE_TYPES
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.team import Ping
-from kimera_multi_py.comms.samples import all_random_messages, random_message
 from kimera_multi_py.core.errors import MessageError
+from tests.support.samples import all_random_messages, random_message
 
 DTYPES = [wire._DTYPES[c] for c in sorted(wire._DTYPES)]
 LENGTHS = [0, 1, 15, 16, 31, 32, 127, 128, 255, 256, 65535, 65536]

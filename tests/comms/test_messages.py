@@ -12,8 +12,8 @@ from kimera_multi_py.comms.messages import MESSAGE_TYPES
 from kimera_multi_py.comms.messages.maps import MapDelta
 from kimera_multi_py.comms.messages.pgo import GncWeights, PgoCommand, PgoStatus, PublicPoses
 from kimera_multi_py.comms.messages.team import Heartbeat
-from kimera_multi_py.comms.samples import random_message
 from kimera_multi_py.core.errors import MessageError
+from tests.support.samples import random_message
 
 
 @pytest.mark.parametrize("type_name", sorted(MESSAGE_TYPES))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 
 import numpy as np
+import pytest
 
 from kimera_multi_py.comms.loopback import LoopbackNetwork
 from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp
@@ -139,6 +140,7 @@ async def distributed(graph: PoseGraph, params: PgoParams,
     return poses, weights
 
 
+@pytest.mark.slow
 def test_distributed_gnc_rejects_aliased_closure_groups() -> None:
     # measured before the fix (per-robot μ₀ from the current residuals, alignment screening):
     # 4 true closures dropped and a cost of 12053 against the reference's 43.08

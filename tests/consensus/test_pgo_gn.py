@@ -26,8 +26,8 @@ from kimera_multi_py.workflow.pgo_benchmark import (
 )
 
 
-def pgo(datasets_dir: Path, name: str) -> Path:
-    return datasets_dir / "pgo" / f"{name}.g2o"
+def pgo(folder: Path, name: str) -> Path:
+    return folder / f"{name}.g2o"
 
 
 @pytest.mark.parametrize("scale", [0.01, 1.0])
@@ -46,8 +46,8 @@ def test_edge_jacobians_match_finite_differences(scale: float) -> None:
         np.testing.assert_allclose((ej - e) / h, Jj[:, :, k], atol=1e-5)
 
 
-def test_local_gradient_and_cost_match_the_graph(datasets_dir: Path) -> None:
-    graph = load_graph([pgo(datasets_dir, "tinyGrid3D")], robots=1)
+def test_local_gradient_and_cost_match_the_graph(pgo_data: Path) -> None:
+    graph = load_graph([pgo(pgo_data, "tinyGrid3D")], robots=1)
     rng = np.random.default_rng(1)
     poses = graph.poses @ se3_expmap(0.05 * rng.normal(size=(graph.num_poses, 6)))
     none = np.zeros(0, dtype=int)
@@ -63,8 +63,8 @@ def test_local_gradient_and_cost_match_the_graph(datasets_dir: Path) -> None:
         0.5 * d.ravel() @ (sys.H @ d.ravel()), rel=0.1)
 
 
-def test_make_agent_picks_the_method(datasets_dir: Path) -> None:
-    local = split_local(load_graph([pgo(datasets_dir, "tinyGrid3D")], robots=3))[0]
+def test_make_agent_picks_the_method(pgo_data: Path) -> None:
+    local = split_local(load_graph([pgo(pgo_data, "tinyGrid3D")], robots=3))[0]
     assert isinstance(make_agent(local, PgoParams(method="gn_pcg")), GnPcgAgent)
     assert type(make_agent(local, PgoParams())) is PgoAgent
     # robust runs too: GNC rides on the Levenberg–Marquardt outer loop (pgo.gn_weights)
@@ -72,8 +72,8 @@ def test_make_agent_picks_the_method(datasets_dir: Path) -> None:
 
 
 @pytest.mark.parametrize(("name", "robots"), [("tinyGrid3D", 3), ("smallGrid3D", 5)])
-def test_gn_pcg_matches_centralized(datasets_dir: Path, name: str, robots: int) -> None:
-    res = run_pgo([pgo(datasets_dir, name)], robots=robots, max_rounds=400,
+def test_gn_pcg_matches_centralized(pgo_data: Path, name: str, robots: int) -> None:
+    res = run_pgo([pgo(pgo_data, name)], robots=robots, max_rounds=400,
                   params=PgoParams(method="gn_pcg"))
     assert abs(res.relative_gap) <= 1e-6
     assert res.rounds < 400  # stopped by its own convergence test, not by the cap
@@ -84,16 +84,16 @@ def test_gn_pcg_matches_centralized(datasets_dir: Path, name: str, robots: int) 
     assert np.all(np.diff(h) <= 1e-9 * res.centralized_cost)
 
 
-def test_gn_pcg_survives_message_loss(datasets_dir: Path) -> None:
-    res = run_pgo([pgo(datasets_dir, "tinyGrid3D")], robots=3, drop=0.1, seed=3, max_rounds=600,
+def test_gn_pcg_survives_message_loss(pgo_data: Path) -> None:
+    res = run_pgo([pgo(pgo_data, "tinyGrid3D")], robots=3, drop=0.1, seed=3, max_rounds=600,
                   round_timeout=0.02, params=PgoParams(method="gn_pcg"))
     assert res.dropped > 0
     assert abs(res.relative_gap) <= 1e-6
 
 
-def test_coarse_space_speeds_up_the_solve(datasets_dir: Path) -> None:
+def test_coarse_space_speeds_up_the_solve(pgo_data: Path) -> None:
     """The two-level preconditioner (rigid pose chunks) reaches 1e-3 sooner than block Jacobi."""
-    path = [pgo(datasets_dir, "smallGrid3D")]
+    path = [pgo(pgo_data, "smallGrid3D")]
     two = run_pgo(path, robots=5, max_rounds=120, params=PgoParams(method="gn_pcg"))
     one = run_pgo(path, robots=5, max_rounds=120, params=PgoParams(method="gn_pcg", gn_coarse_size=0))
     assert two.rounds_to_1e_3 is not None and one.rounds_to_1e_3 is not None
@@ -105,7 +105,7 @@ def test_coarse_space_speeds_up_the_solve(datasets_dir: Path) -> None:
 def test_gn_pcg_meets_the_cap_block_sor_cannot(datasets_dir: Path) -> None:
     """parking-garage: 5 robots interleave (nearly every pose is public); within 200 rounds
     block SOR stays above a 1e-3 gap, the distributed Gauss–Newton gets below it."""
-    path = [pgo(datasets_dir, "parking-garage")]
+    path = [pgo(datasets_dir / "pgo", "parking-garage")]
     gn = run_pgo(path, robots=5, max_rounds=200, params=PgoParams(method="gn_pcg"))
     sor = run_pgo(path, robots=5, max_rounds=200, params=PgoParams(method="block_sor"))
     assert gn.relative_gap <= 1e-3 < sor.relative_gap
@@ -113,11 +113,11 @@ def test_gn_pcg_meets_the_cap_block_sor_cannot(datasets_dir: Path) -> None:
     assert gn.bytes_sent / gn.rounds <= sor.bytes_sent / sor.rounds
 
 
-def test_run_pgo_method_argument(datasets_dir: Path) -> None:
-    res = run_pgo([pgo(datasets_dir, "tinyGrid3D")], robots=3, max_rounds=300, method="gn_pcg")
+def test_run_pgo_method_argument(pgo_data: Path) -> None:
+    res = run_pgo([pgo(pgo_data, "tinyGrid3D")], robots=3, max_rounds=300, method="gn_pcg")
     assert "pgo/pcg_state" in res.bytes_by_topic and abs(res.relative_gap) <= 1e-6
     with pytest.raises(ConfigError, match="method"):
-        run_pgo([pgo(datasets_dir, "tinyGrid3D")], robots=3, method="newton")
+        run_pgo([pgo(pgo_data, "tinyGrid3D")], robots=3, method="newton")
 
 
 def test_recycled_coarse_solve_is_the_extended_inverse() -> None:
@@ -158,10 +158,10 @@ def test_recycled_coarse_solve_is_the_extended_inverse() -> None:
     np.testing.assert_allclose(y.ravel(), np.linalg.solve(A, f.ravel()), rtol=1e-6)
 
 
-def test_gn_pcg_stops_once_converged(datasets_dir: Path) -> None:
+def test_gn_pcg_stops_once_converged(pgo_data: Path) -> None:
     """The stop rule (two accepted steps in a row below gn_rel_tol) ends the run well before
     the cap, and only once the gap is far below 1e-3; a tighter tolerance runs longer."""
-    path = [pgo(datasets_dir, "smallGrid3D")]
+    path = [pgo(pgo_data, "smallGrid3D")]
     res = run_pgo(path, robots=5, max_rounds=400, params=PgoParams(method="gn_pcg"))
     assert res.rounds < 100 and abs(res.relative_gap) <= 1e-6
     tight = run_pgo(path, robots=5, max_rounds=400,
@@ -169,9 +169,9 @@ def test_gn_pcg_stops_once_converged(datasets_dir: Path) -> None:
     assert tight.rounds > res.rounds
 
 
-def test_cli_default_is_gn_pcg_robust_or_not(datasets_dir: Path) -> None:
+def test_cli_default_is_gn_pcg_robust_or_not(pgo_data: Path) -> None:
     assert CLI_METHOD == "gn_pcg"
-    local = split_local(load_graph([pgo(datasets_dir, "tinyGrid3D")], robots=3))[0]
+    local = split_local(load_graph([pgo(pgo_data, "tinyGrid3D")], robots=3))[0]
     assert isinstance(make_agent(local, PgoParams(method=CLI_METHOD, robust=True)), GnPcgAgent)
 
 
@@ -179,17 +179,17 @@ def test_cli_default_is_gn_pcg_robust_or_not(datasets_dir: Path) -> None:
 def test_recycling_speeds_up_parking_garage(datasets_dir: Path) -> None:
     """parking-garage (5 robots, nearly every pose public): recycling the last steps in the
     coarse space reaches 1e-3 no later than without, within the issue's 200 rounds."""
-    path = [pgo(datasets_dir, "parking-garage")]
+    path = [pgo(datasets_dir / "pgo", "parking-garage")]
     rec = run_pgo(path, robots=5, max_rounds=200, params=PgoParams(method="gn_pcg"))
     plain = run_pgo(path, robots=5, max_rounds=200, params=PgoParams(method="gn_pcg", gn_recycle=0))
     assert rec.rounds_to_1e_3 is not None and rec.rounds_to_1e_3 <= 200
     assert plain.rounds_to_1e_3 is None or rec.rounds_to_1e_3 <= plain.rounds_to_1e_3
 
 
-def test_robust_gn_pcg_survives_message_loss(datasets_dir: Path) -> None:
+def test_robust_gn_pcg_survives_message_loss(pgo_data: Path) -> None:
     """Robust mode over a lossy network: the owners' start weights are resent until they
     arrive, and every robot still takes the same GNC steps (the same inlier set as gtsam's)."""
-    res = run_pgo([pgo(datasets_dir, "tinyGrid3D")], robots=3, robust=True, outliers=0.3, drop=0.1,
+    res = run_pgo([pgo(pgo_data, "tinyGrid3D")], robots=3, robust=True, outliers=0.3, drop=0.1,
                   seed=3, max_rounds=900, round_timeout=0.02, params=PgoParams(method="gn_pcg"))
     assert res.dropped > 0 and res.outliers > 0
     assert res.robust_eval is not None
@@ -197,10 +197,10 @@ def test_robust_gn_pcg_survives_message_loss(datasets_dir: Path) -> None:
     assert res.rounds < 900  # it stopped by itself
 
 
-def test_robust_gn_pcg_weights_agree_across_robots(datasets_dir: Path) -> None:
+def test_robust_gn_pcg_weights_agree_across_robots(pgo_data: Path) -> None:
     """Both robots of an inter-robot edge hold the same weight at the end (each computes it
     from the same two poses), and every weight is binary."""
-    graph = inject_outliers(load_graph([pgo(datasets_dir, "smallGrid3D")], robots=4), 0.3, seed=1)
+    graph = inject_outliers(load_graph([pgo(pgo_data, "smallGrid3D")], robots=4), 0.3, seed=1)
     params = PgoParams(method="gn_pcg", robust=True, max_rounds=600)
     _, stats, _, agents = asyncio.run(_distributed(graph, params, "loopback", 0.0, 0, 0.2, None))
     assert stats.rounds < 600
@@ -215,10 +215,10 @@ def test_robust_gn_pcg_weights_agree_across_robots(datasets_dir: Path) -> None:
 
 
 @pytest.mark.parametrize(("floor", "expected"), [(0.0, None), (1e-4, 1e-4), (1.0, 1e-3)])
-def test_robust_mu0_proposal_is_clamped(datasets_dir: Path, floor: float, expected: float | None) -> None:
+def test_robust_mu0_proposal_is_clamped(pgo_data: Path, floor: float, expected: float | None) -> None:
     """A gross outlier among the trusted edges makes ``μ₀`` tiny; ``gnc_mu0_min`` floors the
     proposal (0: none), and ``gnc_mu0_max`` still caps it."""
-    graph = load_graph([pgo(datasets_dir, "tinyGrid3D")], robots=2)
+    graph = load_graph([pgo(pgo_data, "tinyGrid3D")], robots=2)
     agent = GnPcgAgent(split_local(graph)[0], PgoParams(method="gn_pcg", robust=True, gnc_mu0_min=floor,
                                                              gnc_mu0_trusted=False))
     worst = 1e8  # one closure with a huge residual
@@ -230,10 +230,10 @@ def test_robust_mu0_proposal_is_clamped(datasets_dir: Path, floor: float, expect
     assert mu0 == pytest.approx(raw if expected is None else expected)
 
 
-def test_rechecks_wait_for_a_settled_solve_not_a_converged_one(datasets_dir: Path) -> None:
+def test_rechecks_wait_for_a_settled_solve_not_a_converged_one(pgo_data: Path) -> None:
     """A re-check fires once a step lowers the team cost by less than ``gn_recheck_tol``: the
     same inlier set as waiting for full convergence before each re-check, in fewer rounds."""
-    graph = inject_outliers(load_graph([pgo(datasets_dir, "smallGrid3D")], robots=4), 0.3, seed=1)
+    graph = inject_outliers(load_graph([pgo(pgo_data, "smallGrid3D")], robots=4), 0.3, seed=1)
     runs = {}
     for tol in (0.0, 1e-4):
         params = PgoParams(method="gn_pcg", robust=True, max_rounds=800, gn_recheck_tol=tol)

@@ -59,9 +59,9 @@ def test_binary_input_is_one_line_and_exit_1(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_robust_run_on_a_file_with_unknown_outliers(tmp_path: Path, datasets_dir: Path) -> None:
+def test_robust_run_on_a_file_with_unknown_outliers(tmp_path: Path, pgo_data: Path) -> None:
     # outliers written into a g2o file: the run cannot know which edges they are
-    g = inject_outliers(load_graph([datasets_dir / "pgo" / "smallGrid3D.g2o"], 3), 0.5, seed=2)
+    g = inject_outliers(load_graph([pgo_data / "smallGrid3D.g2o"], 3), 0.5, seed=2)
     write_g2o(tmp_path / "dirty.g2o", g.with_robots(np.zeros(g.num_poses, dtype=int)))
     res = run_pgo([tmp_path / "dirty.g2o"], robots=3, robust=True, max_rounds=600)
     fig = res.to_json()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 
 from kimera_multi_py.core.geometry import to_gtsam
 from kimera_multi_py.core.robust import tls_threshold
@@ -23,6 +24,7 @@ def test_recheck_rejects_aliases_accepted_by_least_squares() -> None:
     assert g.outlier.sum() >= 8 and not np.any(w[g.outlier] > 0.5)
 
 
+@pytest.mark.slow
 def test_robust_solve_keeps_every_true_closure() -> None:
     g = aliased_ring()
     res = solve_centralized(g, robust=True)

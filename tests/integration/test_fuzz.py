@@ -21,12 +21,12 @@ from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec
-from kimera_multi_py.comms.fuzz import fuzz_payloads, stranger_traffic
 from kimera_multi_py.comms.messages.team import AgentState
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.source import keyframe_input
 from kimera_multi_py.team.build import agent_params
+from tests.support.fuzz import fuzz_payloads, stranger_traffic
 
 pytestmark = pytest.mark.integration
 TEAM = "t0"

@@ -15,10 +15,10 @@ from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.messages.closures import LoopClosureReply
 from kimera_multi_py.comms.messages.team import Heartbeat, Ping
-from kimera_multi_py.comms.samples import all_random_messages
 from kimera_multi_py.comms.stream import BusClosedError
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.core.errors import ConfigError, MessageError
+from tests.support.samples import all_random_messages
 
 pytestmark = pytest.mark.integration
 TEAM = "t0"

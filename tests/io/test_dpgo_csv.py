@@ -42,8 +42,8 @@ def flip(g: PoseGraph, edges: np.ndarray) -> PoseGraph:
     return replace(g, edge_i=ei, edge_j=ej, measurement=meas)
 
 
-def test_round_trip_keeps_every_edge(tmp_path: Path, datasets_dir: Path) -> None:
-    g = split_contiguous(read_g2o(datasets_dir / "pgo" / "smallGrid3D.g2o"), 3)
+def test_round_trip_keeps_every_edge(tmp_path: Path, pgo_data: Path) -> None:
+    g = split_contiguous(read_g2o(pgo_data / "smallGrid3D.g2o"), 3)
     kind = g.edge_kind()
     # written backwards: an inter-robot edge from a higher robot to a lower one, a loop
     # closure from a later pose to an earlier one, and an odometry step j -> j-1

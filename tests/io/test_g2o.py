@@ -36,8 +36,8 @@ def write(tmp_path: Path, lines: list[str]) -> Path:
     return path
 
 
-def test_reads_tiny_grid_like_gtsam(datasets_dir: Path) -> None:
-    path = datasets_dir / "pgo" / "tinyGrid3D.g2o"
+def test_reads_tiny_grid_like_gtsam(pgo_data: Path) -> None:
+    path = pgo_data / "tinyGrid3D.g2o"
     g = read_g2o(path)
     assert (g.num_poses, g.num_edges, g.num_robots) == (9, 11, 1)
     fg, values = gtsam.readG2o(str(path), True)
@@ -50,9 +50,9 @@ def test_reads_tiny_grid_like_gtsam(datasets_dir: Path) -> None:
     assert ours.error(to_values(g.ids, g.poses)) == pytest.approx(fg.error(values), rel=1e-9)
 
 
-def test_multi_robot_symbol_keys(datasets_dir: Path) -> None:
-    a = read_g2o(datasets_dir / "pgo" / "robot_a.g2o")
-    b = read_g2o(datasets_dir / "pgo" / "robot_b.g2o")
+def test_multi_robot_symbol_keys(pgo_data: Path) -> None:
+    a = read_g2o(pgo_data / "robot_a.g2o")
+    b = read_g2o(pgo_data / "robot_b.g2o")
     assert set(a.robot) == {0} and set(b.robot) == {1}
     ab = merge_graphs([a, b])
     assert ab.num_robots == 2 and ab.num_poses == 92
@@ -62,8 +62,8 @@ def test_multi_robot_symbol_keys(datasets_dir: Path) -> None:
     assert (kinds == ODOMETRY).sum() == 49 + 41 and (kinds == INTER_ROBOT).sum() == 0
 
 
-def test_split_contiguous_makes_blocks_and_inter_robot_edges(datasets_dir: Path) -> None:
-    g = split_contiguous(read_g2o(datasets_dir / "pgo" / "smallGrid3D.g2o"), 5)
+def test_split_contiguous_makes_blocks_and_inter_robot_edges(pgo_data: Path) -> None:
+    g = split_contiguous(read_g2o(pgo_data / "smallGrid3D.g2o"), 5)
     assert np.bincount(g.robot).tolist() == [25] * 5
     assert np.all(np.diff(g.robot[np.argsort(g.ids)]) >= 0)
     kinds = g.edge_kind()
@@ -71,8 +71,8 @@ def test_split_contiguous_makes_blocks_and_inter_robot_edges(datasets_dir: Path)
     assert g.keys[0] == robot_key(0, 0)
 
 
-def test_round_trip(tmp_path: Path, datasets_dir: Path) -> None:
-    g = read_g2o(datasets_dir / "pgo" / "tinyGrid3D.g2o")
+def test_round_trip(tmp_path: Path, pgo_data: Path) -> None:
+    g = read_g2o(pgo_data / "tinyGrid3D.g2o")
     write_g2o(tmp_path / "out.g2o", g)
     h = read_g2o(tmp_path / "out.g2o")
     np.testing.assert_allclose(h.poses, g.poses, atol=1e-7)

@@ -27,7 +27,7 @@ def edge_map(g: PoseGraph) -> dict[tuple[int, int], int]:
 
 
 def test_toro_sphere2500_is_the_g2o_sphere2500(datasets_dir: Path) -> None:
-    # gtsam ships sphere2500 as TORO EDGE3 lines only (no vertices); shared/ has the g2o
+    # gtsam ships sphere2500 as TORO EDGE3 lines only (no vertices); the datasets folder has the g2o
     # conversion of the same graph (with g2o's quaternion information, 4x TORO's on rotation)
     toro = read_g2o(GTSAM_DATA / "sphere2500.txt")
     ref = read_g2o(datasets_dir / "pgo" / "sphere2500.g2o")

@@ -27,6 +27,7 @@ from kimera_multi_py.sim import Simulation, load_scenario
 
 OFFICE = Path(__file__).resolve().parents[2] / "sims" / "office.toml"
 HUMAN = CLASS_IDS["human"]
+pytestmark = pytest.mark.slow  # the office run below
 
 
 @dataclass

@@ -5,6 +5,8 @@ import json
 import threading
 import time
 
+import pytest
+
 from kimera_multi_py.sim import load_scenario
 from kimera_multi_py.workflow.simulate import SimRunner
 
@@ -17,6 +19,7 @@ def _burn(stop: threading.Event) -> None:
         time.sleep(0)
 
 
+@pytest.mark.slow
 def test_distributed_runs_of_one_seed_are_identical_even_under_load():
     first = SimRunner(load_scenario(TINY), seed=1, mode="distributed", map_consensus="off").run().metrics()
     stop = threading.Event()

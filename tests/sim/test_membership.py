@@ -38,6 +38,7 @@ def test_a_robot_joining_late_is_aligned_and_in_pgo(tmp_path):
     assert res["loop_closures"]["false_accepted_inter"] == 0
 
 
+@pytest.mark.slow
 def test_a_robot_that_leaves_does_not_stall_the_team():
     """Robot 2 disappears mid-run: the others are not held up by it, finish, and it is dropped
     from the schedule (later epochs are the two of them)."""

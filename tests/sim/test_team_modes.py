@@ -87,6 +87,7 @@ def one_twin(tmp_path_factory):
     return run_modes(tmp_path_factory, ("distributed", "centralized"), route_1=["room_b"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["distributed", "centralized"])
 def test_one_twin_room_keeps_robot_1_out_of_the_team_frame_and_out_of_the_team_map(one_twin, mode):
     """Robot 1 saw one of the twin rooms: its closures with robot 0 fit two frames from one place
@@ -182,6 +183,7 @@ def test_every_robot_holds_the_same_team_objects_from_every_robot(aligned, mode)
     assert per_robot["0"]["objects"] == len(team[0])
 
 
+@pytest.mark.slow
 def test_same_seed_same_team_metrics(runs, tmp_path):
     SimRunner(load_scenario(TINY), seed=0, mode="centralized", out_dir=tmp_path).run()
     again = json.loads((tmp_path / "results.json").read_text())

@@ -19,7 +19,7 @@ import msgpack
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.messages.base import Message
-from kimera_multi_py.comms.samples import all_random_messages
+from tests.support.samples import all_random_messages
 
 _BAD_VALUES: tuple[object, ...] = (None, -1, 2**63, "x" * 70, 1.5, float("nan"), [], {})
 _BYTES = (0x00, 0xFF, 0x7F, 0x80, 0xC0, 0xC1, 0xD9, 0xDD, 0xDF, 0xCB)
