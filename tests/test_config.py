@@ -137,3 +137,9 @@ def test_config_yaml_repeats_the_run_bit_for_bit(tmp_path):
     metrics = [untimed(json.loads((d / "results.json").read_text())) for d in (first, again)]
     assert metrics[0] == metrics[1]
     assert (first / "config.yaml").read_text() == (again / "config.yaml").read_text()
+
+
+def test_flag_overrides_keep_mappings_keyed_by_robot() -> None:
+    from kimera_multi_py.cli.common import overrides
+
+    assert overrides(run={"join": {2: 20.0}, "seed": None}, schedule={"period": None}) == {"run": {"join": {2: 20.0}}}

@@ -61,10 +61,11 @@ def robot_at(spec: str, option: str) -> tuple[int, float]:
 
 def overrides(**sections: Any) -> dict[str, Any]:
     """The flags given on the command line as configuration overrides: ``None`` means not given,
-    and sections (dicts) left empty are dropped."""
+    and sections (dicts keyed by field name) left empty are dropped; a value that is itself a
+    mapping (``join``: robot -> seconds) is kept as given."""
     out: dict[str, Any] = {}
     for name, value in sections.items():
-        if isinstance(value, dict):
+        if isinstance(value, dict) and all(isinstance(k, str) for k in value):
             value = overrides(**value) or None
         if value is not None:
             out[name] = value
