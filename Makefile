@@ -12,7 +12,7 @@ MODE ?= distributed
 # variable goes only to the commands that want it.
 DATASETS ?= $(or $(KMP_DATASETS),$(abspath ../shared/datasets))
 unexport KMP_DATASETS
-PYTEST := $(BIN)/python -m pytest -q -n auto --dist loadfile -rs --durations=15
+PYTEST := $(BIN)/python -m pytest -q -n auto --dist loadfile -rfEs --durations=15
 
 .PHONY: demo test test-all venv bench lint clean
 
