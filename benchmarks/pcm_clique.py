@@ -25,9 +25,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from kimera_multi_py.consensus import pcm as pcm_module  # noqa: E402
-
 from kimera_multi_py.core.clique import max_clique  # noqa: E402
+from kimera_multi_py.frontend import pcm as pcm_module  # noqa: E402
 
 
 def record_graphs(scenario: str, robots: int, seed: int) -> list[np.ndarray]:
