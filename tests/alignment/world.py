@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from kimera_multi_py.alignment.map_check import FREE, OCCUPIED, CellStates
 from kimera_multi_py.core.geometry import inverse, transform_points
@@ -48,9 +49,7 @@ class Floor:
 def seen(floor: Floor, path_xy: np.ndarray, radius: float = 3.0, T_world_own: np.ndarray | None = None) -> CellStates:
     """The cells within ``radius`` of the path, in the robot's own frame (``T_world_own`` its origin)."""
     xy, free, occupied = floor.grid()
-    d2 = ((xy[:, :, None, :] - path_xy[None, None, :, :2]) ** 2).sum(-1).min(-1) if len(path_xy) < 400 else None
-    assert d2 is not None
-    near = d2 < radius**2
+    near = cKDTree(path_xy[:, :2]).query(xy.reshape(-1, 2))[0].reshape(xy.shape[:2]) < radius
     states = np.where(occupied, OCCUPIED, np.where(free, FREE, np.int8(0))).astype(np.int8)
     mask = near & (states != 0)
     pts2, st = xy[mask], states[mask]
