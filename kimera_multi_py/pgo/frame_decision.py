@@ -41,6 +41,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
+from kimera_multi_py.alignment.evidence import hypothesis_evidence
 from kimera_multi_py.alignment.frames import (
     Alignment,
     FrameHypothesis,
@@ -271,13 +272,12 @@ class FrameDecision:
                 best, settles = lead, False
         ahead = len(hyps) < 2 or hyps[0].places > hyps[1].places
         if best is None and final and p.align_tie == "consensus" and placed and ahead and not contested:
-            # competing hypotheses, none clearly ahead but one ahead by places: the robust
-            # consensus of every edge aligns the robot and the team's GNC decides between the
-            # groups; the report says it was a tie. Groups level on places are no evidence
-            # either way: the robot stays out (below)
+            # opt-in only (not the default): the robust consensus of every edge aligns the robot
+            # and the team's GNC decides between groups that the evidence does not separate,
+            # which can carry the team into an alias; kept for studies of the back end alone
             self._align_consensus(known)
             self.alignment.update(reason="no frame hypothesis leads: consensus of every edge", margin=int(margin),
-                                  competitors=_competitors(hyps))
+                                  competitors=_competitors(hyps), evidence=self._evidence_table(hyps, None))
             return
         # a robot already in the team frame switches frames only on every neighbour's evidence:
         # at the start of an epoch only the root has published, and two of its places that look
@@ -294,6 +294,7 @@ class FrameDecision:
                               level=logging.WARNING if bool(known.all()) else logging.INFO)
                 if landmarks:
                     self.alignment["landmarks"] = [sc.as_list() for sc in landmarks]
+                    self.alignment["evidence"] = self._evidence_table(hyps, None, landmarks)
             return
         inliers = np.zeros(len(lg.inter_edge), dtype=bool)
         inliers[best.edges] = True
@@ -311,6 +312,7 @@ class FrameDecision:
         if landmarks:
             self.alignment.update(reason="closures do not decide: the team's landmarks do",
                                   competitors=_competitors(hyps), landmarks=[sc.as_list() for sc in landmarks])
+        self.alignment["evidence"] = self._evidence_table(hyps, best, landmarks)
         log.info("robot %d aligned%s: %d edges from %d places (margin %d over %d other hypotheses), origin moved %s",
                  self.robot, "" if settles else " (not settled)", best.size, best.places, margin, len(hyps) - 1,
                  np.round(best.T[:3, 3], 2).tolist())
@@ -346,6 +348,11 @@ class FrameDecision:
         i = landmark_lead(scores, [h.places >= self.params.align_tie_min_places for h in hyps])
         return (None if i is None else hyps[i]), scores
 
+    def _evidence_table(self, hyps: list[FrameHypothesis], chosen: FrameHypothesis | None,
+                        landmarks: list[LandmarkScore] | None = None) -> list[dict[str, object]]:
+        """Every hypothesis weighed and why it was adopted or not (:mod:`.alignment.evidence`)."""
+        return hypothesis_evidence(hyps, chosen, self.map_agreement, landmarks or [], self.map_refuted)
+
     def _report(self, status: str, h: FrameHypothesis | None, margin: int, hypotheses: int,
                 reason: str = "") -> dict[str, object]:
         out: dict[str, object] = {"status": status, "settled": bool(self.settled and status != "excluded"),
@@ -373,6 +380,7 @@ class FrameDecision:
         self.alignment = self._report("excluded", h, margin, len(hyps or []), reason)
         # every competing hypothesis: distinct places, edges, peers, and where it moves the robot's origin
         self.alignment["competitors"] = _competitors(hyps or [])
+        self.alignment["evidence"] = self._evidence_table(hyps or [], None)
         log.log(level, "robot %d: kept out of the team frame (%s; best support %d places, margin %d)", self.robot,
                 reason, h.places if h is not None else 0, margin)
 

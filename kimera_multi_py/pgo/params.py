@@ -131,15 +131,14 @@ class PgoParams:
     """Places by which the chosen hypothesis leads the runner-up at least."""
     align_early_margin: int = 1
     """Lead needed to decide before every neighbour pose is known."""
-    # "consensus" aligns by the robust consensus of every edge and leaves the choice to GNC, but
-    # only while the leader rests on more places than any other hypothesis; an exact tie in places
-    # is no evidence for either, and the robot stays out of the team frame for the epoch, as the
-    # centralised server's frame screen does. After exact ties GNC has picked the alias and carried
-    # the whole team into it (aliased_wing, 3 robots, seed 9: 3 places each, 24 true edges against
-    # 17; team ATE 2.82 m, 7.3x dead reckoning; seed 5 on an earlier front end: 3 against 3, 2.81 m)
-    align_tie: Literal["consensus", "exclude"] = "consensus"
-    """No hypothesis clearly leads when the epoch's evidence is in: ``consensus`` aligns by the robust
-    consensus of every edge (not on an exact tie in places), ``exclude`` keeps the robot out."""
+    # A tie is no evidence: "consensus" aligned by the robust consensus of every edge and left
+    # the choice between groups of several places to GNC, which carried whole teams into an alias
+    # on floors with rows of identical rooms; the robot now stays out of the team frame and a
+    # later epoch, with more closures, landmarks or map, decides again
+    align_tie: Literal["consensus", "exclude"] = "exclude"
+    """No hypothesis clearly leads when the epoch's evidence is in: ``exclude`` (default) keeps the
+    robot out of the team frame; ``consensus`` (for studies of the back end alone, not safe) aligns
+    by the robust consensus of every edge and leaves the choice to GNC."""
     # a tie between single-place groups is the aliasing case itself (twin rooms: each group is one
     # room), where more edges are no evidence at all; the robot stays out of the team frame
     # (safety property: a frame resting on a single aliased group is not merged)

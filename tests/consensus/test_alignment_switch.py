@@ -188,6 +188,28 @@ def test_a_tie_between_multi_place_groups_keeps_the_robot_out_instead_of_letting
     assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)  # returned in its own frame
 
 
+def test_an_alias_ahead_by_places_but_not_clearly_keeps_the_robot_out() -> None:
+    """Three places behind the alias (room A against room B, and two corridor stretches 6 m on),
+    two behind the truth (two corridor stretches the alias does not explain): the alias is ahead, but not by a
+    clear lead, and the closures cannot tell the two apart. The robot stays out of the team frame,
+    and its report names both hypotheses as undecided, rather than aligning by the consensus of
+    every edge and leaving the choice to GNC (the old fallback, which failed here)."""
+    trajs, odo, first = _team()
+    rng = np.random.default_rng(5)
+    a, b = np.array([ROOM_A, 0.0]), np.array([ROOM_B, 0.0])
+    alias = [(a, b, True), (np.array([0.0, 8.0]), np.array([6.0, 8.0]), True),
+             (np.array([10.0, 8.0]), np.array([16.0, 8.0]), True)]
+    truth = [(np.array([16.0, 2.0]), np.array([16.0, 2.0]), False), (np.array([0.0, 6.0]), np.array([0.0, 6.0]), False)]
+    edges = _closures(trajs, first, alias, rng, per_place=3) + _closures(trajs, first, truth, rng, per_place=3)
+    agents, poses = asyncio.run(_epoch(_graph(trajs, odo + edges, _odometry_start(trajs, odo))))
+    report = agents[1].frame.alignment
+    assert report["status"] == "excluded", report
+    places = sorted(e["places"] for e in report["evidence"])
+    assert places[-2:] == [2, 3], report
+    assert all(e["verdict"] == "undecided" for e in report["evidence"]), report
+    assert np.allclose(poses[first[1]], np.eye(4), atol=1e-9)  # returned in its own frame
+
+
 # objects around the ring: the twin rooms hold the same ones, the rest look like nothing else
 ROOM_OBJECTS = np.array([[-1.0, -2.0, 0.4], [1.0, -2.0, 0.4], [0.0, -2.8, 0.8]])
 UNIQUE_OBJECTS = np.array([[16.8, 3.0, 0.5], [13.0, 8.8, 0.5], [7.0, 8.9, 1.0], [1.0, 8.8, 0.5],

@@ -74,10 +74,15 @@ def test_an_alias_on_more_places_than_the_truth_is_refuted_and_the_robot_aligns_
     assert report["status"] == "aligned" and error < 1.0, report
     assert report["map_refuted"] and all(r["conflicts"] >= 20 for r in report["map_refuted"])
     assert report["map"]["conflicts"] < 20
+    # the report gives every hypothesis weighed, with its evidence and verdict
+    verdicts = {e["verdict"]: e for e in report["evidence"]}
+    assert verdicts["adopted"]["map"]["conflicts"] < 20
+    assert verdicts["refuted by the maps"]["map"]["conflicts"] >= 20
 
 
 def test_without_true_closures_the_refuted_alias_keeps_the_robot_out() -> None:
     error, report = _run(ALIAS_PLACES, map_check=True)
     assert report["status"] == "excluded", report
     assert report["map_refuted"]
+    assert all(e["verdict"] != "adopted" for e in report["evidence"])
     assert error > 1.0  # in its own frame, not the alias's: nothing was adopted
