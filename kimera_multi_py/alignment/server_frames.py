@@ -18,6 +18,11 @@ agents do (:mod:`kimera_multi_py.pgo.frame_decision`):
 * each inter-robot closure is judged once, when the later of its two robots joins: it is kept
   when it lies in the adopted hypothesis or in any group at the identity after the move.
 
+With the team map (``cells``: a robot's occupancy cells placed at given keyframe poses), every
+hypothesis first faces the maps, as the agents' do (:mod:`.map_check`): the robot's map moved by
+it against each aligned robot's map at its screened poses; a hypothesis the maps refute is
+dropped, and listed in the robot's report (``map_refuted``).
+
 Closures that are not kept leave the graph GNC sees, and the poses of the aligned robots start
 in the team frame. Every edge is judged on the same information the agents would have at the
 end of the run, which they have only once every peer has published.
@@ -25,6 +30,7 @@ end of the run, which they have only once every peer has published.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,9 +42,23 @@ from kimera_multi_py.alignment.frames import (
     near_identity,
     settled_decision,
 )
+from kimera_multi_py.alignment.map_check import CellStates, MapAgreement, refined_agreement, team_agreement
 from kimera_multi_py.core.posegraph import PoseGraph
 
 KEEP_M = 1.0  # an inter-robot group is kept when it moves its closure poses by less than this
+# robot, its keyframe poses (n, 4, 4) -> its occupancy cells placed there (None: no map held)
+CellsAt = Callable[[int, np.ndarray], CellStates | None]
+
+
+@dataclass(frozen=True)
+class MapRule:
+    """The map check of the screen: where robots' cells come from, and when conflicts refute
+    (the agents' ``PgoParams.map_*``)."""
+
+    cells: CellsAt
+    min_conflicts: int = 20
+    min_ratio: float = 0.005
+    coarse: float = 0.3
 
 
 @dataclass
@@ -55,12 +75,53 @@ class FrameScreen:
 
 
 class _Screen:
-    def __init__(self, graph: PoseGraph, min_places: int, min_margin: int, place_radius: float) -> None:
+    def __init__(self, graph: PoseGraph, min_places: int, min_margin: int, place_radius: float,
+                 maps: MapRule | None = None) -> None:
         self.g = graph
         self.min_places, self.min_margin, self.place_radius = min_places, min_margin, place_radius
         self.poses = graph.poses.copy()
         self.ri, self.rj = graph.robot[graph.edge_i], graph.robot[graph.edge_j]
         self.inter = self.ri != self.rj
+        self.maps = maps
+        self.refuted: dict[int, list[dict[str, object]]] = {}  # robot -> hypotheses the maps refuted
+        self._cells: dict[int, CellStates | None] = {}  # robot -> its cells at its screened poses
+        self._agree: dict[tuple[object, ...], MapAgreement] = {}  # (robot, aligned robot, frame) -> agreement
+
+    def cells(self, robot: int) -> CellStates | None:
+        """The robot's map at its screened poses (its own frame, or the team frame once aligned:
+        :meth:`moved` forgets it)."""
+        if robot not in self._cells:
+            self._cells[robot] = None if self.maps is None else \
+                self.maps.cells(robot, self.poses[self.g.robot_indices(robot)])
+        return self._cells[robot]
+
+    def moved(self, robot: int) -> None:
+        self._cells.pop(robot, None)
+        self._agree = {k: v for k, v in self._agree.items() if robot not in k[:2]}
+
+    def map_refutes(self, robot: int, h: FrameHypothesis, aligned: set[int], root: int) -> bool:
+        """True when moving ``robot``'s map by ``h`` contradicts the aligned robots' maps
+        (:func:`.map_check.team_agreement`: the root's, or more of them than agree)."""
+        rule, mine = self.maps, self.cells(robot)
+        if rule is None or mine is None:
+            return False
+        key = (*np.round(h.T[:3, 3] / 0.1).astype(int).tolist(),
+               *np.round(h.T[:3, :3].ravel() / 0.02).astype(int).tolist())
+        per = {}
+        for a in sorted(aligned):
+            if (c := self.cells(a)) is not None:
+                if (robot, a, key) not in self._agree:  # hypotheses a few cm apart are one
+                    self._agree[(robot, a, key)] = refined_agreement(mine, c, h.T, rule.coarse)
+                per[a] = self._agree[(robot, a, key)]
+        if not per:
+            return False
+        total, conflicting, _ = team_agreement(per, root, rule.min_conflicts, rule.min_ratio)
+        if total.refutes(rule.min_conflicts, rule.min_ratio):
+            self.refuted.setdefault(robot, []).append(
+                {"hypothesis": np.round(h.T[:3, 3], 2).tolist(), "places": int(h.places), "edges": int(h.size),
+                 "peers": list(h.peers), "conflicting": conflicting, **total.as_dict()})
+            return True
+        return False
 
     def edges(self, robot: int, peers: set[int]) -> np.ndarray:
         """Inter-robot edges between ``robot`` and ``peers``."""
@@ -79,25 +140,31 @@ class _Screen:
             h.edges = E[h.edges]
         return hyps
 
-    def lead(self, robot: int, settled: set[int], aligned: set[int]
+    def lead(self, robot: int, settled: set[int], aligned: set[int], root: int
              ) -> tuple[FrameHypothesis | None, int, bool, list[FrameHypothesis]]:
         """The hypothesis that clearly leads for ``robot`` (:func:`.frames.settled_decision`),
-        its margin, whether it is settled, and the hypotheses over every aligned robot."""
+        its margin, whether it is settled, and the hypotheses over every aligned robot (those the
+        maps refute dropped)."""
+        def faced(E: np.ndarray) -> list[FrameHypothesis]:
+            return [h for h in self.hypotheses(robot, E) if not self.map_refutes(robot, h, aligned, root)]
+
+        self.refuted.pop(robot, None)
         firm = self.edges(robot, settled)
         every = self.edges(robot, aligned)
-        hyps = self.hypotheses(robot, every)
-        firm_hyps = None if len(firm) == len(every) else (self.hypotheses(robot, firm) if len(firm) else [])
+        hyps = faced(every)
+        firm_hyps = None if len(firm) == len(every) else (faced(firm) if len(firm) else [])
         by_peer = [E for E in (self.edges(robot, {p}) for p in settled) if len(E)]
-        per_peer = [self.hypotheses(robot, E) for E in by_peer] if len(by_peer) > 1 else []
+        per_peer = [faced(E) for E in by_peer] if len(by_peer) > 1 else []
         best, margin, verdict = settled_decision(firm_hyps, hyps, per_peer, self.min_places, self.min_margin,
                                                   self.place_radius)
         return best, margin, verdict == "settled", hyps
 
 
 def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, place_radius: float = 2.0,
-                  lone: bool = True) -> FrameScreen:
-    """Decide every robot's frame on the joint graph (see the module docstring)."""
-    s = _Screen(graph, min_places, min_margin, place_radius)
+                  lone: bool = True, maps: MapRule | None = None) -> FrameScreen:
+    """Decide every robot's frame on the joint graph (see the module docstring); ``maps``: the
+    hypotheses face the robots' maps first."""
+    s = _Screen(graph, min_places, min_margin, place_radius, maps)
     robots = sorted(set(graph.robot.tolist()))
     keep = ~s.inter
     if not robots:
@@ -110,7 +177,7 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
         for r in robots:
             if r in aligned or not len(s.edges(r, aligned)):
                 continue
-            best, margin, firm, hyps = s.lead(r, settled, aligned)
+            best, margin, firm, hyps = s.lead(r, settled, aligned, root)
             if best is not None:
                 leads.append((firm, margin, best.places, -r, best, hyps))
             elif hyps and hyps[0].size >= 3 and margin == hyps[0].places:
@@ -125,6 +192,7 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
         r = -neg
         idx = graph.robot_indices(r)
         s.poses[idx] = best.T @ s.poses[idx]
+        s.moved(r)
         # the edges GNC sees: every group at the identity in the new frame, groups not merged. The
         # merge (SAME_FRAME_M) joins what drift split for counting a frame's support, but it also
         # joins an alias one corridor stretch (2 m) away, which GNC may then keep (aliased_wing, 5
@@ -140,8 +208,12 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
         report[r] = {"status": "aligned", "settled": bool(firm), "support": int(best.places),
                      "edges": int(best.size), "margin": int(margin), "hypotheses": len(hyps),
                      "peers": list(best.peers), "hypothesis": np.round(best.T, 4).tolist()}
+        if s.refuted.get(r):
+            report[r]["map_refuted"] = s.refuted[r]
     for r in robots:
         if r not in aligned:
             why = "no frame hypothesis leads" if len(s.edges(r, aligned)) else "no closure to the team"
             report[r] = {"status": "excluded", "settled": False, "reason": why}
+            if s.refuted.get(r):
+                report[r]["map_refuted"] = s.refuted[r]
     return FrameScreen(s.poses, keep, report)

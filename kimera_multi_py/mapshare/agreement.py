@@ -4,7 +4,8 @@
 evidence whose poses are in one team frame, and returns the function that scores a frame
 hypothesis on them (:func:`kimera_multi_py.alignment.map_check.map_agreement`). The PGO asks it
 about each hypothesis when an epoch opens; the node asks it about the frame the robot is in
-after each epoch (the safety net).
+after each epoch (the safety net). :func:`source_states` places one robot's held evidence at
+any keyframe poses: the centralised server's frame screen asks it.
 """
 
 from __future__ import annotations
@@ -58,6 +59,22 @@ def map_view(maps: MapConsensus | None, own: SubmapMap, frame: int, min_conflict
         return team_agreement(per, frame, min_conflicts, min_ratio)[0]
 
     return view
+
+
+def source_states(maps: MapConsensus, src: int, poses: np.ndarray, keyframes_per_submap: int,
+                  occupancy: float = 1.0) -> CellStates | None:
+    """Robot ``src``'s evidence as held by ``maps``, each submap placed at the pose of its first
+    keyframe in ``poses`` (n, 4, 4): the robot's map in any frame those poses are in (the
+    centralised server's frame screen). None when nothing of it is held (or outside exact mode)."""
+    entry = maps.poses.get(src) if maps.mode == "exact" else None
+    if entry is None:
+        return None
+    at = {(src, sid): poses[k] for sid in entry[0].submaps.tolist()
+          if (k := sid * keyframes_per_submap) < len(poses)}
+    codes, rows = maps.team.fused(list(at), at)
+    if not len(codes):
+        return None
+    return cell_states(codes, view_rows(maps.team.template, rows), maps.team.resolution, occupancy)
 
 
 @dataclass

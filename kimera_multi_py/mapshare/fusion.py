@@ -252,15 +252,19 @@ class EvidenceMap:
         """The fused evidence: sorted world codes, int32 rows and support counts."""
         return self._fused.arrays()
 
-    def fused(self, keys: Iterable[Key]) -> tuple[np.ndarray, np.ndarray]:
-        """The evidence of just these records (placed at their poses, active or not): sorted
-        world codes and int32 rows. Records without a pose are left out."""
+    def fused(self, keys: Iterable[Key], at: dict[Key, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The evidence of just these records (placed at their poses, or at ``at[key]`` where
+        given; active or not): sorted world codes and int32 rows. Records without a pose are left out."""
         codes, rows = [], []
         for key in keys:
             e = self.entries.get(key)
             if e is None or e.T is None or e.T_ref is None or not len(e.codes):
                 continue
-            world = e.world if e.world is not None else map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
+            if at is not None and key in at:
+                world = map_codes(e.codes, correction(at[key], e.T_ref), self.resolution)
+            else:
+                world = e.world if e.world is not None else \
+                    map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
             codes.append(world)
             rows.append(e.rows)
         if not codes:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kimera_multi_py.alignment.server_frames import FrameScreen, screen_frames
+from kimera_multi_py.alignment.server_frames import FrameScreen, MapRule, screen_frames
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Subscription
 from kimera_multi_py.comms.messages.base import Message
@@ -30,9 +30,11 @@ from kimera_multi_py.core.ids import SERVER_ID as SERVER_ID  # re-exported: the 
 from kimera_multi_py.core.posegraph import PoseGraph, robot_key, split_key
 from kimera_multi_py.core.robust import correlated_votes
 from kimera_multi_py.mapping.submaps import SubmapMap
+from kimera_multi_py.mapshare.agreement import source_states
 from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, MapConsensusParams, get_map_consensus
 from kimera_multi_py.mapshare.objects import OBJECT_MESSAGES, ObjectExchange
 from kimera_multi_py.pgo.centralised import solve_centralized
+from kimera_multi_py.pgo.params import PgoParams
 from kimera_multi_py.pgo.team import ScheduleParams
 
 log = logging.getLogger(__name__)
@@ -72,6 +74,7 @@ class Server:
         # the agents' frame decision before GNC (:mod:`~kimera_multi_py.alignment.server_frames`); off: all closures
         self.frame_screen = frame_screen
         self.frames: FrameScreen | None = None  # the last solve's frame decisions
+        self.map_rule: MapRule | None = None  # the frame screen faces the team map (ServerNode.fuse_maps)
         self.stats = ServerStats()
         self.round = 0
 
@@ -153,7 +156,7 @@ class Server:
         votes = self.votes(g.num_edges, tags)
         keep = np.ones(g.num_edges, dtype=bool)
         if self.frame_screen:
-            self.frames = screen_frames(g)
+            self.frames = screen_frames(g, maps=self.map_rule)
             keep = self.frames.keep
             for r in self.frames.excluded():
                 why = self.frames.report[r]["reason"]
@@ -204,11 +207,20 @@ class ServerNode:
         self.maps: MapConsensus | None = None  # the team map: every robot's evidence, fused here
         self.objects: ObjectExchange | None = None  # every robot's object table, relayed and fused here
 
-    def fuse_maps(self, local: SubmapMap, mode: str = "exact", params: MapConsensusParams | None = None) -> None:
+    def fuse_maps(self, local: SubmapMap, mode: str = "exact", params: MapConsensusParams | None = None,
+                  keyframes_per_submap: int = 10, pgo: PgoParams | None = None) -> None:
         """Also fuse every robot's map evidence (a star: the agents' only map neighbour) and serve
         the team map back. ``local`` is an empty map with the agents' map parameters; ``params``
-        the agents' map consensus knobs (default: the defaults)."""
+        the agents' map consensus knobs (default: the defaults); ``keyframes_per_submap`` and
+        ``pgo`` the agents' mapping and PGO parameters: with exact fusion and ``pgo.map_check``,
+        the server's frame screen faces the robots' maps as the agents' frame decisions do."""
         self.maps = get_map_consensus(self.robot, local, mode, base=params)
+        p = pgo or PgoParams()
+        if self.maps.mode == "exact" and p.map_check:
+            maps = self.maps
+            self.server.map_rule = MapRule(
+                lambda robot, poses: source_states(maps, robot, poses, keyframes_per_submap, p.map_occupancy),
+                p.map_min_conflicts, p.map_conflict_ratio, p.map_coarse)
         # the joint graph's frame: the lowest robot's (it follows the graph, see tick). Evidence is
         # applied only from robots whose pose tables are in it: a robot the frame screen keeps out
         # has its poses, and so its submaps and objects, in its own frame and stays out of the team map

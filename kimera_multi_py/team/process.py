@@ -168,7 +168,9 @@ async def _server(job: ServerJob) -> dict[str, Any]:
     bus = job.connection.bus(SERVER_ID)
     server = Server(SERVER_ID, None, params.closure_sigmas, params.odom_sigmas)
     node = ServerNode(server, bus, schedule)
-    node.fuse_maps(get_submap_map(params.mapping), params=map_params)  # the agents' map parameters (exact)
+    # the agents' map, mapping and PGO parameters (exact fusion; the frame screen faces the maps)
+    node.fuse_maps(get_submap_map(params.mapping), params=map_params,
+                   keyframes_per_submap=params.mapping.keyframes_per_submap, pgo=config.to_pgo_params())
     try:
         await node.start()
         await node.run()

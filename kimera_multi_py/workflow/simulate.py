@@ -254,7 +254,8 @@ class SimRunner:
                 self.server = ServerNode(Server(SERVER_ID, None, self.params.closure_sigmas, self.params.odom_sigmas),
                                          buses[-1], self.schedule, clock=self.clock.now)
                 if self.map_mode != "off":
-                    self.server.fuse_maps(get_submap_map(params.mapping), self.map_mode, self.map_params)
+                    self.server.fuse_maps(get_submap_map(params.mapping), self.map_mode, self.map_params,
+                                          params.mapping.keyframes_per_submap, self.pgo_params)
                 nodes.append(self.server)
             for node in nodes:
                 if node.robot not in self.join:

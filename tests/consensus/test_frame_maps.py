@@ -1,5 +1,6 @@
 """Frame decisions against the maps: an alias that rests on more places than the truth is refuted
-by the robots' occupancy maps, and the robot aligns to the truth, or stays out of the team frame.
+by the robots' occupancy maps, and the robot aligns to the truth, or stays out of the team frame;
+the centralised server's frame screen decides alike.
 
 Two robots loop a corridor ring with two identical rooms 6 m apart (:mod:`.test_alignment_switch`).
 Robot 0's room A matches robot 1's room B, and two corridor places match the places 6 m further
@@ -15,8 +16,10 @@ import asyncio
 
 import numpy as np
 
-from kimera_multi_py.alignment.map_check import refined_agreement
+from kimera_multi_py.alignment.map_check import CellStates, refined_agreement
+from kimera_multi_py.alignment.server_frames import MapRule, screen_frames
 from kimera_multi_py.comms.loopback import LoopbackNetwork
+from kimera_multi_py.core.geometry import transform_points
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.local_graph import split_local
 from kimera_multi_py.pgo.params import team_params
@@ -86,3 +89,33 @@ def test_without_true_closures_the_refuted_alias_keeps_the_robot_out() -> None:
     assert report["map_refuted"]
     assert all(e["verdict"] != "adopted" for e in report["evidence"])
     assert error > 1.0  # in its own frame, not the alias's: nothing was adopted
+
+
+def _server_maps(trajs: list[np.ndarray]) -> MapRule:
+    """The server's view of the robots' maps: what each saw near its path, in its own frame (first
+    pose at the identity, as its odometry starts), placed where the screen puts its first pose."""
+    own = [seen(RING_FLOOR, T[:, :2, 3], T_world_own=T[0]) for T in trajs]
+
+    def cells(robot: int, poses: np.ndarray) -> CellStates:
+        c = own[robot]
+        return CellStates(transform_points(poses[0], c.centres), c.state)
+
+    return MapRule(cells)
+
+
+def test_the_servers_frame_screen_faces_the_maps_as_the_agents_do() -> None:
+    """The server's screen on the same evidence: the closures alone put robot 1 in the alias (three
+    places against the truth's one); facing the maps, the alias is refuted and listed, and robot 1
+    joins on the truth."""
+    rng = np.random.default_rng(3)
+    trajs, odo, first = _team()
+    edges = _closures(trajs, first, ALIAS_PLACES, rng, per_place=1)
+    edges += _closures(trajs, first, [(CORNER, CORNER, False)], rng, per_place=4)
+    graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
+    blind = screen_frames(graph)
+    assert blind.report[1]["status"] == "aligned" and abs(_frame_error(trajs, blind.poses, first) - OFFSET) < 1.5
+    screen = screen_frames(graph, maps=_server_maps(trajs))
+    assert screen.report[1]["status"] == "aligned", screen.report[1]
+    assert _frame_error(trajs, screen.poses, first) < 1.0
+    assert screen.report[1]["map_refuted"] and all(r["conflicts"] >= 20 for r in screen.report[1]["map_refuted"])
+    assert not np.any(screen.keep & graph.outlier)  # no aliased closure reaches GNC

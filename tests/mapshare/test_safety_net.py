@@ -9,9 +9,10 @@ import itertools
 
 import numpy as np
 
+from kimera_multi_py.alignment.map_check import cell_states
 from kimera_multi_py.core.geometry import inverse, make_pose
 from kimera_multi_py.mapping import SubmapMap
-from kimera_multi_py.mapshare.agreement import frame_check
+from kimera_multi_py.mapshare.agreement import frame_check, source_states
 from kimera_multi_py.mapshare.consensus import MapConsensus, MapConsensusParams
 from kimera_multi_py.mapshare.exchange import MapExchange
 from kimera_multi_py.mapshare.fusion import centralised_team_map, octree_cells
@@ -65,3 +66,35 @@ def test_a_robot_one_room_off_is_refuted_and_its_evidence_leaves_the_team_map() 
     alone = octree_cells(centralised_team_map({0: maps[0]}))
     codes, rows = nodes[0].team_cells()
     assert np.array_equal(codes, alone[0]) and np.array_equal(rows, alone[1])
+
+
+def test_source_states_place_a_robots_held_evidence_at_any_keyframe_poses() -> None:
+    """The server's view of a robot's map (:func:`source_states`): at the poses its table holds it
+    is the evidence as held; at poses one room over, the same cells one room over."""
+    maps = _maps()
+    nodes = {r: MapConsensus(r, maps[r], MapConsensusParams(mode="exact"), team_size=2) for r in maps}
+    for node in nodes.values():
+        node.set_frame(0)
+    net = MapExchange(nodes)
+    for k in range(4):
+        net.round(float(k))
+    per = 10
+    poses = np.tile(np.eye(4), (60, 1, 1))
+    for sid, s in maps[1].submaps.items():
+        poses[sid * per] = s.T
+    held = source_states(nodes[0], 1, poses, per)
+    codes, rows = nodes[0].frame_cells(0, [1])
+    expected = cell_states(codes, rows, maps[1].resolution)
+    assert held is not None and np.allclose(held.centres, expected.centres) and np.array_equal(held.state,
+                                                                                               expected.state)
+    shift = make_pose(np.eye(3), np.array([ROOM, 0.0, 0.0]))
+    moved = source_states(nodes[0], 1, shift @ poses, per)
+    assert moved is not None
+
+    def by_place(c: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        order = np.lexsort(np.round(c, 3).T)
+        return c[order], state[order]
+
+    (a, sa), (b, sb) = by_place(moved.centres, moved.state), by_place(held.centres + [ROOM, 0.0, 0.0], held.state)
+    assert np.allclose(a, b, atol=1e-6) and np.array_equal(sa, sb)
+    assert source_states(nodes[0], 5, poses, per) is None  # nothing held of robot 5
