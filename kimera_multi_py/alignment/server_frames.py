@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kimera_multi_py.alignment.evidence import hypothesis_evidence
 from kimera_multi_py.alignment.frames import (
     SAME_FRAME_M,
     FrameHypothesis,
@@ -99,29 +100,43 @@ class _Screen:
         self._cells.pop(robot, None)
         self._agree = {k: v for k, v in self._agree.items() if robot not in k[:2]}
 
-    def map_refutes(self, robot: int, h: FrameHypothesis, aligned: set[int], root: int) -> bool:
-        """True when moving ``robot``'s map by ``h`` contradicts the aligned robots' maps
-        (:func:`.map_check.team_agreement`: the root's, or more of them than agree)."""
+    def agreement(self, robot: int, T: np.ndarray, aligned: set[int], root: int
+                  ) -> tuple[MapAgreement | None, list[int]]:
+        """How ``robot``'s map moved by ``T`` agrees with the aligned robots' maps (their total,
+        with the team's verdict, :func:`.map_check.team_agreement`), and the robots it
+        contradicts; None where no map overlaps."""
         rule, mine = self.maps, self.cells(robot)
         if rule is None or mine is None:
-            return False
-        key = (*np.round(h.T[:3, 3] / 0.1).astype(int).tolist(),
-               *np.round(h.T[:3, :3].ravel() / 0.02).astype(int).tolist())
+            return None, []
+        key = (*np.round(T[:3, 3] / 0.1).astype(int).tolist(), *np.round(T[:3, :3].ravel() / 0.02).astype(int).tolist())
         per = {}
         for a in sorted(aligned):
             if (c := self.cells(a)) is not None:
                 if (robot, a, key) not in self._agree:  # hypotheses a few cm apart are one
-                    self._agree[(robot, a, key)] = refined_agreement(mine, c, h.T, rule.coarse)
+                    self._agree[(robot, a, key)] = refined_agreement(mine, c, T, rule.coarse)
                 per[a] = self._agree[(robot, a, key)]
         if not per:
-            return False
+            return None, []
         total, conflicting, _ = team_agreement(per, root, rule.min_conflicts, rule.min_ratio)
-        if total.refutes(rule.min_conflicts, rule.min_ratio):
-            self.refuted.setdefault(robot, []).append(
-                {"hypothesis": np.round(h.T[:3, 3], 2).tolist(), "places": int(h.places), "edges": int(h.size),
-                 "peers": list(h.peers), "conflicting": conflicting, **total.as_dict()})
-            return True
-        return False
+        return total, conflicting
+
+    def map_refutes(self, robot: int, h: FrameHypothesis, aligned: set[int], root: int) -> bool:
+        """True when moving ``robot``'s map by ``h`` contradicts the aligned robots' maps (the
+        root's, or more of them than agree); the refuted hypothesis is listed for the report."""
+        total, conflicting = self.agreement(robot, h.T, aligned, root)
+        if total is None or self.maps is None or not total.refutes(self.maps.min_conflicts, self.maps.min_ratio):
+            return False
+        entry = {"hypothesis": np.round(h.T[:3, 3], 2).tolist(), "places": int(h.places), "edges": int(h.size),
+                 "peers": list(h.peers), "conflicting": conflicting, **total.as_dict()}
+        if entry not in self.refuted.setdefault(robot, []):
+            self.refuted[robot].append(entry)
+        return True
+
+    def evidence(self, robot: int, hyps: list[FrameHypothesis], chosen: FrameHypothesis | None,
+                 aligned: set[int], root: int) -> list[dict[str, object]]:
+        """Every hypothesis weighed for ``robot`` and its verdict (:mod:`.evidence`)."""
+        return hypothesis_evidence(hyps, chosen, lambda T: self.agreement(robot, T, aligned, root)[0],
+                                   refuted=self.refuted.get(robot, []))
 
     def edges(self, robot: int, peers: set[int]) -> np.ndarray:
         """Inter-robot edges between ``robot`` and ``peers``."""
@@ -172,12 +187,14 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
     root = robots[0]
     aligned, settled = {root}, {root}
     report: dict[int, dict[str, object]] = {root: {"status": "root", "settled": True}}
+    weighed: dict[int, list[FrameHypothesis]] = {}  # robot -> the hypotheses of its last decision
     while True:
         leads, lones = [], []
         for r in robots:
             if r in aligned or not len(s.edges(r, aligned)):
                 continue
             best, margin, firm, hyps = s.lead(r, settled, aligned, root)
+            weighed[r] = hyps
             if best is not None:
                 leads.append((firm, margin, best.places, -r, best, hyps))
             elif hyps and hyps[0].size >= 3 and margin == hyps[0].places:
@@ -190,6 +207,7 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
         else:
             break
         r = -neg
+        evidence = s.evidence(r, hyps, best, aligned, root)  # in the robot's frame before the move
         idx = graph.robot_indices(r)
         s.poses[idx] = best.T @ s.poses[idx]
         s.moved(r)
@@ -207,13 +225,14 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
             settled.add(r)
         report[r] = {"status": "aligned", "settled": bool(firm), "support": int(best.places),
                      "edges": int(best.size), "margin": int(margin), "hypotheses": len(hyps),
-                     "peers": list(best.peers), "hypothesis": np.round(best.T, 4).tolist()}
+                     "peers": list(best.peers), "hypothesis": np.round(best.T, 4).tolist(), "evidence": evidence}
         if s.refuted.get(r):
             report[r]["map_refuted"] = s.refuted[r]
     for r in robots:
         if r not in aligned:
             why = "no frame hypothesis leads" if len(s.edges(r, aligned)) else "no closure to the team"
-            report[r] = {"status": "excluded", "settled": False, "reason": why}
+            report[r] = {"status": "excluded", "settled": False, "reason": why,
+                         "evidence": s.evidence(r, weighed.get(r, []), None, aligned, root)}
             if s.refuted.get(r):
                 report[r]["map_refuted"] = s.refuted[r]
     return FrameScreen(s.poses, keep, report)

@@ -439,6 +439,9 @@ class SimRunner:
             extra.update(team_results(self.sim.world, truth, self.outcomes, T_world_team,
                                       self.params.team_object_sightings))
             extra["pgo_runs"] = self._epochs()
+            if self.server is not None and self.server.server.frames is not None:
+                # the server's last frame screen: per robot, what its frame rests on and the evidence
+                extra["server_frames"] = {str(r): rep for r, rep in self.server.server.frames.report.items()}
             if self.quality:
                 extra.update(accuracy_results(self.sim.world, self.params.mapping, truth,
                                               [tr.scans for tr in self.tracks], self.agents, self.outcomes,

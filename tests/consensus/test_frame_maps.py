@@ -119,3 +119,5 @@ def test_the_servers_frame_screen_faces_the_maps_as_the_agents_do() -> None:
     assert _frame_error(trajs, screen.poses, first) < 1.0
     assert screen.report[1]["map_refuted"] and all(r["conflicts"] >= 20 for r in screen.report[1]["map_refuted"])
     assert not np.any(screen.keep & graph.outlier)  # no aliased closure reaches GNC
+    verdicts = [e["verdict"] for e in screen.report[1]["evidence"]]
+    assert verdicts.count("adopted") == 1 and "refuted by the maps" in verdicts
