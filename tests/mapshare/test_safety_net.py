@@ -41,14 +41,20 @@ def _maps(keyframes: int = 60, per_submap: int = 10) -> dict[int, SubmapMap]:
     return maps
 
 
-def test_a_robot_one_room_off_is_refuted_and_its_evidence_leaves_the_team_map() -> None:
-    maps = _maps()
+def _exchanged(maps: dict[int, SubmapMap]) -> tuple[dict[int, MapConsensus], MapExchange]:
+    """Both robots' map consensus in the team frame, after a few exchange rounds."""
     nodes = {r: MapConsensus(r, maps[r], MapConsensusParams(mode="exact"), team_size=2) for r in maps}
     for node in nodes.values():
         node.set_frame(0)
     net = MapExchange(nodes)
     for k in range(4):
         net.round(float(k))
+    return nodes, net
+
+
+def test_a_robot_one_room_off_is_refuted_and_its_evidence_leaves_the_team_map() -> None:
+    maps = _maps()
+    nodes, net = _exchanged(maps)
     truth = frame_check(nodes[1], maps[1], 0, *LIMITS)
     assert truth is not None and not truth.refuted and truth.conflicting == [], truth.as_dict()
     # robot 1 moved into the frame one room over, still claiming the team frame
@@ -72,12 +78,7 @@ def test_source_states_place_a_robots_held_evidence_at_any_keyframe_poses() -> N
     """The server's view of a robot's map (:func:`source_states`): at the poses its table holds it
     is the evidence as held; at poses one room over, the same cells one room over."""
     maps = _maps()
-    nodes = {r: MapConsensus(r, maps[r], MapConsensusParams(mode="exact"), team_size=2) for r in maps}
-    for node in nodes.values():
-        node.set_frame(0)
-    net = MapExchange(nodes)
-    for k in range(4):
-        net.round(float(k))
+    nodes, net = _exchanged(maps)
     per = 10
     poses = np.tile(np.eye(4), (60, 1, 1))
     for sid, s in maps[1].submaps.items():
