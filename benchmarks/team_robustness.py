@@ -319,7 +319,7 @@ def _done_runs(path: Path, code: str) -> dict[RunKey, dict[str, Any]]:
     """Runs already recorded in a ``--jsonl`` file on this ``code``, by key."""
     if not path.exists() or code.endswith(("+dirty", "unknown")):
         return {}
-    return {key: r for key, r in _records(path) if r.get("code") == code}
+    return {key: r for key, r in _records(path) if r.get("code") == code and "error" not in r}
 
 
 def recorded_runs(path: Path, codes: list[str]) -> list[dict[str, Any]]:
@@ -356,7 +356,8 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per run")
     ap.add_argument("--json", action="store_true", help="print the JSON only")
     ap.add_argument("--jsonl", type=Path, help="append each run to this file as it ends; runs already in it, "
-                    "measured on the same committed code, are not run again (a long sweep survives being stopped)")
+                    "measured on the same committed code, are not run again (a long sweep survives being "
+                    "stopped; failed runs are recorded and run again)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="runs at once (default: one per core)")
     ap.add_argument("--report", type=Path, help="run nothing: the table and summary of the runs this --jsonl file "
                     "holds (of the chosen scenarios, robots, seeds and modes) on the --codes labels")
@@ -384,7 +385,7 @@ def main() -> None:
         if key in done and done[key].get("team_map", "off") == args.team_map:
             return done[key]
         run = {**run_one(*job, args.timeout, team_map=args.team_map), "code": code}
-        if args.jsonl and "error" not in run:
+        if args.jsonl:  # failed runs too (the report lists them); a resumed sweep runs them again
             with lock, args.jsonl.open("a") as f:
                 f.write(json.dumps(run) + "\n")
         return run
