@@ -79,6 +79,10 @@ class NodeParams:
     """Lossy links: every descriptor goes out again with the next this many times (duplicates are ignored)."""
     query_retries: int = 2
     """Lossy links: a constellation query that gets no reply is asked again this many times."""
+    compact_wire: bool = True
+    """Compact encodings: verification clouds at the closure registration's resolution, packed
+    small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`).
+    False: the full-size formats (to measure what compaction saves)."""
 
 
 class AgentNode:
@@ -172,7 +176,7 @@ class AgentNode:
     def _serve_keyframe(self, key: str, request: Message | None) -> LoopClosureReply:
         keyframe = int(key.rsplit("/", 1)[-1])
         rid = request.request_id if isinstance(request, LoopClosureRequest) else 0
-        return self.agent.serve_keyframe(keyframe, rid)
+        return self.agent.serve_keyframe(keyframe, rid, self.params.compact_wire)
 
     # ------------------------------------------------------------------ keyframes
     async def process_keyframe(self, kf: KeyframeInput) -> None:
