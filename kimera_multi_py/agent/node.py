@@ -55,6 +55,7 @@ from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, MapCo
 from kimera_multi_py.mapshare.objects import OBJECT_MESSAGES, ObjectExchange
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.params import PgoParams, team_params
+from kimera_multi_py.pgo.pose_stream import PoseStreamParams
 from kimera_multi_py.pgo.team import ScheduleParams, TeamPgo
 
 log = logging.getLogger(__name__)
@@ -109,7 +110,7 @@ class AgentNode:
             self.pgo = TeamPgo(agent.robot, self.pgo_params,
                                self.schedule, agent.local_graph, agent.apply_poses,
                                lambda: agent.robot_graph, self._accepted_inter, agent.objects.centres,
-                               self._map_view)
+                               self._map_view, PoseStreamParams() if self.params.compact_wire else None)
         if self.params.map_consensus not in MAP_MODES:
             raise KimeraMultiError(f"map consensus: unknown mode {self.params.map_consensus!r} "
                                    f"(available: {', '.join(MAP_MODES)})")

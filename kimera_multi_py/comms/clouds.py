@@ -64,6 +64,7 @@ def unpack_cloud(blob: np.ndarray, n: int, where: str = "cloud") -> tuple[np.nda
     if not data:
         raise MessageError(f"{where}: empty (no format byte)")
     fmt, body = data[0], data[1:]
+    lab: np.ndarray
     if fmt == RAW:
         if len(body) != 16 * n:
             raise MessageError(f"{where}: {len(body)} bytes for {n} raw points (expected {16 * n})")
