@@ -17,6 +17,7 @@ from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.source import keyframe_input
 
 from ..sim.helpers import OFFICE
+from .test_agent import run_office_pair
 
 
 @pytest.fixture(scope="module")
@@ -79,25 +80,9 @@ def test_a_corrupt_cloud_is_refused_and_counted(office, agent0):
 
 
 def _two_robots(office, compact: bool):
-    """Robot 0 starts in office_a, robot 2 passes through it after the meeting room."""
-    async def main():
-        net = LoopbackNetwork(team="t0", seed=0, robots=[0, 1, 2])
-        agents = [Agent(r, (0, 1, 2), AgentParams()) for r in range(3)]
-        nodes = [AgentNode(a, net.bus(a.robot), params=NodeParams(compact_wire=compact)) for a in agents]
-        for n in nodes:
-            await n.start()
-        streams = {0: office.keyframes(0), 2: office.keyframes(2)}
-        for r, n_kf in ((0, 40), (2, 120)):
-            for kf, _ in zip(streams[r], range(n_kf), strict=False):
-                await nodes[r].process_keyframe(keyframe_input(kf))
-                for n in nodes:
-                    await n.drain()
-        for n in nodes:
-            await n.close()
-        sent = sum(n.bus.counters.snapshot()["sent"].get("keyframe", {}).get("bytes", 0) for n in nodes)
-        return agents, nodes, sent
-
-    return asyncio.run(main())
+    agents, nodes = run_office_pair(office, NodeParams(compact_wire=compact))
+    sent = sum(n.bus.counters.snapshot()["sent"].get("keyframe", {}).get("bytes", 0) for n in nodes)
+    return agents, nodes, sent
 
 
 @pytest.mark.slow
