@@ -22,6 +22,7 @@ from kimera_multi_py.comms.bus import Bus, Subscription
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.pgo import PgoCommand, PgoStatus, PoseDeltas, PublicPoses
 from kimera_multi_py.comms.stream import BusClosedError
+from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.pose_stream import PoseDecoder, PoseEncoder, PoseStreamParams
 
@@ -41,6 +42,8 @@ class RunStats:
     timeouts: int = 0
     wall_s: float = 0.0
     dropped: int = 0  # messages lost on the way (filled in by a caller that can count them)
+    refused: int = 0  # pose messages that did not fit what their sender sent before (pose stream)
+    unusable: int = 0  # pose deltas against a keyframe that was lost
 
 
 class _RoundLog:
@@ -130,8 +133,14 @@ async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, 
         if isinstance(msg, PgoCommand) and msg.command == "stop":
             stopped.add(msg.robot)
         if isinstance(msg, PublicPoses | PoseDeltas):
-            decoded = decoder.decode(msg)
+            try:
+                decoded = decoder.decode(msg)
+            except MessageError as exc:
+                stats.refused += 1
+                log.warning("robot %d refused %s: %s", agent.robot, type(msg).__name__, exc)
+                return
             if decoded is None:
+                stats.unusable += 1
                 return
             msg = decoded
         agent.handle(msg)
