@@ -35,9 +35,9 @@ from kimera_multi_py.core.geometry import inverse, make_pose, so3_exp, so3_log
 class PoseStreamParams:
     """Knobs of the public-pose stream."""
 
-    # far below what the solver resolves: its "ready" test is a relative change of 1e-8 of the
-    # poses (PgoParams.rel_tol), i.e. ~1e-6 m on a 100 m graph; a neighbour off by 1e-6 m moves
-    # a block's optimum by as much, a second-order change of the team cost
+    # below what the solver resolves: measured on smallGrid3D (5 robots) the gap to the
+    # centralised optimum and the rounds are those of full messages (-7.8e-12, 50 rounds), while
+    # 1e-4 m / 1e-5 rad already moves both (5.4e-10, 58 rounds) for 13 % fewer bytes
     translation_tol: float = 1e-6
     """A public pose is sent again once it moved this far (m) from what the receivers hold ..."""
     rotation_tol: float = 1e-7
