@@ -54,6 +54,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/pcm_clique.py --json
 	$(BIN)/python benchmarks/map_consensus.py --json
 	$(BIN)/python benchmarks/team_robustness.py --quick --json
+	$(BIN)/python benchmarks/bandwidth.py --json
 	@if [ -d "$(DATASETS)/pgo" ]; then \
 		echo "$(BIN)/python benchmarks/pgo.py --json --data $(DATASETS)/pgo"; \
 		$(BIN)/python benchmarks/pgo.py --json --data "$(DATASETS)/pgo"; \

@@ -36,6 +36,7 @@ import numpy as np
 from kimera_multi_py.agent import pose_graph
 from kimera_multi_py.agent.closures import Closure, Constellation, LoopClosureStats
 from kimera_multi_py.agent.params import AgentParams
+from kimera_multi_py.comms.clouds import COMPACT, RAW, pack_cloud
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.closures import (
     KeyframeDescriptor,
@@ -56,6 +57,7 @@ from kimera_multi_py.frontend.loop_closure import (
     constellation_descriptor,
     similarity,
     verify,
+    voxel_centroids,
     voxel_downsample,
 )
 from kimera_multi_py.frontend.pcm import odometry_consistent_path, pcm
@@ -284,18 +286,24 @@ class Agent:
                                           keyframe=peer_kf, query_keyframe=k))
         return out
 
-    def serve_keyframe(self, keyframe: int, request_id: int = 0) -> LoopClosureReply:
-        """The constellation of one of our keyframes, for a peer's verification."""
+    def serve_keyframe(self, keyframe: int, request_id: int = 0, compact: bool = True) -> LoopClosureReply:
+        """The constellation of one of our keyframes, for a peer's verification. ``compact``: the
+        cloud as the closure registration sees it (one mean per registration voxel, packed
+        small, :mod:`kimera_multi_py.comms.clouds`); else every kept point, raw."""
         c = self.constellations.get(keyframe)
-        empty3 = np.zeros((0, 3), dtype=np.float32)
-        empty = np.zeros(0, dtype=np.int32)
         if c is None:
             return LoopClosureReply(robot=self.robot, request_id=request_id, keyframe=keyframe, found=False,
-                                    pose=np.eye(4), points=empty3, labels=empty, object_centroids=empty3,
-                                    object_classes=empty)
+                                    pose=np.eye(4), num_points=0, cloud=pack_cloud(np.zeros((0, 3)), np.zeros(0)),
+                                    object_centroids=np.zeros((0, 3), dtype=np.float32),
+                                    object_classes=np.zeros(0, dtype=np.int32))
+        if compact:
+            points, labels = voxel_centroids(c.cloud, c.cloud_labels, self.closure_registration.voxel)
+            cloud = pack_cloud(points, labels, COMPACT)
+        else:
+            points, labels = c.cloud, c.cloud_labels
+            cloud = pack_cloud(points, labels, RAW)
         return LoopClosureReply(robot=self.robot, request_id=request_id, keyframe=keyframe, found=True,
-                                pose=self.dead_reckoning[keyframe], points=c.cloud.astype(np.float32),
-                                labels=c.cloud_labels.astype(np.int32),
+                                pose=self.dead_reckoning[keyframe], num_points=len(points), cloud=cloud,
                                 object_centroids=c.xyz.astype(np.float32),
                                 object_classes=c.classes.astype(np.int32))
 
@@ -409,8 +417,9 @@ class Agent:
             if pending is None or not msg.found or pending[:2] != (msg.robot, msg.keyframe):
                 return []
             peer, peer_kf, own_kf = pending
+            points, labels = msg.points()  # a corrupt cloud raises MessageError: the node counts it
             res = self._verify(self.constellations[own_kf], msg.object_centroids, msg.object_classes,
-                               msg.points, msg.labels)
+                               points, labels)
             if res is None:
                 return []
             return self._add_closure(peer, Closure(own_kf, peer, peer_kf, res[0], res[1],

@@ -55,6 +55,7 @@ from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, MapCo
 from kimera_multi_py.mapshare.objects import OBJECT_MESSAGES, ObjectExchange
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.params import PgoParams, team_params
+from kimera_multi_py.pgo.pose_stream import PoseStreamParams
 from kimera_multi_py.pgo.team import ScheduleParams, TeamPgo
 
 log = logging.getLogger(__name__)
@@ -79,6 +80,10 @@ class NodeParams:
     """Lossy links: every descriptor goes out again with the next this many times (duplicates are ignored)."""
     query_retries: int = 2
     """Lossy links: a constellation query that gets no reply is asked again this many times."""
+    compact_wire: bool = True
+    """Compact encodings: verification clouds at the closure registration's resolution, packed
+    small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`).
+    False: the full-size formats (to measure what compaction saves)."""
 
 
 class AgentNode:
@@ -105,7 +110,7 @@ class AgentNode:
             self.pgo = TeamPgo(agent.robot, self.pgo_params,
                                self.schedule, agent.local_graph, agent.apply_poses,
                                lambda: agent.robot_graph, self._accepted_inter, agent.objects.centres,
-                               self._map_view)
+                               self._map_view, PoseStreamParams() if self.params.compact_wire else None)
         if self.params.map_consensus not in MAP_MODES:
             raise KimeraMultiError(f"map consensus: unknown mode {self.params.map_consensus!r} "
                                    f"(available: {', '.join(MAP_MODES)})")
@@ -172,7 +177,7 @@ class AgentNode:
     def _serve_keyframe(self, key: str, request: Message | None) -> LoopClosureReply:
         keyframe = int(key.rsplit("/", 1)[-1])
         rid = request.request_id if isinstance(request, LoopClosureRequest) else 0
-        return self.agent.serve_keyframe(keyframe, rid)
+        return self.agent.serve_keyframe(keyframe, rid, self.params.compact_wire)
 
     # ------------------------------------------------------------------ keyframes
     async def process_keyframe(self, kf: KeyframeInput) -> None:

@@ -22,6 +22,7 @@ ROOT = "kmp"
 
 # Topics (the part after ``kmp/{team}/r{robot}/``).
 PUBLIC_POSES = "pgo/public_poses"
+POSE_DELTAS = "pgo/pose_deltas"
 PGO_STATUS = "pgo/status"
 PGO_COMMAND = "pgo/command"
 GNC_WEIGHTS = "pgo/gnc_weights"

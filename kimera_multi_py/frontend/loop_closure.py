@@ -132,3 +132,25 @@ def voxel_downsample(xyz: np.ndarray, labels: np.ndarray, voxel: float) -> tuple
     _, first = np.unique(np.column_stack([keys, np.asarray(labels).reshape(-1, 1)]), axis=0, return_index=True)
     first.sort()
     return xyz[first], np.asarray(labels)[first]
+
+
+def voxel_centroids(xyz: np.ndarray, labels: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """One point per occupied voxel (of a grid anchored at the origin): the mean of its points,
+    with their most frequent label (ties: the lowest), in voxel order.
+
+    At the resolution of a :class:`~kimera_multi_py.mapping.registration.ScanRegistration`
+    this is the cloud its own voxel downsampling makes of ``xyz`` (one mean per voxel), so a
+    registration sees the same points whichever of the two it is handed."""
+    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    labels = np.asarray(labels).reshape(-1)
+    if len(xyz) == 0:
+        return xyz, labels
+    _, inv, count = np.unique(np.floor(xyz / voxel).astype(np.int64), axis=0, return_inverse=True,
+                              return_counts=True)
+    inv = inv.reshape(-1)
+    n = len(count)
+    mean = np.stack([np.bincount(inv, weights=xyz[:, i], minlength=n) for i in range(3)], axis=1) / count[:, None]
+    pairs, votes = np.unique(np.column_stack([inv, labels]), axis=0, return_counts=True)
+    order = np.lexsort((pairs[:, 1], -votes, pairs[:, 0]))  # per voxel: most votes, then lowest label
+    first = np.unique(pairs[order, 0], return_index=True)[1]
+    return mean, pairs[order[first], 1].astype(labels.dtype)

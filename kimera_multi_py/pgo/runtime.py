@@ -20,9 +20,11 @@ import numpy as np
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Subscription
 from kimera_multi_py.comms.messages.base import Message
-from kimera_multi_py.comms.messages.pgo import PgoCommand, PgoStatus
+from kimera_multi_py.comms.messages.pgo import PgoCommand, PgoStatus, PoseDeltas, PublicPoses
 from kimera_multi_py.comms.stream import BusClosedError
+from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.pgo.agent import PgoAgent
+from kimera_multi_py.pgo.pose_stream import PoseDecoder, PoseEncoder, PoseStreamParams
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +42,8 @@ class RunStats:
     timeouts: int = 0
     wall_s: float = 0.0
     dropped: int = 0  # messages lost on the way (filled in by a caller that can count them)
+    refused: int = 0  # pose messages that did not fit what their sender sent before (pose stream)
+    unusable: int = 0  # pose deltas against a keyframe that was lost
 
 
 class _RoundLog:
@@ -76,10 +80,13 @@ class _RoundLog:
 
 async def run_team(agents: Sequence[PgoAgent], buses: Sequence[Bus], max_rounds: int,
                    round_timeout: float = 0.5, on_round: RoundCallback | None = None,
-                   start_round: dict[int, int] | None = None) -> RunStats:
+                   start_round: dict[int, int] | None = None,
+                   stream: PoseStreamParams | None = None) -> RunStats:
     """Run every agent on its own bus until all stop or ``max_rounds``.
 
-    ``start_round`` lets a robot join late: it sits out (silent) until that round.
+    ``start_round`` lets a robot join late: it sits out (silent) until that round. ``stream``:
+    public poses travel as a :mod:`.pose_stream` (keyframes and float32 deltas); None: every
+    :class:`PublicPoses` in full.
     """
     t0 = time.perf_counter()
     stats = RunStats()
@@ -91,7 +98,7 @@ async def run_team(agents: Sequence[PgoAgent], buses: Sequence[Bus], max_rounds:
     start_round = start_round or {}
     tasks = [
         asyncio.create_task(_robot(agent, bus, sub, max_rounds, round_timeout, log_, stats,
-                                   start_round.get(agent.robot, 0)))
+                                   start_round.get(agent.robot, 0), stream))
         for agent, bus, sub in zip(agents, buses, subs, strict=True)
     ]
     try:
@@ -111,8 +118,11 @@ async def run_team(agents: Sequence[PgoAgent], buses: Sequence[Bus], max_rounds:
 
 
 async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, timeout: float,
-                 round_log: _RoundLog, stats: RunStats, start: int) -> int:
+                 round_log: _RoundLog, stats: RunStats, start: int, stream: PoseStreamParams | None) -> int:
     depends = agent.dependencies()
+    # gn_pcg's lock-step wants the public poses exact (as :class:`~.team.TeamPgo` does)
+    encoder = PoseEncoder(stream) if stream is not None and agent.params.method == "block_sor" else None
+    decoder = PoseDecoder()
     seen: dict[int, int] = {}  # robot -> latest status round
     stopped: set[int] = set()
     rnd = 0
@@ -122,6 +132,17 @@ async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, 
             seen[msg.robot] = max(seen.get(msg.robot, -1), msg.round)
         if isinstance(msg, PgoCommand) and msg.command == "stop":
             stopped.add(msg.robot)
+        if isinstance(msg, PublicPoses | PoseDeltas):
+            try:
+                decoded = decoder.decode(msg)
+            except MessageError as exc:
+                stats.refused += 1
+                log.warning("robot %d refused %s: %s", agent.robot, type(msg).__name__, exc)
+                return
+            if decoded is None:
+                stats.unusable += 1
+                return
+            msg = decoded
         agent.handle(msg)
 
     async def drain() -> None:
@@ -154,7 +175,9 @@ async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, 
             if agent.done:
                 break
             for msg in agent.step(rnd):
-                await bus.publish(bus.key(msg.TOPIC), msg)
+                out = encoder.encode(msg) if encoder is not None and isinstance(msg, PublicPoses) else msg
+                if out is not None:
+                    await bus.publish(bus.key(out.TOPIC), out)
             round_log.report(agent.robot, rnd, agent.state.poses)
             await asyncio.sleep(0)
             if agent.done:

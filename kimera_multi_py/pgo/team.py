@@ -36,17 +36,25 @@ import numpy as np
 
 from kimera_multi_py.alignment.map_check import MapAgreement
 from kimera_multi_py.comms.messages.base import Message
-from kimera_multi_py.comms.messages.pgo import FrameLandmarks, GncWeights, PgoCommand, PgoStatus, PublicPoses
+from kimera_multi_py.comms.messages.pgo import (
+    FrameLandmarks,
+    GncWeights,
+    PgoCommand,
+    PgoStatus,
+    PoseDeltas,
+    PublicPoses,
+)
 from kimera_multi_py.comms.messages.team import AgentState, PgoEpoch
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.local_graph import LocalGraph, component_root
 from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.pgo.pose_stream import PoseDecoder, PoseEncoder, PoseStreamParams
 
 log = logging.getLogger(__name__)
 
 EPOCH_ROUNDS = 1_000_000
 EPOCH_RESEND = 25  # the leader repeats an epoch's opening every this many rounds
-_PGO_MESSAGES = (PublicPoses, PgoStatus, PgoCommand, GncWeights)
+_PGO_MESSAGES = (PublicPoses, PoseDeltas, PgoStatus, PgoCommand, GncWeights)
 
 
 @dataclass
@@ -104,8 +112,13 @@ class TeamPgo:
                  robot_graph: Callable[[], Collection[tuple[int, int]]],
                  accepted_closures: Callable[[], int],
                  landmarks: Callable[[], tuple[np.ndarray, np.ndarray]] | None = None,
-                 map_view: Callable[[int], Callable[[np.ndarray], MapAgreement | None] | None] | None = None) -> None:
+                 map_view: Callable[[int], Callable[[np.ndarray], MapAgreement | None] | None] | None = None,
+                 stream: PoseStreamParams | None = None) -> None:
         self.robot = robot
+        # public poses out as a pose stream (block SOR; gn_pcg's lock-step wants them exact), and
+        # whatever peers send decoded back to full PublicPoses
+        self._encoder = PoseEncoder(stream) if stream is not None and params.method == "block_sor" else None
+        self.decoder = PoseDecoder()
         self.params = params
         self.schedule = schedule
         self._build = build
@@ -157,6 +170,11 @@ class TeamPgo:
             return
         if not isinstance(msg, _PGO_MESSAGES) or msg.robot == self.robot:
             return
+        if isinstance(msg, PublicPoses | PoseDeltas):
+            decoded = self.decoder.decode(msg)
+            if decoded is None:
+                return
+            msg = decoded
         if isinstance(msg, PublicPoses):
             for k, T in zip(msg.keys.tolist(), msg.poses, strict=True):
                 self.last_public[int(k)] = np.array(T)
@@ -302,7 +320,12 @@ class TeamPgo:
                                    active=np.zeros(0, np.int64)))
             self._finish(s)
         base = s.epoch * EPOCH_ROUNDS
-        out.extend(dataclasses.replace(m, round=base + m.round) for m in msgs)  # type: ignore[attr-defined]
+        for m in msgs:
+            sent: Message | None = dataclasses.replace(m, round=base + m.round)  # type: ignore[attr-defined]
+            if self._encoder is not None and isinstance(sent, PublicPoses):
+                sent = self._encoder.encode(sent)
+            if sent is not None:
+                out.append(sent)
         return out
 
     def blocked(self) -> bool:

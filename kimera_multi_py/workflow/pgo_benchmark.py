@@ -37,6 +37,7 @@ from kimera_multi_py.pgo.factors import graph_cost
 from kimera_multi_py.pgo.gn import make_agent
 from kimera_multi_py.pgo.local_graph import split_local
 from kimera_multi_py.pgo.params import PgoParams
+from kimera_multi_py.pgo.pose_stream import PoseStreamParams
 from kimera_multi_py.pgo.runtime import RunStats, run_team
 
 log = logging.getLogger(__name__)
@@ -181,11 +182,12 @@ def run_pgo(inputs: Sequence[str | Path], robots: int | None = None,
             params: PgoParams | None = None, drop: float = 0.0,
             round_timeout: float | None = None,
             start_round: dict[int, int] | None = None,
-            method: str | None = None) -> PgoRunResult:
+            method: str | None = None, stream: PoseStreamParams | None = None) -> PgoRunResult:
     """Centralised reference and distributed solve of the same graph, scored against each other.
 
     ``method`` picks the distributed solver (:data:`METHODS`; default :data:`DEFAULT_METHOD`
-    unless ``params`` is given, whose ``method`` then holds).
+    unless ``params`` is given, whose ``method`` then holds). ``stream``: public poses as a
+    pose stream (:mod:`kimera_multi_py.pgo.pose_stream`); None sends them in full.
     """
     graph = _inject(load_graph(inputs, robots), outliers, seed)
     params = params or PgoParams(method=cast(Method, DEFAULT_METHOD))
@@ -201,7 +203,7 @@ def run_pgo(inputs: Sequence[str | Path], robots: int | None = None,
     timeout = round_timeout if round_timeout is not None else (
         0.2 if transport == "loopback" else 2.0)
     poses, stats, history, agents = asyncio.run(
-        _distributed(graph, params, transport, drop, seed, timeout, start_round))
+        _distributed(graph, params, transport, drop, seed, timeout, start_round, stream))
     result = _score(graph, central, poses, stats, history, agents, transport, robust,
                     truth_known=outliers > 0, barc2=tls_threshold(params.inlier_probability,
                                                                   params.tls_dof))
@@ -220,7 +222,8 @@ def _centralized(graph: PoseGraph, robust: bool, params: PgoParams) -> Centraliz
 
 
 async def _distributed(graph: PoseGraph, params: PgoParams, transport: str, drop: float,
-                       seed: int, timeout: float, start_round: dict[int, int] | None
+                       seed: int, timeout: float, start_round: dict[int, int] | None,
+                       stream: PoseStreamParams | None = None
                        ) -> tuple[np.ndarray, RunStats, list[float], list[PgoAgent]]:
     """Run the team; ``stats.dropped`` (set here) counts the messages the network dropped."""
     agents = [make_agent(local, params) for local in split_local(graph)]
@@ -235,7 +238,7 @@ async def _distributed(graph: PoseGraph, params: PgoParams, transport: str, drop
         history.append(graph_cost(graph, full, inliers))
 
     async with open_buses([a.robot for a in agents], transport, drop, seed) as buses:
-        stats = await run_team(agents, buses, params.max_rounds, timeout, on_round, start_round)
+        stats = await run_team(agents, buses, params.max_rounds, timeout, on_round, start_round, stream)
         net = getattr(buses[0], "network", None) if buses else None
         dropped = int(net.stats.dropped) if isinstance(net, LoopbackNetwork) else 0
     stats.dropped = dropped

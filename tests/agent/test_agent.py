@@ -8,7 +8,7 @@ import pytest
 
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.checkpoint import load_checkpoint, save_checkpoint
-from kimera_multi_py.agent.node import AgentNode
+from kimera_multi_py.agent.node import AgentNode, NodeParams
 from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.comms import Heartbeat, KeyframeDescriptor, LoopbackNetwork, codec
 from kimera_multi_py.comms.messages.base import Message
@@ -74,13 +74,13 @@ def test_apply_poses_moves_the_map_exactly_and_back(office):
         agent.apply_poses(np.concatenate([poses, poses[:1]]))
 
 
-@pytest.mark.slow
-def test_two_nodes_find_true_inter_robot_closures_over_loopback(office):
-    """Robot 0 starts in office_a, robot 2 passes through it after the meeting room."""
+def run_office_pair(office, node_params: NodeParams | None = None):
+    """Robots 0 (40 keyframes) and 2 (120) over loopback, robot 1 listening: robot 0 starts in
+    office_a, robot 2 passes through it after the meeting room. Returns the agents and nodes."""
     async def main():
         net = LoopbackNetwork(team="t0", seed=0, robots=[0, 1, 2])
         agents = [Agent(r, (0, 1, 2), AgentParams()) for r in range(3)]
-        nodes = [AgentNode(a, net.bus(a.robot)) for a in agents]
+        nodes = [AgentNode(a, net.bus(a.robot), params=node_params) for a in agents]
         for n in nodes:
             await n.start()
         streams = {0: office.keyframes(0), 2: office.keyframes(2)}
@@ -93,7 +93,12 @@ def test_two_nodes_find_true_inter_robot_closures_over_loopback(office):
             await n.close()
         return agents, nodes
 
-    agents, nodes = asyncio.run(main())
+    return asyncio.run(main())
+
+
+@pytest.mark.slow
+def test_two_nodes_find_true_inter_robot_closures_over_loopback(office):
+    agents, nodes = run_office_pair(office)
     closures = [c for c in agents[0].closures.get(2, []) if c.accepted]
     assert agents[0].stats.candidates > 0
     assert len(closures) >= 2

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from kimera_multi_py.comms import codec, wire
 from kimera_multi_py.comms.codec import Codec, CodecError, Envelope
-from kimera_multi_py.comms.messages import MESSAGE_TYPES
+from kimera_multi_py.comms.messages import MESSAGE_TYPES, SCHEMA_VERSION
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.pgo import PublicPoses
 from kimera_multi_py.comms.messages.team import Heartbeat
@@ -55,7 +55,7 @@ def check(data: bytes) -> Envelope | None:
         (_raw(Heartbeat(robot=1, keyframes=1), src=9), "src"),
         (_raw(Heartbeat(robot=1, keyframes=1), src=2), "src"),  # body.robot is 1
         (_raw(Heartbeat(robot=1, keyframes=1), src=True), "src"),
-        (_raw(Heartbeat(robot=1, keyframes=1), v=2), "v"),
+        (_raw(Heartbeat(robot=1, keyframes=1), v=SCHEMA_VERSION + 1), "v"),
         (_raw(Heartbeat(robot=1, keyframes=1), v=[1]), "v"),
         (_raw(Heartbeat(robot=1, keyframes=1), type="Nope"), "type"),
         (_raw(Heartbeat(robot=1, keyframes=1), type=7), "type"),

@@ -343,8 +343,8 @@ VALUE_CASES: list[tuple[str, Mutator, str]] = [
     ("KeyframeOdometry", setv("keyframes", -1), "Batch.KeyframeOdometry.keyframes"),
     ("PgoCommand", setv("active", 4096), "Batch.PgoCommand.active"),
     ("PgoCommand", setv("active", -1), "Batch.PgoCommand.active"),
-    ("LoopClosureReply", setv("labels", -1), "Batch.LoopClosureReply.labels"),
-    ("LoopClosureReply", setv("points", NAN), "Batch.LoopClosureReply.points"),
+    ("LoopClosureReply", setv("num_points", -1), "Batch.LoopClosureReply.num_points"),
+    ("LoopClosureReply", setv("object_centroids", NAN), "Batch.LoopClosureReply.object_centroids"),
     ("ObjectUpdate", setv("probs", 1.01), "Batch.ObjectUpdate.probs"),
     ("ObjectUpdate", setv("extents", -1e-9), "Batch.ObjectUpdate.extents"),
     ("MapDelta", setv("keys", -1), "Batch.MapDelta.keys"),
@@ -419,7 +419,7 @@ ENVELOPE_CASES: list[tuple[dict[str, Any], str]] = [
     ({"seq": INT64_MAX - 1}, "seq"),  # seq + 2 overflows int64
     ({"stamp": NAN}, "stamp"),
     ({"stamp": 1}, "stamp"),
-    ({"v": 2}, "v"),
+    ({"v": SCHEMA_VERSION + 1}, "v"),
 ]
 
 

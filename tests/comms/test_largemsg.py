@@ -21,7 +21,7 @@ from hypothesis.extra import numpy as hnp
 
 from kimera_multi_py.comms import codec, largemsg, wire
 from kimera_multi_py.comms.codec import Codec, CodecError
-from kimera_multi_py.comms.messages import MESSAGE_TYPES
+from kimera_multi_py.comms.messages import MESSAGE_TYPES, SCHEMA_VERSION
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.team import Ping
 from kimera_multi_py.core.errors import MessageError
@@ -118,7 +118,7 @@ def check_unpack(data: bytes, *, supported: bool = False) -> Any:
 # ---------------------------------------------------------------------------- envelopes
 def envelope(msg: Message, *, wire: bool, seq: int = 7, stamp: float = 1.7e9) -> dict[str, Any]:
     """The dict Codec.encode packs (``wire``: arrays already as codec.ext_of values)."""
-    return {"v": 1, "type": msg.TYPE, "team": "t0", "src": msg.robot, "seq": seq, "stamp": stamp,
+    return {"v": SCHEMA_VERSION, "type": msg.TYPE, "team": "t0", "src": msg.robot, "seq": seq, "stamp": stamp,
             "body": msg._wire_body(codec.ext_of) if wire else msg.to_wire()}
 
 

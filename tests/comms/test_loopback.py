@@ -11,6 +11,7 @@ import pytest
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus
+from kimera_multi_py.comms.clouds import pack_cloud
 from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.loopback import Faults, LoopbackNetwork, Partition
 from kimera_multi_py.comms.messages.closures import LoopClosureReply
@@ -181,7 +182,7 @@ async def test_query_reply_and_failures() -> None:
             raise RuntimeError("boom")
         return LoopClosureReply(
             robot=0, request_id=request.nonce if request else 0, keyframe=kf, found=True,
-            pose=np.eye(4), points=np.ones((5, 3), np.float32), labels=np.arange(5, dtype=np.int32),
+            pose=np.eye(4), num_points=5, cloud=pack_cloud(np.ones((5, 3)), np.arange(5)),
             object_centroids=np.zeros((0, 3), np.float32), object_classes=np.zeros(0, np.int32))
 
     handle = await a.serve(keys.keyframe_key("t0", 0, "*"), serve)

@@ -12,6 +12,7 @@ import zenoh
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus
+from kimera_multi_py.comms.clouds import pack_cloud
 from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.messages.closures import LoopClosureReply
 from kimera_multi_py.comms.messages.team import Heartbeat, Ping
@@ -62,9 +63,9 @@ async def test_query_reply(port: int) -> None:
             kf = int(key.rsplit("/", 1)[1])
             return LoopClosureReply(
                 robot=0, request_id=request.nonce if request else 0, keyframe=kf, found=True,
-                pose=np.eye(4), points=np.full((100, 3), kf, np.float32),
-                labels=np.zeros(100, np.int32), object_centroids=np.zeros((0, 3), np.float32),
-                object_classes=np.zeros(0, np.int32))
+                pose=np.eye(4), num_points=100,
+                cloud=pack_cloud(np.full((100, 3), kf), np.zeros(100, np.int32)),
+                object_centroids=np.zeros((0, 3), np.float32), object_classes=np.zeros(0, np.int32))
 
         await a.serve(keys.keyframe_key(TEAM, 0, "*"), serve)
         await a.announce()
@@ -77,7 +78,8 @@ async def test_query_reply(port: int) -> None:
                                                                             sent_ns=0), timeout=1)
         assert len(replies) == 1
         assert replies[0].keyframe == 42 and replies[0].request_id == 7
-        assert replies[0].points.shape == (100, 3) and float(replies[0].points[0, 0]) == 42.0
+        points, _ = replies[0].points()
+        assert points.shape == (100, 3) and float(points[0, 0]) == 42.0
         assert a.counters.received["keyframe"].messages >= 1
         assert b.counters.received["keyframe"].messages == 1
         t0 = loop.time()

@@ -2,7 +2,7 @@
 
 - :mod:`.fields` — field specs and the reference validation;
 - :mod:`.base` — :class:`~.base.Message` and the ``@message`` decorator (compiled checks);
-- :mod:`.pgo` — distributed PGO (``PublicPoses``, ``PgoStatus``, ``PgoCommand``, ``GncWeights``,
+- :mod:`.pgo` — distributed PGO (``PublicPoses``, ``PoseDeltas``, ``PgoStatus``, ``PgoCommand``, ``GncWeights``,
   ``PcgState``, ``FrameLandmarks``);
 - :mod:`.closures` — loop closures (``KeyframeDescriptor``, ``LoopClosureRequest``/``Reply``,
   ``LoopClosures``/``LoopClosuresAck``, ``KeyframeOdometry``);
@@ -41,12 +41,13 @@ from kimera_multi_py.comms.messages.pgo import (
     PcgState,
     PgoCommand,
     PgoStatus,
+    PoseDeltas,
     PublicPoses,
 )
 from kimera_multi_py.comms.messages.team import AgentState, Heartbeat, PgoEpoch, Ping
 from kimera_multi_py.core.errors import MessageError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 # every message type by its wire name, in the order they were first defined (samples and
 # tests iterate it)
@@ -56,7 +57,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         PublicPoses, FrameLandmarks, PgoStatus, PcgState, PgoCommand, GncWeights,
         KeyframeDescriptor, LoopClosureRequest, LoopClosureReply, LoopClosures, LoopClosuresAck,
         MapDelta, SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap, ObjectUpdate,
-        Heartbeat, Ping, KeyframeOdometry, PgoEpoch, AgentState,
+        Heartbeat, Ping, KeyframeOdometry, PgoEpoch, AgentState, PoseDeltas,
     )
 }
 if set(MESSAGE_TYPES.values()) != set(Message.__subclasses__()):  # a type defined but not listed

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from kimera_multi_py.comms import keys
+from kimera_multi_py.comms.clouds import MAX_POINTS, unpack_cloud
 from kimera_multi_py.comms.messages.base import Message, message
 from kimera_multi_py.comms.messages.fields import (
     Bool,
@@ -49,7 +50,9 @@ class LoopClosureReply(Message):
     """A keyframe's data for geometric verification: semantic points and objects.
 
     ``pose`` is the keyframe's pose in the owner's odometry frame; points and object centroids
-    are in the keyframe's frame. ``found`` is False (with empty arrays) for unknown keyframes.
+    are in the keyframe's frame. The points travel packed (:mod:`kimera_multi_py.comms.clouds`:
+    ``num_points`` of them in ``cloud``; :meth:`points` unpacks them). ``found`` is False (with
+    no points nor objects) for unknown keyframes.
     """
 
     robot: int = robot_id()
@@ -57,10 +60,15 @@ class LoopClosureReply(Message):
     keyframe: int = spec_field(Int())
     found: bool = spec_field(Bool())
     pose: np.ndarray = arr("float64", 4, 4)
-    points: np.ndarray = arr("float32", "n", 3)
-    labels: np.ndarray = arr("int32", "n", lo=0)
+    num_points: int = spec_field(Int(0, MAX_POINTS))
+    cloud: np.ndarray = arr("uint8", "b")
     object_centroids: np.ndarray = arr("float32", "m", 3)
     object_classes: np.ndarray = arr("int32", "m", lo=0)
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """The ``(n, 3)`` points and ``(n,)`` labels; :class:`~kimera_multi_py.core.errors.MessageError`
+        if the packed cloud is corrupt."""
+        return unpack_cloud(self.cloud, self.num_points, "LoopClosureReply.cloud")
 
 
 @message("LoopClosures", keys.LOOP_CLOSURES)

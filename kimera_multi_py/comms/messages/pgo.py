@@ -39,6 +39,23 @@ class PublicPoses(Message):
     settled: bool = spec_field(Bool(), default=True)
 
 
+@message("PoseDeltas", keys.POSE_DELTAS)
+class PoseDeltas(Message):
+    """A robot's public poses that moved, as float32 deltas against its full
+    :class:`PublicPoses` of round ``base`` (:mod:`kimera_multi_py.pgo.pose_stream`).
+
+    Entry ``i``: the pose of ``base``'s key ``index[i]`` is ``T_base · [exp(deltas[i, :3]),
+    deltas[i, 3:]]`` (rotation vector in rad, translation in m). ``settled`` as in the base.
+    """
+
+    robot: int = robot_id()
+    round: int = count()
+    base: int = count()
+    index: np.ndarray = arr("int32", "n", lo=0)
+    deltas: np.ndarray = arr("float32", "n", 6)
+    settled: bool = spec_field(Bool(), default=True)
+
+
 @message("FrameLandmarks", keys.FRAME_LANDMARKS)
 class FrameLandmarks(Message):
     """A settled robot's confirmed object landmarks, in its frame (rooted at robot ``frame``),

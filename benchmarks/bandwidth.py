@@ -1,0 +1,114 @@
+"""Bytes on the wire: one scenario run with the compact encodings and with the full-size ones.
+
+    python benchmarks/bandwidth.py --json                       # office, 3 robots, seed 0, both formats
+    python benchmarks/bandwidth.py --formats compact --robots 5 --scenario sims/aliased_wing.toml
+
+Each format runs in a fresh process (``node.compact_wire`` true or false; docs/architecture.md,
+"Bytes on the wire"): the full-size run is the reference measured in the same invocation. Per run
+it reports bytes per topic, the total, MB per km of team travel (the true paths' length), the
+team ATE, the true and false inter-robot closures, the map agreement with the centralised fusion
+and the team map's F1 / mIoU; then each compact figure beside the full-size one.
+Also ``--from-results DIR/results.json``: the same figures of a run made with ``kimera-multi sim``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+FORMATS = {"compact": True, "full": False}
+
+_CHILD = r"""
+import json, sys, tempfile
+sys.path.insert(0, {repo!r})
+from kimera_multi_py.sim import load_scenario
+from kimera_multi_py.team.config import KimeraConfig
+from kimera_multi_py.workflow.simulate import SimRunner
+cfg = load_scenario({scenario!r}, robots={robots})
+config = KimeraConfig.defaults().updated({{"node": {{"compact_wire": {compact!r}}}}})
+with tempfile.TemporaryDirectory() as d:
+    res = SimRunner(cfg, seed={seed}, mode="distributed", out_dir=d, config=config).run().to_dict()
+print(json.dumps(res, default=str))
+"""
+
+
+def summarise(res: dict) -> dict:
+    """The figures of one run from its ``results.json`` dict."""
+    sent = res["bytes_sent"]
+    travel_km = res["team"]["trajectory_length_m"] / 1e3
+    agreement = [a["identical"] for a in res.get("map_consensus", {}).get("agreement", {}).values()]
+    lc = res["loop_closures"]
+    return {
+        "robots": len(res["robots"]), "travel_m": res["team"]["trajectory_length_m"],
+        "bytes_total": sent["total"], "bytes_by_topic": dict(sent["per_topic"]),
+        "mb_per_km": sent["total"] / 1e6 / travel_km if travel_km else None,
+        "team_ate_m": res["team"]["ate_rmse_m"],
+        "true_accepted_inter": lc["true_accepted_inter"], "false_accepted_inter": lc["false_accepted_inter"],
+        "map_agreement_min": min(agreement) if agreement else None,
+        "team_map_f1": res.get("team_map", {}).get("occupancy_f1"),
+        "team_map_miou": res.get("team_map", {}).get("semantic_miou"),
+        "refused_messages": res.get("refused_messages"),
+        "wall_s": res["wall_s"],
+    }
+
+
+def run_one(scenario: str, robots: int, seed: int, compact: bool) -> dict:
+    code = _CHILD.format(repo=str(REPO), scenario=scenario, robots=robots, seed=seed, compact=compact)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return summarise(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+def compare(runs: dict[str, dict]) -> dict[str, object]:
+    """Each compact figure beside the full-size one (bytes per topic, total, MB/km, ATE, closures, map)."""
+    c, f = runs["compact"], runs["full"]
+    topics = sorted(set(c["bytes_by_topic"]) | set(f["bytes_by_topic"]))
+    both = ("mb_per_km", "team_ate_m", "true_accepted_inter", "false_accepted_inter", "map_agreement_min",
+            "team_map_f1", "team_map_miou")
+    return {
+        "bytes_by_topic": {t: {"compact": c["bytes_by_topic"].get(t, 0), "full": f["bytes_by_topic"].get(t, 0)}
+                           for t in topics},
+        "bytes_total_ratio": c["bytes_total"] / f["bytes_total"],
+        **{k: {"compact": c[k], "full": f[k]} for k in both},
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenario", default=str(REPO / "sims" / "office.toml"))
+    ap.add_argument("--robots", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--formats", nargs="+", choices=sorted(FORMATS), default=["compact", "full"])
+    ap.add_argument("--from-results", nargs="+", default=[], metavar="FORMAT=RESULTS_JSON",
+                    help="summarise existing runs (e.g. compact=/tmp/run/results.json) instead of running")
+    ap.add_argument("--json", action="store_true", help="print the JSON summary only")
+    args = ap.parse_args()
+    runs = {}
+    for item in args.from_results:
+        name, _, path = item.partition("=")
+        runs[name] = summarise(json.loads(Path(path).read_text()))
+    for name in [] if runs else args.formats:
+        runs[name] = run_one(args.scenario, args.robots, args.seed, FORMATS[name])
+        print(json.dumps({name: runs[name]}), file=sys.stderr, flush=True)  # progress: one run per line
+    summary: dict[str, object] = {"scenario": Path(args.scenario).name, "robots": args.robots, "seed": args.seed,
+                                  "runs": runs}
+    if set(runs) == set(FORMATS):
+        summary["compact_vs_full"] = compare(runs)
+    if args.json:
+        print(json.dumps(summary, indent=1))
+        return
+    print(f"{'format':>8} {'MB':>7} {'MB/km':>7} {'ATE [m]':>8} {'true':>5} {'false':>5}")
+    for name, r in runs.items():
+        print(f"{name:>8} {r['bytes_total'] / 1e6:>7.2f} {r['mb_per_km']:>7.1f} {r['team_ate_m']:>8.3f} "
+              f"{r['true_accepted_inter']:>5} {r['false_accepted_inter']:>5}")
+    topics = sorted({t for r in runs.values() for t in r["bytes_by_topic"]})
+    print(f"{'topic':>22} " + " ".join(f"{n:>10}" for n in runs))
+    for t in topics:
+        print(f"{t:>22} " + " ".join(f"{r['bytes_by_topic'].get(t, 0) / 1e6:>9.3f}M" for r in runs.values()))
+
+
+if __name__ == "__main__":
+    main()
