@@ -174,14 +174,15 @@ def register(app: typer.Typer) -> None:
         folder: Annotated[Path, typer.Argument(help="Folder for ca.pem, ca.key and NAME.pem + NAME.key.")],
         robots: Annotated[int, typer.Option("--robots", "-n", help="Certificates for robot0..robotN-1.")] = 3,
         days: Annotated[int, typer.Option(help="Days the certificates are valid.")] = 365,
+        team: Team = "t0",
     ) -> None:
-        """Make a team CA and a certificate per robot (plus server, router, observer) for mutual TLS."""
-        from kimera_multi_py.team.certs import make_certs, team_names, write_zenoh_config
+        """Make a team CA and a certificate per robot (plus server, router, observer) for mutual TLS;
+        the router's config lets each certificate publish only under its own id."""
+        from kimera_multi_py.team.certs import make_certs, team_names, write_team_configs
 
         try:
             idents = make_certs(folder, team_names(robots), days)
-            for name, ident in idents.items():
-                write_zenoh_config(folder / f"{name}.json5", ident)
+            write_team_configs(folder, idents, team)
         except KimeraMultiError as exc:
             raise fail(exc) from None
         console.print(f"wrote a team CA and {len(idents)} certificates to {folder} (ca.key signs new ones: keep "

@@ -175,10 +175,9 @@ def cut_off(p: Partition) -> frozenset[int]:
 
 def _tls_configs(job: LaunchJob, folder: Path) -> dict[str, Path]:
     """A new team CA and certificates in ``folder``, and each process's ``--zenoh-config`` file."""
-    from kimera_multi_py.team.certs import make_certs, team_names, write_zenoh_config
+    from kimera_multi_py.team.certs import make_certs, team_names, write_team_configs
 
-    idents = make_certs(folder, team_names(job.robots))
-    return {name: write_zenoh_config(folder / f"{name}.json5", ident) for name, ident in idents.items()}
+    return write_team_configs(folder, make_certs(folder, team_names(job.robots)), job.team)
 
 
 def _cmd(*args: str) -> list[str]:
@@ -234,6 +233,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
         await asyncio.sleep(0.5)
         observer = ZenohBus(job.team, OBSERVER_ID, connect=[endpoint],
                             config_file=configs.get("observer"))
+        (out / "logs" / "endpoint").write_text(endpoint + "\n")  # the router is up: where tools connect
         states = observer.subscribe(keys.topic_all(job.team, keys.AGENT_STATE))
         if job.mode == "centralized":
             procs["server"] = start("server", ["server", "--out", str(out), *config, *conn("server")])

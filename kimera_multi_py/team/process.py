@@ -192,6 +192,9 @@ def run_router(listen: Sequence[str], zenoh_config: str | None = None, stop: asy
 
     from kimera_multi_py.comms.zenoh_bus import zenoh_config as make_config
 
+    # zenoh's own warnings (a refused TLS handshake: "peer sent no certificates", "invalid peer
+    # certificate") go to this process's stderr, the router's log under launch; RUST_LOG overrides
+    zenoh.init_log_from_env_or("warn")
     conf = make_config("router", listen, (), zenoh_config, False)
     with zenoh.open(conf):
         log.info("router listening on %s", ", ".join(listen))
