@@ -32,6 +32,7 @@ from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.ids import MAX_AGENT_ID, SERVER_ID
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.io.g2o import write_g2o
+from kimera_multi_py.io.outdir import ensure_writable
 from kimera_multi_py.io.sources import KeyframeSource
 from kimera_multi_py.mapping.config import get_submap_map
 from kimera_multi_py.mapping.octree_io import export_team_map
@@ -85,7 +86,7 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     if job.robot < 0 or job.robot > MAX_AGENT_ID:
         raise ConfigError("robot", f"robot id must be in 0..{MAX_AGENT_ID}, got {job.robot}")
     ckpt = checkpoint_path(job.out_dir, job.robot)
-    ckpt.parent.mkdir(parents=True, exist_ok=True)
+    ensure_writable(ckpt.parent)  # an unwritable or full folder fails here, in one line
     extra: dict[str, Any] = {}
     config = job.config
     if config.run.mode == "odometry":
