@@ -89,6 +89,7 @@ class LaunchJob:
     router_restarts: list[float] = field(default_factory=list)  # team stream times to SIGKILL + restart the router
     partitions: list[Partition] = field(default_factory=list)  # windows in team stream time (see cut_off)
     config: KimeraConfig = field(default_factory=KimeraConfig.defaults)  # every process's parameters
+    linger_max: float = 60.0  # each agent's wait, after its final epoch, for a whole team map
 
 
 def launch_job(config: KimeraConfig, out_dir: Path, **options: Any) -> LaunchJob:
@@ -219,6 +220,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     def agent_args(r: int, resume: bool) -> list[str]:
         args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}",
                 "--out", str(out), "--rate", str(job.rate), "--checkpoint-every", str(job.checkpoint_every),
+                "--linger-max", str(job.linger_max),
                 "--centralized" if job.mode == "centralized" else "--distributed", *config, *conn(f"robot{r}", r)]
         return args + (["--resume"] if resume else [])
 

@@ -43,6 +43,8 @@ from kimera_multi_py.team.config import KimeraConfig
 log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "checkpoint.kmc"
+LINGER_NAME = "linger.json"
+LINGER_MAX = 60.0  # s: the longest an agent waits, after its final epoch, for the team to be whole
 
 
 @dataclass
@@ -70,6 +72,7 @@ class AgentJob:
     checkpoint_every: float = 10.0
     resume: bool = False
     config: KimeraConfig = field(default_factory=KimeraConfig.defaults)  # run.mode: distributed unless centralized
+    linger_max: float = LINGER_MAX  # s after the final epoch to wait for a whole team map
 
 
 def run_agent(job: AgentJob) -> dict[str, Any]:
@@ -125,10 +128,11 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     try:
         await node.start()
         # with map consensus, linger a few map periods so the last evidence is relayed
-        await node.run(iter(source), rate=job.rate, on_keyframe=on_keyframe,
-                       linger=2.0 if node.maps is None else 6.0)
+        await node.run(iter(source), rate=job.rate, on_keyframe=on_keyframe, linger=2.0)
+        whole = await until_whole(node, config.run.robots, job.linger_max)
         save_checkpoint(ckpt, agent, _node_state(node, source))
         d = write_outcome(job.out_dir, outcome_of(node), own_graph(agent))
+        (d / LINGER_NAME).write_text(json.dumps(whole, indent=1))
         if node.maps is not None:
             export_team_map(node.maps.team_map, d)
     finally:
@@ -136,6 +140,31 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
         await bus.close()
     return {"robot": job.robot, "keyframes": agent.num_keyframes, "resumed_at": start if job.resume else None,
             "epochs": node.pgo.stats.epochs if node.pgo is not None else 0, "wall_s": time.monotonic() - t0}
+
+
+async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: float = 0.05) -> dict[str, Any]:
+    """After the final epoch, serve the team until this robot's map evidence and pose tables match
+    every team robot's last version summary (``mapshare.consensus.MapConsensus.gaps``), or for
+    ``cap`` s. ``robots``: the team's size (default: every robot heard of). Returns what
+    ``linger.json`` records: whether the team was whole, the wait, and what was missing."""
+    maps = node.maps
+    t0 = time.monotonic()
+    if maps is None or maps.mode != "exact":  # no version summaries to compare
+        return {"checked": False, "whole": None, "waited_s": 0.0, "missing": {}}
+
+    def team() -> set[int]:
+        return set(range(robots)) if robots else maps.heard()
+
+    while (gaps := maps.gaps(team())) and time.monotonic() - t0 < cap:
+        await node.drain()
+        await node.tick()
+        await asyncio.sleep(poll)
+    waited = round(time.monotonic() - t0, 2)
+    if gaps:
+        log.warning("robot %d: the team map is not whole after %.0f s (--linger-max): %s", node.robot, waited,
+                    "; ".join(f"robot {r}: {', '.join(g)}" for r, g in gaps.items()), extra={"robot": node.robot})
+    return {"checked": True, "whole": not gaps, "waited_s": waited, "robots": sorted(team()),
+            "missing": {str(r): g for r, g in gaps.items()}}
 
 
 def _node_state(node: AgentNode, source: KeyframeSource) -> dict[str, Any]:
