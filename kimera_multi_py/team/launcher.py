@@ -44,6 +44,7 @@ log = logging.getLogger(__name__)
 MODES = ("distributed", "centralized")
 LAUNCH_ROBOTS = 3  # team size unless configured
 LAUNCH_SEED = 0
+ROUTER_UP_S = 120.0  # s: the longest the router may take to start on a loaded machine
 
 
 @dataclass
@@ -181,6 +182,18 @@ def _tls_configs(job: LaunchJob, folder: Path) -> dict[str, Path]:
     return write_team_configs(folder, make_certs(folder, team_names(job.robots)), job.team)
 
 
+async def _router_up(observer: Any, router: subprocess.Popen[bytes], log_path: Path, cap: float = ROUTER_UP_S) -> None:
+    """Until the observer's session is linked to the router (agents connect as clients, which
+    fail at once without a router), or :class:`KimeraMultiError` if it exits or ``cap`` passes."""
+    deadline = time.monotonic() + cap
+    while not list(observer.session.info.routers_zid()):
+        if router.poll() is not None:
+            raise KimeraMultiError(f"the router exited with code {router.returncode}; see {log_path}")
+        if time.monotonic() > deadline:
+            raise KimeraMultiError(f"the router did not come up within {cap:.0f} s; see {log_path}")
+        await asyncio.sleep(0.1)
+
+
 def _cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "kimera_multi_py.cli.main", *args]
 
@@ -235,6 +248,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
         await asyncio.sleep(0.5)
         observer = ZenohBus(job.team, OBSERVER_ID, connect=[endpoint],
                             config_file=configs.get("observer"))
+        await _router_up(observer, procs["router"], out / "logs" / "router.log")
         (out / "logs" / "endpoint").write_text(endpoint + "\n")  # the router is up: where tools connect
         states = observer.subscribe(keys.topic_all(job.team, keys.AGENT_STATE))
         if job.mode == "centralized":
