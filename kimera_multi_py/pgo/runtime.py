@@ -10,7 +10,7 @@ On the in-process network (:class:`LoopbackNetwork`) a timeout is not a wall-clo
 gives up waiting when the whole team is quiet (every running robot waits, nothing is queued for
 them and no delivery is in flight), which is exactly when a lost message can no longer arrive. A
 lossy run then costs the rounds its losses cost and no wall time, and it is deterministic for a
-seed; ``round_timeout`` stays only as a generous cap (:data:`QUIET_CAP`) against a bug.
+seed; ``round_timeout`` is not used there (:data:`QUIET_CAP` bounds one wait, against a bug).
 """
 
 from __future__ import annotations

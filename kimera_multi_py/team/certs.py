@@ -127,8 +127,7 @@ def identity(folder: str | Path, name: str) -> Identity:
 # what a process does with keys: reads anyone's (subscribe, query, watch presence), receives
 # anything, and speaks (publish, reply, serve, be present) only for itself
 _READ = ["declare_subscriber", "query", "liveliness_query", "declare_liveliness_subscriber"]
-_DELIVER = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]
-_SPEAK = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]
+_SPEAK = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]  # received by all, sent by one
 
 
 def speaker_ids(names: Iterable[str]) -> dict[str, int]:
@@ -153,7 +152,7 @@ def access_control(team: str, names: Iterable[str]) -> dict[str, Any]:
     rules: list[dict[str, Any]] = [
         {"id": "read", "permission": "allow", "flows": ["ingress", "egress"], "messages": _READ,
          "key_exprs": team_keys},
-        {"id": "deliver", "permission": "allow", "flows": ["egress"], "messages": _DELIVER,
+        {"id": "deliver", "permission": "allow", "flows": ["egress"], "messages": _SPEAK,
          "key_exprs": team_keys},
     ]
     subjects: list[dict[str, Any]] = [{"id": "team", "cert_common_names": names}]

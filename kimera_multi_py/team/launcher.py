@@ -38,6 +38,7 @@ from kimera_multi_py.core.ids import MAX_ROBOTS, OBSERVER_ID
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.team.config import CONFIG_NAME, DEFAULT_SCENARIO, KimeraConfig
 from kimera_multi_py.team.link_proxy import LinkProxy
+from kimera_multi_py.team.process import LINGER_MAX
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +91,7 @@ class LaunchJob:
     router_restarts: list[float] = field(default_factory=list)  # team stream times to SIGKILL + restart the router
     partitions: list[Partition] = field(default_factory=list)  # windows in team stream time (see cut_off)
     config: KimeraConfig = field(default_factory=KimeraConfig.defaults)  # every process's parameters
-    linger_max: float = 60.0  # each agent's wait, after its final epoch, for a whole team map
+    linger_max: float = LINGER_MAX  # each agent's wait, after its final epoch, for a whole team map
 
 
 def launch_job(config: KimeraConfig, out_dir: Path, **options: Any) -> LaunchJob:

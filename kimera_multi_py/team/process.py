@@ -144,7 +144,8 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
 
 async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: float = 0.05) -> dict[str, Any]:
     """After the final epoch, serve the team until this robot's map evidence and pose tables match
-    every team robot's last version summary (``mapshare.consensus.MapConsensus.gaps``), or for
+    every team robot's last version summary (``mapshare.consensus.MapConsensus.gaps``) and no
+    epoch runs, or for
     ``cap`` s. ``robots``: the team's size (default: every robot heard of). Returns what
     ``linger.json`` records: whether the team was whole, the wait, and what was missing."""
     maps = node.maps
@@ -155,7 +156,10 @@ async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: flo
     def team() -> set[int]:
         return set(range(robots)) if robots else maps.heard()
 
-    while (gaps := maps.gaps(team())) and time.monotonic() - t0 < cap:
+    def busy() -> bool:  # an epoch still running (robots that met late run another final one)
+        return node.pgo is not None and node.pgo.busy
+
+    while ((gaps := maps.gaps(team())) or busy()) and time.monotonic() - t0 < cap:
         await node.drain()
         await node.tick()
         await asyncio.sleep(poll)
