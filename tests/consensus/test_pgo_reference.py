@@ -14,13 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import typer
 from typer.testing import CliRunner
 
-from kimera_multi_py.cli.pgo import register
 from kimera_multi_py.pgo.centralised import chordal_initialization, solve_centralized
 from kimera_multi_py.workflow import pgo_benchmark
 from kimera_multi_py.workflow.pgo_benchmark import NOT_CONVERGED, load_graph, run_pgo
+from tests.consensus.test_pgo_inputs import cli
 
 INFO_WELL = "100 0 0 100 0 400"
 # INTEL's kind of information: x/y blocks of 1e7 that are nearly singular; gtsam's chordal
@@ -55,17 +54,6 @@ def circle_graph(path: Path, info: str = INFO_WELL, n: int = 80, laps: int = 2,
         lines.append(f"EDGE_SE2 {i} {j} {z[0]:.9g} {z[1]:.9g} {z[2]:.9g} {info}")
     path.write_text("\n".join(lines) + "\n")
     return path
-
-
-def cli() -> typer.Typer:
-    app = typer.Typer()
-    register(app)
-
-    @app.callback()
-    def _root() -> None:
-        """kimera-multi"""
-
-    return app
 
 
 def test_odometry_start_traps_lm_and_the_reference_starts_chordal(tmp_path: Path) -> None:
