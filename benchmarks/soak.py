@@ -52,7 +52,7 @@ from kimera_multi_py.team.launcher import Kill, launch, launch_job  # noqa: E402
 
 BASE = ROOT / "sims" / "faults.toml"
 ROUTES = (["office", "meeting"], ["meeting", "lounge"], ["lounge", "office"], ["office", "lounge"])
-REP_STREAM_S = 51.0  # stream seconds each repetition of a two-room route adds (4 of them: 204 s)
+REP_STREAM_S = 45.0  # stream s per repetition of the two-room routes, roughly (2 reps: 94 s; 4 reps: 204 s)
 PGO_PERIOD = 20.0
 SAMPLE_S = 5.0
 
@@ -70,11 +70,17 @@ def looping_scenario(path: Path, minutes: float, robots: int) -> Path:
     return path
 
 
-def schedule(rng: random.Random, duration: float, robots: int, short: bool) -> dict[str, Any]:
-    """Seeded faults over the stream (team stream time, s): kills, router restarts, partitions."""
+def schedule(rng: random.Random, ends: list[float], short: bool) -> dict[str, Any]:
+    """Seeded faults over the stream: kills (at the killed robot's own stream time, inside its
+    stream, whose end is ``ends[robot]``), router restarts and partitions (team stream time)."""
+    robots, duration = len(ends), max(ends)
     n = 1 if short else max(2, int(duration // 240))
     lo, hi = 0.15 * duration, 0.8 * duration
-    kills = sorted((rng.randrange(robots), round(rng.uniform(lo, hi), 1)) for _ in range(n))
+    kills = []
+    for _ in range(n):
+        r = rng.randrange(robots)
+        kills.append((r, round(rng.uniform(0.15 * ends[r], 0.8 * ends[r]), 1)))
+    kills.sort()
     restarts = sorted(round(rng.uniform(lo, hi), 1) for _ in range(n))
     parts = []
     for _ in range(n):
@@ -177,7 +183,7 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     scenario = looping_scenario(out / "soak.toml", minutes, args.robots)
     sim = Simulation(load_scenario(scenario), args.seed)
-    plan = schedule(random.Random(args.seed), sim.duration, args.robots, args.short)
+    plan = schedule(random.Random(args.seed), [float(p.stamps[-1]) for p in sim.plans], args.short)
     config = KimeraConfig.defaults().updated({
         "run": {"scenario": str(scenario), "robots": args.robots, "seed": args.seed, "mode": "distributed"},
         "schedule": {"period": PGO_PERIOD}})
