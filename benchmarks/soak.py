@@ -12,7 +12,7 @@ run in ``kimera-multi sim``, ``benchmarks/faults.py``). While the team runs, a s
 every agent's checkpoint (each must load) and every process's resident memory. At the end:
 
 * every keyframe in every trajectory, once and in order (against the simulator's plan);
-* every accepted inter-robot closure in both robots' closure lists;
+* every closure a killed robot held at its last checkpoint, in its final closure list;
 * each team map against the centralised fusion of every robot's final evidence
   (``identical``), and the robots' team maps against each other;
 * checkpoints read during the run and after it, and how many failed to load (must be 0);
@@ -145,15 +145,21 @@ def memory_slopes(samples: dict[str, list[tuple[float, float]]]) -> dict[str, di
     return out
 
 
-def closures_mirrored(out: Path, robots: int) -> dict[str, Any]:
-    """Every accepted inter-robot closure of one robot is in its peer's closure list too."""
-    held = {}
+def closures_kept(out: Path, robots: int, kills: list[dict[str, Any]]) -> dict[str, Any]:
+    """Inter-robot closures accepted (each is held by one robot of the pair), and any closure a
+    killed robot held at its last checkpoint before the kill that its final list lacks."""
+    final = {}
     for r in range(robots):
         data = json.loads((out / f"robot{r}" / "closures.json").read_text())
-        held[r] = {(c["own_kf"], c["peer"], c["peer_kf"]): c["accepted"] for c in data["closures"]}
-    accepted = [(r, k) for r in held for k, ok in held[r].items() if ok and k[1] != r]
-    missing = [[r, *k] for r, k in accepted if (k[2], r, k[0]) not in held.get(k[1], {})]
-    return {"accepted_inter": len(accepted), "missing_in_peer": missing}
+        final[r] = {(c["own_kf"], c["peer"], c["peer_kf"]): c["accepted"] for c in data["closures"]}
+    accepted = sum(ok for r in final for k, ok in final[r].items() if k[1] != r)
+    lost = []
+    for k in kills:
+        if k.get("checkpoint"):
+            before = load_checkpoint(k["checkpoint"])[0]
+            kept = {(c.own_kf, peer, c.peer_kf) for peer, group in before.closures.items() for c in group}
+            lost += [[k["robot"], *x] for x in sorted(kept - set(final[k["robot"]]))]
+    return {"accepted_inter": int(accepted), "lost_at_kills": lost}
 
 
 def team_maps(out: Path, robots: int) -> dict[str, Any]:
@@ -212,7 +218,7 @@ def main() -> None:
     fig = {
         "robots": args.robots, "stream_s": round(sim.duration, 1), "rate": args.rate, "seed": args.seed,
         "wall_s": round(wall, 1), "schedule": plan, "faults_done": faults,
-        "trajectories": trajectories, "closures": closures_mirrored(run, args.robots),
+        "trajectories": trajectories, "closures": closures_kept(run, args.robots, faults["kills"]),
         "team_maps": {**team_maps(run, args.robots), "agree": results.get("map_consensus", {}).get("agree")},
         "linger": results.get("linger"),
         "checkpoints": {"read": sampler.checkpoints_read, "unreadable": sampler.checkpoint_failures},
@@ -220,7 +226,7 @@ def main() -> None:
         "out": str(run),
     }
     fig["nothing_lost"] = bool(all(t["once_in_order"] for t in trajectories.values())
-                               and not fig["closures"]["missing_in_peer"] and not sampler.checkpoint_failures)
+                               and not fig["closures"]["lost_at_kills"] and not sampler.checkpoint_failures)
     if args.json:
         print(json.dumps(fig), flush=True)
     else:
