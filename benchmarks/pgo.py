@@ -1,4 +1,4 @@
-"""Distributed PGO vs the centralised gtsam reference on every 3-D graph in shared/datasets/pgo.
+"""Distributed PGO vs the centralised gtsam reference on every graph in shared/datasets/pgo.
 
     python benchmarks/pgo.py --json            # six datasets, 5 robots, default cap, plus the
                                                # robust run and the team-size sweep
@@ -31,6 +31,9 @@ from kimera_multi_py.pgo.params import PgoParams  # noqa: E402
 from kimera_multi_py.workflow.pgo_benchmark import run_pgo  # noqa: E402
 
 DATASETS = ("tinyGrid3D", "smallGrid3D", "sphere2500", "parking-garage", "torus3D", "cubicle")
+# 2-D graphs (mit-acl/dpgo ``data/``, sources and licences in docs/benchmarks.md), run when their
+# file is in the data folder: the reference starts chordal as in 3-D and says when it failed
+OPTIONAL = ("input_INTEL_g2o", "input_M3500_g2o", "kitti_00", "CSAIL")
 ROBUST = ("smallGrid3D", 0.5)
 TEAMS = (("sphere2500", 10), ("sphere2500", 20), ("torus3D", 10), ("torus3D", 20))
 DEFAULT_DIR = Path(os.environ.get("KMP_DATASETS", REPO.parent / "shared" / "datasets")) / "pgo"
@@ -82,11 +85,12 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
 
-    runs = [(name, args.robots, False) for name in (args.only or DATASETS)]
+    names = args.only or DATASETS + tuple(n for n in OPTIONAL if (args.data / f"{n}.g2o").exists())
+    runs = [(name, args.robots, False) for name in names]
     if not args.no_robust:
         runs.append((args.robust_dataset, args.robots, True))
     if args.robust_all:
-        runs += [(name, args.robots, "blind") for name in (args.only or DATASETS)]
+        runs += [(name, args.robots, "blind") for name in names]
     if not args.no_teams:
         runs += [(name, n, False) for name, n in TEAMS if args.only is None or name in args.only]
     rows = []
@@ -112,6 +116,8 @@ def main() -> None:
               f"{f['rounds']:6d} {str(f['rounds_to_1e-2']):>5s} {str(f['rounds_to_1e-3']):>5s} "
               f"{f['bytes_per_round'] / 1e3:7.2f} {f['bytes_sent'] / 1e6:7.2f} {f['wall_s']:7.1f} "
               f"{f['centralized_wall_s']:7.1f}", file=sys.stderr)
+        if f.get("reference", "converged") != "converged":
+            print(f"{'':16s} {f['reference']}", file=sys.stderr)
 
 
 def _num(value: float | None, fmt: str) -> str:

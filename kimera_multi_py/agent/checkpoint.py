@@ -62,6 +62,7 @@ from pydantic import ValidationError
 
 from kimera_multi_py import __version__
 from kimera_multi_py.core.errors import CheckpointError
+from kimera_multi_py.io.outdir import reason
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
@@ -398,8 +399,11 @@ class Snapshot:
             finally:
                 os.close(dir_fd)
         except OSError as exc:
+            tmp.unlink(missing_ok=True)  # the last good checkpoint at ``path`` stays as it was
+            raise CheckpointError(str(path), f"cannot write checkpoint: {reason(exc)}") from None
+        except BaseException:
             tmp.unlink(missing_ok=True)
-            raise CheckpointError(str(path), f"cannot write checkpoint: {exc}") from None
+            raise
 
 
 def snapshot(agent: object, extra: dict[str, Any] | None = None, copy: bool = True) -> Snapshot:

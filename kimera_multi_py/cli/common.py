@@ -72,6 +72,19 @@ def overrides(**sections: Any) -> dict[str, Any]:
     return out
 
 
+def agreement(res: dict) -> None:
+    """Whether the robots' team maps agree, and what a robot that stopped waiting was missing."""
+    mc = res.get("map_consensus")
+    if not mc:
+        return
+    ref = next(k for k in mc if k.startswith("identical_to_robot"))
+    cells = ", ".join(f"robot {r} {v:.3f}" for r, v in mc[ref].items())
+    console.print(f"team maps agree: {'yes' if mc.get('agree') else 'NO'} (cells {ref.replace('_', ' ')}: {cells})")
+    for r, rep in sorted((res.get("linger") or {}).items()):
+        if rep.get("checked") and not rep.get("whole"):
+            console.print(f"robot {r} stopped waiting after {rep['waited_s']:.0f} s; missing: {rep['missing']}")
+
+
 def summary(res: dict) -> None:
     """Loop closures, objects and bytes of a team run, in two lines."""
     if "loop_closures" not in res:

@@ -69,3 +69,5 @@ def register(app: typer.Typer) -> None:
                 continue
             table.add_row(key, f"{value:.6g}" if isinstance(value, float) else str(value))
         console.print(table)
+        if not result.reference_converged:
+            console.print(result.reference)

@@ -18,6 +18,8 @@ Connect = Annotated[list[str] | None, typer.Option("--connect", help="Zenoh endp
 Listen = Annotated[list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on (repeatable).")]
 ZenohConfig = Annotated[Path | None, typer.Option("--zenoh-config", help="Zenoh JSON5 config (TLS, auth, ...).")]
 Team = Annotated[str, typer.Option("--team", help="Team id: teams on one network never mix.")]
+LingerMax = Annotated[float, typer.Option("--linger-max", help="After the final epoch, wait at most this many "
+                                                                  "seconds for the team map to be whole.")]
 Verbose = Annotated[bool, typer.Option("--verbose", "-v")]
 MapMode = Annotated[str | None, typer.Option("--map-consensus", help="off, roam, exact (the default) or laplacian.")]
 PgoPeriod = Annotated[float | None, typer.Option(help="Team-time seconds between PGO epochs (default 60).")]
@@ -55,6 +57,7 @@ def register(app: typer.Typer) -> None:
         rate: Annotated[str, typer.Option(help="Pace keyframes at RATE x their stamps; inf: no pacing.")] = "inf",
         checkpoint_every: Annotated[float, typer.Option(help="Seconds between checkpoints.")] = 10.0,
         resume: Annotated[bool, typer.Option("--resume", help="Restore OUT/robotI/checkpoint.kmc.")] = False,
+        linger_max: LingerMax = 60.0,
         centralized: Annotated[bool | None, typer.Option("--centralized/--distributed", help="A server optimises "
                                                          "the team (default: the configuration's mode, else "
                                                          "distributed).")] = None,
@@ -73,7 +76,8 @@ def register(app: typer.Typer) -> None:
             settings = load_config(config, overrides(run={"mode": mode}, schedule={"period": pgo_period},
                                                      node={"map_consensus": map_consensus}))
             conn = _connection(team, connect, listen, zenoh_config, "client" if connect and not listen else None)
-            summary = run_agent(AgentJob(robot, source, out, conn, _rate(rate), checkpoint_every, resume, settings))
+            summary = run_agent(AgentJob(robot, source, out, conn, _rate(rate), checkpoint_every, resume, settings,
+                                         linger_max))
         except KimeraMultiError as exc:
             raise fail(exc) from None
         console.print(f"robot {summary['robot']}: {summary['keyframes']} keyframes, {summary['epochs']} PGO epochs, "
@@ -141,11 +145,12 @@ def register(app: typer.Typer) -> None:
         = None,
         tls: Annotated[bool, typer.Option("--tls", help="Mutual TLS: a new team CA and certificates in "
                                                         "OUT/certs; no process without one can join.")] = False,
+        linger_max: LingerMax = 60.0,
         config: ConfigFile = None,
         verbose: Verbose = False,
     ) -> None:
         """Start a router and N agent processes (and the server) on 127.0.0.1, then evaluate."""
-        from kimera_multi_py.cli.common import results_table, robot_at, summary
+        from kimera_multi_py.cli.common import agreement, results_table, robot_at, summary
         from kimera_multi_py.comms.faults import parse_partition
         from kimera_multi_py.team.config import load_config
         from kimera_multi_py.team.launcher import launch, launch_job, parse_kill, parse_restart
@@ -159,7 +164,7 @@ def register(app: typer.Typer) -> None:
                                                      node={"map_consensus": map_consensus}))
             job = launch_job(settings, out, rate=_rate(rate), kills=[parse_kill(k) for k in kill or []],
                              checkpoint_every=checkpoint_every, timeout=timeout, verbose=verbose, tls=tls,
-                             router_restarts=[parse_restart(t) for t in restart_router or []])
+                             router_restarts=[parse_restart(t) for t in restart_router or []], linger_max=linger_max)
             with Live(_table({}), console=console, refresh_per_second=4, transient=False) as live:
                 results = launch(job, lambda views: live.update(_table(views)))
         except KimeraMultiError as exc:
@@ -167,6 +172,7 @@ def register(app: typer.Typer) -> None:
         res = results.to_dict()
         console.print(results_table(res))
         summary(res)
+        agreement(res)
         console.print(f"launch wall {res['wall_s']:.1f} s; wrote {out / 'results.json'}")
 
     @app.command()
@@ -174,14 +180,15 @@ def register(app: typer.Typer) -> None:
         folder: Annotated[Path, typer.Argument(help="Folder for ca.pem, ca.key and NAME.pem + NAME.key.")],
         robots: Annotated[int, typer.Option("--robots", "-n", help="Certificates for robot0..robotN-1.")] = 3,
         days: Annotated[int, typer.Option(help="Days the certificates are valid.")] = 365,
+        team: Team = "t0",
     ) -> None:
-        """Make a team CA and a certificate per robot (plus server, router, observer) for mutual TLS."""
-        from kimera_multi_py.team.certs import make_certs, team_names, write_zenoh_config
+        """Make a team CA and a certificate per robot (plus server, router, observer) for mutual TLS;
+        the router's config lets each certificate publish only under its own id."""
+        from kimera_multi_py.team.certs import make_certs, team_names, write_team_configs
 
         try:
             idents = make_certs(folder, team_names(robots), days)
-            for name, ident in idents.items():
-                write_zenoh_config(folder / f"{name}.json5", ident)
+            write_team_configs(folder, idents, team)
         except KimeraMultiError as exc:
             raise fail(exc) from None
         console.print(f"wrote a team CA and {len(idents)} certificates to {folder} (ca.key signs new ones: keep "

@@ -37,7 +37,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -125,6 +125,7 @@ class MapConsensus:
         self._own_table: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._pose_version = 0
         self._nbr: dict[int, tuple[dict[Key, int], dict[int, int], float]] = {}
+        self._nbr_frame: dict[int, int] = {}  # each neighbour's team frame, as its summary said
         self._sent: dict[Key, tuple[int, float]] = {}
         self._sent_poses: dict[int, tuple[int, float]] = {}
         self._summary: tuple[bytes, int] | None = None  # last content, periods since sent
@@ -240,6 +241,7 @@ class MapConsensus:
                     zip(msg.sources.tolist(), msg.submaps.tolist(), msg.versions.tolist(), strict=True)}
         pose_versions = dict(zip(msg.pose_sources.tolist(), msg.pose_versions.tolist(), strict=True))
         self._nbr[msg.robot] = (versions, pose_versions, self._now)
+        self._nbr_frame[msg.robot] = int(msg.frame)
 
     # ---- the step --------------------------------------------------------------------------
     def step(self, now: float) -> list[Message]:
@@ -392,6 +394,38 @@ class MapConsensus:
             versions=np.array([self.held[k].version for k in keys], np.int64),
             pose_sources=np.array(srcs, np.int32),
             pose_versions=np.array([self.poses[s][0].version for s in srcs], np.int64))
+
+    def heard(self) -> set[int]:
+        """Robots whose evidence, pose table or version summary this robot holds (itself too)."""
+        return {k[0] for k in self.held} | set(self.poses) | set(self._nbr) | {self.robot}
+
+    def gaps(self, robots: Iterable[int]) -> dict[int, dict[str, object]]:
+        """Where this robot's held evidence and pose tables differ from each robot's last version
+        summary (``exact`` mode): per robot with a difference, the submaps and pose tables it
+        holds newer (``behind``: we lack them) or older (``ahead``), a frame that differs, or that
+        no summary came. Empty: every robot holds what we hold, so our team maps are the same."""
+        mine = {k: h.version for k, h in self.held.items() if h.version > 0}
+        my_poses = {s: t.version for s, (t, _) in self.poses.items()}
+        out: dict[int, dict[str, object]] = {}
+        for r in sorted(set(robots) - {self.robot}):
+            if r not in self._nbr:
+                out[r] = {"summary": "none received"}
+                continue
+            versions, pose_versions, _ = self._nbr[r]
+            gap: dict[str, object] = {}
+            behind = sorted(k for k, v in versions.items() if mine.get(k, 0) < v)
+            ahead = sorted(k for k, v in mine.items() if versions.get(k, 0) < v)
+            poses_behind = sorted(s for s, v in pose_versions.items() if my_poses.get(s, 0) < v)
+            poses_ahead = sorted(s for s, v in my_poses.items() if pose_versions.get(s, 0) < v)
+            for name, items in (("submaps_behind", behind), ("submaps_ahead", ahead),
+                                ("pose_tables_behind", poses_behind), ("pose_tables_ahead", poses_ahead)):
+                if items:
+                    gap[name] = [list(k) if isinstance(k, tuple) else k for k in items]
+            if self._nbr_frame.get(r, self.frame) != self.frame:
+                gap["frame"] = {"mine": self.frame, "theirs": self._nbr_frame[r]}
+            if gap:
+                out[r] = gap
+        return out
 
     # ---- results ---------------------------------------------------------------------------
     @property

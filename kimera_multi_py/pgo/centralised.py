@@ -1,8 +1,13 @@
 """Centralised mode, solver half: the joint graph optimised in one place (the PGO reference).
 
-Chordal initialisation (``gtsam.InitializePose3``) per connected component, falling back to
-the given values where it fails (it does on cubicle), then Levenberg–Marquardt, or gtsam's
-GNC-TLS when ``robust`` (odometry is a known inlier).
+Chordal initialisation (``gtsam.InitializePose3``) per connected component, then
+Levenberg–Marquardt, or gtsam's GNC-TLS when ``robust`` (odometry is a known inlier). Where
+gtsam's relaxation fails (cubicle's indefinite matrices, the 2-D INTEL graph's nearly singular
+ones) the reference starts LM both from the relaxation of :mod:`.chordal` (sparse least squares,
+which does not give up) and from the file's initial values, and keeps the lower cost. An LM
+that cannot take a single step (INTEL: the first damped system is rejected at every λ up to
+gtsam's bound) is run again with diagonal (Marquardt) damping. ``docs/benchmarks.md`` lists the
+graphs this was measured on.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from kimera_multi_py.core.errors import GraphError
 from kimera_multi_py.core.geometry import to_gtsam
 from kimera_multi_py.core.posegraph import ODOMETRY, PoseGraph
 from kimera_multi_py.core.robust import MU_STEP, initial_mu, tls_weights
+from kimera_multi_py.pgo.chordal import chordal_poses
 from kimera_multi_py.pgo.factors import (
     CostEvaluator,
     build_graph,
@@ -224,9 +230,55 @@ def solve_centralized(graph: PoseGraph, robust: bool = False, chordal: bool = Tr
         assert best is not None
         _, result, weights, init = best
     else:
-        result = gtsam.LevenbergMarquardtOptimizer(fg, values, lm).optimize()
+        result = _lm(fg, values, lm)
     poses = from_values(result, keys)
-    wall = time.perf_counter() - t0
     evaluate = CostEvaluator(graph, mask=~graph.outlier)
-    return CentralizedResult(poses=poses, cost=evaluate(poses), initial_cost=evaluate(init_poses),
+    cost, initial_cost = evaluate(poses), evaluate(init_poses)
+    if not robust and chordal and not ok:
+        # gtsam's relaxation gave up somewhere: also from the sparse relaxation, keep the lower
+        alt = sparse_chordal(graph)
+        if alt is not None:
+            alt_poses = from_values(_lm(fg, to_values(keys, alt), lm), keys)
+            alt_cost = evaluate(alt_poses)
+            log.info("reference from the given values: %.6g; from the sparse chordal "
+                     "relaxation: %.6g", cost, alt_cost)
+            if alt_cost < cost:
+                poses, cost, initial_cost, init = alt_poses, alt_cost, evaluate(alt), "chordal_sparse"
+    wall = time.perf_counter() - t0
+    return CentralizedResult(poses=poses, cost=cost, initial_cost=initial_cost,
                              init=init, wall_s=wall, weights=weights)
+
+
+def _lm(fg: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+        lm: gtsam.LevenbergMarquardtParams) -> gtsam.Values:
+    """gtsam's LM; when it cannot take one step from ``values``, again with diagonal damping."""
+    opt = gtsam.LevenbergMarquardtOptimizer(fg, values, lm)
+    result = opt.optimize()
+    if opt.iterations() == 0 and fg.error(values) > 0.0:
+        log.info("LM took no step (error %.6g); again with diagonal damping", fg.error(values))
+        lm.setDiagonalDamping(True)
+        try:
+            result = gtsam.LevenbergMarquardtOptimizer(fg, values, lm).optimize()
+        finally:
+            lm.setDiagonalDamping(False)
+    return result
+
+
+def sparse_chordal(graph: PoseGraph) -> np.ndarray | None:
+    """The chordal relaxation of :mod:`.chordal` per component (each anchored at its first
+    pose's given value); ``None`` where it is not finite."""
+    poses = graph.poses.copy()
+    for comp in components(graph):
+        if len(comp) < 2:
+            continue
+        index = np.full(graph.num_poses, -1)
+        index[comp] = np.arange(len(comp))
+        e = np.flatnonzero(index[graph.edge_i] >= 0)
+        try:
+            est = chordal_poses(poses[comp], index[graph.edge_i[e]], index[graph.edge_j[e]],
+                                graph.measurement[e], graph.information[e])
+        except (RuntimeError, np.linalg.LinAlgError) as exc:
+            log.info("sparse chordal relaxation failed (%s)", exc)
+            return None
+        poses[comp] = est
+    return poses if np.isfinite(poses).all() else None

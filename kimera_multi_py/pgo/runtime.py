@@ -5,6 +5,12 @@ round ``r − 1`` from every robot it depends on (its neighbours; the leader wai
 adjacent robots are never more than one round apart and the colour schedule holds. A lost
 message costs one timeout; the agent then uses the latest values it has (stale by a round).
 The runtime records every robot's poses per round so the caller can score convergence.
+
+On the in-process network (:class:`LoopbackNetwork`) a timeout is not a wall-clock wait: a robot
+gives up waiting when the whole team is quiet (every running robot waits, nothing is queued for
+them and no delivery is in flight), which is exactly when a lost message can no longer arrive. A
+lossy run then costs the rounds its losses cost and no wall time, and it is deterministic for a
+seed; ``round_timeout`` is not used there (:data:`QUIET_CAP` bounds one wait, against a bug).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import numpy as np
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Subscription
+from kimera_multi_py.comms.loopback import LoopbackNetwork
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.pgo import PgoCommand, PgoStatus, PoseDeltas, PublicPoses
 from kimera_multi_py.comms.stream import BusClosedError
@@ -29,6 +36,51 @@ from kimera_multi_py.pgo.pose_stream import PoseDecoder, PoseEncoder, PoseStream
 log = logging.getLogger(__name__)
 
 RoundCallback = Callable[[int, dict[int, np.ndarray]], None]
+QUIET_CAP = 60.0  # s: the wall-clock cap of one wait on the in-process network (a safety net)
+QUIET_POLL = 0.005  # s between quiescence checks while a robot waits
+
+
+class _Quiet:
+    """Round timeouts on an in-process network: waits end when the team is quiet (module doc).
+
+    A waiting robot polls its queue, yielding to the others (``sleep(0)``: the event loop runs
+    the tasks in a fixed order, so the first robot to see the team quiet, and so every
+    decision, is the same on every run)."""
+
+    def __init__(self, network: LoopbackNetwork, robots: Sequence[int]) -> None:
+        self.network = network
+        self.running = set(robots)
+        self.waiting: dict[int, Subscription] = {}
+        self.expired: set[int] = set()
+
+    def _quiet(self) -> bool:
+        return (not self.network.in_flight and set(self.waiting) == self.running
+                and all(sub.pending() == 0 for sub in self.waiting.values()))
+
+    async def recv(self, robot: int, sub: Subscription) -> Message | None:
+        """The next message for ``robot``, or ``None`` once the team is quiet (a timeout)."""
+        loop = asyncio.get_running_loop()
+        cap = loop.time() + QUIET_CAP
+        self.waiting[robot] = sub
+        try:
+            while True:
+                if robot in self.expired:
+                    self.expired.discard(robot)
+                    return None
+                if (msg := sub.try_recv()) is not None:
+                    return msg
+                if self._quiet():  # every waiting robot times out together
+                    self.expired.update(r for r in self.waiting if r != robot)
+                    return None
+                if loop.time() > cap:
+                    log.warning("robot %d: no message and no quiet team within %.0f s", robot, QUIET_CAP)
+                    return None
+                await asyncio.sleep(0 if not self.network.in_flight else QUIET_POLL)
+        finally:
+            del self.waiting[robot]
+
+    def leave(self, robot: int) -> None:
+        self.running.discard(robot)
 
 
 @dataclass
@@ -96,9 +148,11 @@ async def run_team(agents: Sequence[PgoAgent], buses: Sequence[Bus], max_rounds:
     for bus in buses:
         await bus.announce()
     start_round = start_round or {}
+    network = getattr(buses[0], "network", None) if buses else None
+    quiet = _Quiet(network, robots) if isinstance(network, LoopbackNetwork) else None
     tasks = [
         asyncio.create_task(_robot(agent, bus, sub, max_rounds, round_timeout, log_, stats,
-                                   start_round.get(agent.robot, 0), stream))
+                                   start_round.get(agent.robot, 0), stream, quiet))
         for agent, bus, sub in zip(agents, buses, subs, strict=True)
     ]
     try:
@@ -118,7 +172,8 @@ async def run_team(agents: Sequence[PgoAgent], buses: Sequence[Bus], max_rounds:
 
 
 async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, timeout: float,
-                 round_log: _RoundLog, stats: RunStats, start: int, stream: PoseStreamParams | None) -> int:
+                 round_log: _RoundLog, stats: RunStats, start: int, stream: PoseStreamParams | None,
+                 quiet: _Quiet | None = None) -> int:
     depends = agent.dependencies()
     # gn_pcg's lock-step wants the public poses exact (as :class:`~.team.TeamPgo` does)
     encoder = PoseEncoder(stream) if stream is not None and agent.params.method == "block_sor" else None
@@ -163,6 +218,13 @@ async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, 
                 waiting = [r for r in depends if seen.get(r, -1) < rnd - 1 and r not in stopped]
                 if not waiting or agent.done or rnd == start:
                     break
+                if quiet is not None:
+                    msg = await quiet.recv(agent.robot, sub)
+                    if msg is None:
+                        stats.timeouts += 1
+                        break
+                    absorb(msg)
+                    continue
                 left = deadline - time.perf_counter()
                 if left <= 0:
                     stats.timeouts += 1
@@ -188,5 +250,8 @@ async def _robot(agent: PgoAgent, bus: Bus, sub: Subscription, max_rounds: int, 
                 robot=agent.robot, round=rnd, command="stop", active=np.zeros(0, np.int64)))
     except BusClosedError:
         log.info("robot %d: bus closed at round %d", agent.robot, rnd)
+    finally:
+        if quiet is not None:
+            quiet.leave(agent.robot)
     round_log.finish(agent.robot)
     return rnd

@@ -155,8 +155,10 @@ class TeamPgo:
             self.states[msg.robot] = msg
             if msg.epoch > self.epoch and self.session is None:
                 self.epoch = msg.epoch  # a newer epoch ran elsewhere (partition, restart)
-            if not msg.finished and self.final_done and msg.robot not in self._final_members:
-                self.final_done = False  # a robot joined after the final epoch: optimise again
+            if self.final_done and msg.robot not in self._final_members and msg.robot in alive:
+                # a robot joined, or met us again (a partition that healed late), after the
+                # final epoch: optimise again, with it
+                self.final_done = False
             return
         if isinstance(msg, PgoEpoch):
             if msg.epoch > self.epoch or (self.session is None and msg.epoch > self.completed

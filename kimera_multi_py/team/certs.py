@@ -8,7 +8,9 @@ Zenoh process both listens and connects. With ``enable_mtls`` every link checks 
 process without a certificate of this CA cannot join, even one that trusts the CA (docs/deployment.md).
 
 :func:`write_zenoh_config` writes one process's ``--zenoh-config`` file (the
-``transport/link/tls`` block of :func:`kimera_multi_py.comms.zenoh_bus.tls_settings`).
+``transport/link/tls`` block of :func:`kimera_multi_py.comms.zenoh_bus.tls_settings`); the
+router's also carries :func:`access_control`: a certificate speaks only for its own name, so a
+member holding ``robot1.pem`` cannot publish as robot 0 or as the server (docs/deployment.md).
 """
 
 from __future__ import annotations
@@ -21,8 +23,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from kimera_multi_py.comms import keys
 from kimera_multi_py.core.errors import ConfigError
-from kimera_multi_py.core.ids import MAX_ROBOTS
+from kimera_multi_py.core.ids import MAX_ROBOTS, SERVER_ID
 
 CA_CERT, CA_KEY = "ca.pem", "ca.key"
 DEFAULT_DAYS = 365
@@ -121,17 +124,72 @@ def identity(folder: str | Path, name: str) -> Identity:
     return ident
 
 
-def write_zenoh_config(path: str | Path, ident: Identity, mode: str | None = None, mtls: bool = True) -> Path:
-    """A ``--zenoh-config`` JSON5 file for one process of the team (multicast scouting off)."""
+# what a process does with keys: reads anyone's (subscribe, query, watch presence), receives
+# anything, and speaks (publish, reply, serve, be present) only for itself
+_READ = ["declare_subscriber", "query", "liveliness_query", "declare_liveliness_subscriber"]
+_SPEAK = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]  # received by all, sent by one
+
+
+def speaker_ids(names: Iterable[str]) -> dict[str, int]:
+    """The bus id each certificate name speaks for: ``robotI`` -> I, ``server`` -> the server's;
+    other names (router, observer) speak for no one."""
+    out: dict[str, int] = {}
+    for n in names:
+        if n == "server":
+            out[n] = SERVER_ID
+        elif n.startswith("robot") and n[5:].isdigit():
+            out[n] = int(n[5:])
+    return out
+
+
+def access_control(team: str, names: Iterable[str]) -> dict[str, Any]:
+    """The router's Zenoh ``access_control`` block: default deny; every certificate of the team
+    may subscribe, query and receive on ``kmp/{team}/**``; a certificate whose common name is
+    ``robotI`` (or ``server``) may publish, reply, serve and hold a presence token only on robot
+    I's (the server's) keys. A publication under another id is dropped at the router."""
+    names = list(names)
+    team_keys = [f"{keys.ROOT}/{keys.check_team(team)}/**"]
+    rules: list[dict[str, Any]] = [
+        {"id": "read", "permission": "allow", "flows": ["ingress", "egress"], "messages": _READ,
+         "key_exprs": team_keys},
+        {"id": "deliver", "permission": "allow", "flows": ["egress"], "messages": _SPEAK,
+         "key_exprs": team_keys},
+    ]
+    subjects: list[dict[str, Any]] = [{"id": "team", "cert_common_names": names}]
+    policies: list[dict[str, Any]] = [{"id": "team", "rules": ["read", "deliver"], "subjects": ["team"]}]
+    for name, robot in speaker_ids(names).items():
+        rules.append({"id": f"speak-{name}", "permission": "allow", "flows": ["ingress"], "messages": _SPEAK,
+                      "key_exprs": [keys.robot_all(team, robot), keys.alive_key(team, robot)]})
+        subjects.append({"id": name, "cert_common_names": [name]})
+        policies.append({"id": name, "rules": [f"speak-{name}"], "subjects": [name]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def write_zenoh_config(path: str | Path, ident: Identity, mode: str | None = None, mtls: bool = True,
+                       acl: dict[str, Any] | None = None) -> Path:
+    """A ``--zenoh-config`` JSON5 file for one process of the team (multicast scouting off);
+    ``acl``: an ``access_control`` block (the router's, :func:`access_control`)."""
     from kimera_multi_py.comms.zenoh_bus import tls_settings
 
     conf: dict[str, Any] = {"scouting": {"multicast": {"enabled": False}},
                             "transport": {"link": {"tls": tls_settings(ident.ca, ident.cert, ident.key, mtls)}}}
     if mode is not None:
         conf["mode"] = mode
+    if acl is not None:
+        conf["access_control"] = acl
     path = Path(path)
     path.write_text(json.dumps(conf, indent=2))
     return path
 
 
-__all__ = ["Identity", "identity", "make_certs", "team_names", "write_zenoh_config"]
+def write_team_configs(folder: str | Path, idents: dict[str, Identity], team: str) -> dict[str, Path]:
+    """Each process's ``NAME.json5`` in ``folder``; the router's with :func:`access_control`."""
+    acl = access_control(team, idents)
+    return {name: write_zenoh_config(Path(folder) / f"{name}.json5", ident,
+                                     acl=acl if name == "router" else None)
+            for name, ident in idents.items()}
+
+
+__all__ = ["Identity", "access_control", "identity", "make_certs", "speaker_ids", "team_names",
+           "write_team_configs", "write_zenoh_config"]

@@ -60,7 +60,21 @@ def team_map_figures(world: object, maps: dict[int, SemanticOctree], T: np.ndarr
         equal = np.all(ref_rows[ia] == rows[ib], axis=1).sum() if len(common) else 0
         same[str(r)] = float(equal / max(len(ref_codes), len(codes), 1))
     return {"team_map": {str(r): map_quality(t, T, centers, gt) for r, t in sorted(maps.items())},
-            f"identical_to_robot{first}": same}
+            f"identical_to_robot{first}": same, "agree": len(maps) > 1 and all(v == 1.0 for v in same.values())}
+
+
+def linger_reports(run_dir: Path, robots: list[int]) -> dict[str, object]:
+    """Each robot's ``linger.json`` (team/process.py): whether its team map was whole when it
+    exited, how long it waited, and what it was missing."""
+    out: dict[str, object] = {}
+    for r in robots:
+        path = run_dir / f"robot{r}" / "linger.json"
+        if path.exists():
+            try:
+                out[str(r)] = json.loads(path.read_text())
+            except (OSError, ValueError) as exc:
+                raise DatasetError(f"{path}: {exc}") from None
+    return out
 
 
 def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str, wall_s: float,
@@ -91,6 +105,8 @@ def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str,
     team_maps = _team_maps(run_dir, [o.robot for o in outcomes])
     if team_maps:
         extra["map_consensus"] = team_map_figures(sim.world, team_maps, T)
+    if lingered := linger_reports(run_dir, [o.robot for o in outcomes]):
+        extra["linger"] = lingered
     extra["scene_graph"] = scene_graph_results(sim.world, outcomes, T, run_dir, team_maps or None,
                                                params=config.to_scene_graph_params())
     for r, plan in enumerate(sim.plans):

@@ -38,12 +38,14 @@ from kimera_multi_py.core.ids import MAX_ROBOTS, OBSERVER_ID
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.team.config import CONFIG_NAME, DEFAULT_SCENARIO, KimeraConfig
 from kimera_multi_py.team.link_proxy import LinkProxy
+from kimera_multi_py.team.process import LINGER_MAX
 
 log = logging.getLogger(__name__)
 
 MODES = ("distributed", "centralized")
 LAUNCH_ROBOTS = 3  # team size unless configured
 LAUNCH_SEED = 0
+ROUTER_UP_S = 120.0  # s: the longest the router may take to start on a loaded machine
 
 
 @dataclass
@@ -89,6 +91,7 @@ class LaunchJob:
     router_restarts: list[float] = field(default_factory=list)  # team stream times to SIGKILL + restart the router
     partitions: list[Partition] = field(default_factory=list)  # windows in team stream time (see cut_off)
     config: KimeraConfig = field(default_factory=KimeraConfig.defaults)  # every process's parameters
+    linger_max: float = LINGER_MAX  # each agent's wait, after its final epoch, for a whole team map
 
 
 def launch_job(config: KimeraConfig, out_dir: Path, **options: Any) -> LaunchJob:
@@ -175,10 +178,21 @@ def cut_off(p: Partition) -> frozenset[int]:
 
 def _tls_configs(job: LaunchJob, folder: Path) -> dict[str, Path]:
     """A new team CA and certificates in ``folder``, and each process's ``--zenoh-config`` file."""
-    from kimera_multi_py.team.certs import make_certs, team_names, write_zenoh_config
+    from kimera_multi_py.team.certs import make_certs, team_names, write_team_configs
 
-    idents = make_certs(folder, team_names(job.robots))
-    return {name: write_zenoh_config(folder / f"{name}.json5", ident) for name, ident in idents.items()}
+    return write_team_configs(folder, make_certs(folder, team_names(job.robots)), job.team)
+
+
+async def _router_up(observer: Any, router: subprocess.Popen[bytes], log_path: Path, cap: float = ROUTER_UP_S) -> None:
+    """Until the observer's session is linked to the router (agents connect as clients, which
+    fail at once without a router), or :class:`KimeraMultiError` if it exits or ``cap`` passes."""
+    deadline = time.monotonic() + cap
+    while not list(observer.session.info.routers_zid()):
+        if router.poll() is not None:
+            raise KimeraMultiError(f"the router exited with code {router.returncode}; see {log_path}")
+        if time.monotonic() > deadline:
+            raise KimeraMultiError(f"the router did not come up within {cap:.0f} s; see {log_path}")
+        await asyncio.sleep(0.1)
 
 
 def _cmd(*args: str) -> list[str]:
@@ -220,6 +234,7 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     def agent_args(r: int, resume: bool) -> list[str]:
         args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}",
                 "--out", str(out), "--rate", str(job.rate), "--checkpoint-every", str(job.checkpoint_every),
+                "--linger-max", str(job.linger_max),
                 "--centralized" if job.mode == "centralized" else "--distributed", *config, *conn(f"robot{r}", r)]
         return args + (["--resume"] if resume else [])
 
@@ -234,6 +249,8 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
         await asyncio.sleep(0.5)
         observer = ZenohBus(job.team, OBSERVER_ID, connect=[endpoint],
                             config_file=configs.get("observer"))
+        await _router_up(observer, procs["router"], out / "logs" / "router.log")
+        (out / "logs" / "endpoint").write_text(endpoint + "\n")  # the router is up: where tools connect
         states = observer.subscribe(keys.topic_all(job.team, keys.AGENT_STATE))
         if job.mode == "centralized":
             procs["server"] = start("server", ["server", "--out", str(out), *config, *conn("server")])

@@ -32,6 +32,7 @@ from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.ids import MAX_AGENT_ID, SERVER_ID
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.io.g2o import write_g2o
+from kimera_multi_py.io.outdir import ensure_writable
 from kimera_multi_py.io.sources import KeyframeSource
 from kimera_multi_py.mapping.config import get_submap_map
 from kimera_multi_py.mapping.octree_io import export_team_map
@@ -42,6 +43,8 @@ from kimera_multi_py.team.config import KimeraConfig
 log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "checkpoint.kmc"
+LINGER_NAME = "linger.json"
+LINGER_MAX = 60.0  # s: the longest an agent waits, after its final epoch, for the team to be whole
 
 
 @dataclass
@@ -69,6 +72,7 @@ class AgentJob:
     checkpoint_every: float = 10.0
     resume: bool = False
     config: KimeraConfig = field(default_factory=KimeraConfig.defaults)  # run.mode: distributed unless centralized
+    linger_max: float = LINGER_MAX  # s after the final epoch to wait for a whole team map
 
 
 def run_agent(job: AgentJob) -> dict[str, Any]:
@@ -85,7 +89,7 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     if job.robot < 0 or job.robot > MAX_AGENT_ID:
         raise ConfigError("robot", f"robot id must be in 0..{MAX_AGENT_ID}, got {job.robot}")
     ckpt = checkpoint_path(job.out_dir, job.robot)
-    ckpt.parent.mkdir(parents=True, exist_ok=True)
+    ensure_writable(ckpt.parent)  # an unwritable or full folder fails here, in one line
     extra: dict[str, Any] = {}
     config = job.config
     if config.run.mode == "odometry":
@@ -124,10 +128,11 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     try:
         await node.start()
         # with map consensus, linger a few map periods so the last evidence is relayed
-        await node.run(iter(source), rate=job.rate, on_keyframe=on_keyframe,
-                       linger=2.0 if node.maps is None else 6.0)
+        await node.run(iter(source), rate=job.rate, on_keyframe=on_keyframe, linger=2.0)
+        whole = await until_whole(node, config.run.robots, job.linger_max)
         save_checkpoint(ckpt, agent, _node_state(node, source))
         d = write_outcome(job.out_dir, outcome_of(node), own_graph(agent))
+        (d / LINGER_NAME).write_text(json.dumps(whole, indent=1))
         if node.maps is not None:
             export_team_map(node.maps.team_map, d)
     finally:
@@ -135,6 +140,35 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
         await bus.close()
     return {"robot": job.robot, "keyframes": agent.num_keyframes, "resumed_at": start if job.resume else None,
             "epochs": node.pgo.stats.epochs if node.pgo is not None else 0, "wall_s": time.monotonic() - t0}
+
+
+async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: float = 0.05) -> dict[str, Any]:
+    """After the final epoch, serve the team until this robot's map evidence and pose tables match
+    every team robot's last version summary (``mapshare.consensus.MapConsensus.gaps``) and no
+    epoch runs, or for
+    ``cap`` s. ``robots``: the team's size (default: every robot heard of). Returns what
+    ``linger.json`` records: whether the team was whole, the wait, and what was missing."""
+    maps = node.maps
+    t0 = time.monotonic()
+    if maps is None or maps.mode != "exact":  # no version summaries to compare
+        return {"checked": False, "whole": None, "waited_s": 0.0, "missing": {}}
+
+    def team() -> set[int]:
+        return set(range(robots)) if robots else maps.heard()
+
+    def busy() -> bool:  # an epoch still running (robots that met late run another final one)
+        return node.pgo is not None and node.pgo.busy
+
+    while ((gaps := maps.gaps(team())) or busy()) and time.monotonic() - t0 < cap:
+        await node.drain()
+        await node.tick()
+        await asyncio.sleep(poll)
+    waited = round(time.monotonic() - t0, 2)
+    if gaps:
+        log.warning("robot %d: the team map is not whole after %.0f s (--linger-max): %s", node.robot, waited,
+                    "; ".join(f"robot {r}: {', '.join(g)}" for r, g in gaps.items()), extra={"robot": node.robot})
+    return {"checked": True, "whole": not gaps, "waited_s": waited, "robots": sorted(team()),
+            "missing": {str(r): g for r, g in gaps.items()}}
 
 
 def _node_state(node: AgentNode, source: KeyframeSource) -> dict[str, Any]:
@@ -194,6 +228,9 @@ def run_router(listen: Sequence[str], zenoh_config: str | None = None, stop: asy
 
     from kimera_multi_py.comms.zenoh_bus import zenoh_config as make_config
 
+    # zenoh's own warnings (a refused TLS handshake: "peer sent no certificates", "invalid peer
+    # certificate") go to this process's stderr, the router's log under launch; RUST_LOG overrides
+    zenoh.init_log_from_env_or("warn")
     conf = make_config("router", listen, (), zenoh_config, False)
     with zenoh.open(conf):
         log.info("router listening on %s", ", ".join(listen))

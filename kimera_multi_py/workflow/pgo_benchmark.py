@@ -48,6 +48,10 @@ METHODS = ("block_sor", "gn_pcg")
 # ``kimera-multi pgo`` and benchmarks/pgo.py pass cli.pgo.CLI_METHOD ("gn_pcg"); block SOR
 # stays the library default: it tolerates late joiners (gn_pcg needs the whole team at start)
 DEFAULT_METHOD = "block_sor"
+# the centralised reference "did not converge" when it ends above the distributed cost by more
+# than this (relative): a gap to a failed reference is no figure (INTEL's LM from the odometry)
+REFERENCE_TOL = 1e-4
+NOT_CONVERGED = "reference did not converge"
 
 
 @dataclass
@@ -83,6 +87,16 @@ class PgoRunResult:
     poses: np.ndarray | None = None
     centralized_poses: np.ndarray | None = None
     graph: PoseGraph | None = None
+    reference_converged: bool = True  # False: the reference ended above the distributed cost
+    centralized_init: str = ""  # how the reference was started (centralised.solve_centralized)
+
+    @property
+    def reference(self) -> str:
+        """One line on the reference: ``"converged"`` or :data:`NOT_CONVERGED` with both costs."""
+        if self.reference_converged:
+            return "converged"
+        return (f"{NOT_CONVERGED}: centralised {self.centralized_cost:.6g} > distributed "
+                f"{self.distributed_cost:.6g} (start: {self.centralized_init})")
 
     def to_json(self) -> dict[str, Any]:
         out = {
@@ -94,7 +108,11 @@ class PgoRunResult:
             "bytes_sent": self.bytes_sent, "bytes_by_topic": self.bytes_by_topic,
             "wall_s": self.wall_s, "centralized_wall_s": self.centralized_wall_s,
             "timeouts": self.timeouts, "dropped": self.dropped,
+            "reference": self.reference, "centralized_init": self.centralized_init,
         }
+        if not self.reference_converged:
+            # measured against a failed reference, the gap and the rounds to reach it are false
+            out.update({k: None for k in ("relative_gap", "rounds_to_1e-2", "rounds_to_1e-3")})
         if self.robust and not self.truth_known:
             # plain costs over all edges (outliers included) and the rounds to reach them mean
             # nothing when the outliers are unknown: the robust figures below replace them
@@ -270,7 +288,12 @@ def _score(graph: PoseGraph, central: CentralizedResult, poses: np.ndarray, stat
         robust=robust, outliers=int(graph.outlier.sum()), bytes_by_topic=stats.bytes_by_topic,
         timeouts=stats.timeouts, dropped=stats.dropped, history=history,
         poses=poses, centralized_poses=central.poses, graph=graph, truth_known=truth_known,
+        centralized_init=central.init,
+        # (robust runs compare TLS costs at their own decisions: eval.pgo)
+        reference_converged=robust or ref - cost <= REFERENCE_TOL * max(abs(cost), 1e-300),
     )
+    if not result.reference_converged:
+        log.warning("%s: %s", graph.source, result.reference)
     if robust:
         weights = distributed_weights(graph, agents)
         assert central.weights is not None

@@ -128,3 +128,34 @@ def test_closures_accepted_after_the_final_epoch_get_a_final_epoch_of_their_own(
     accepted[0] = 4  # one more closure, after the final epoch
     assert run() == [True, True] and pgo.final_done
     assert run() == [True, True]
+
+
+def test_a_robot_met_after_the_final_epoch_gets_another() -> None:
+    """A partition that healed after the streams ended: the robot met again was not a member of
+    the final epoch, so the final epoch runs again, with it (and only while it is present)."""
+    from kimera_multi_py.comms.messages.team import AgentState
+    from kimera_multi_py.pgo.team import TeamPgo
+
+    sim = Simulation(load_scenario(TINY), seed=0)
+    agent = Agent(0, None, agent_params(sim.cfg))
+    for kf, _ in zip(sim.keyframes(0), range(6), strict=False):
+        agent.process_keyframe(keyframe_input(kf))
+    pgo = TeamPgo(0, PgoParams(max_rounds=50), ScheduleParams(round_timeout=None),
+                  agent.local_graph, agent.apply_poses, lambda: agent.robot_graph, lambda: 0)
+    for t in range(200):
+        pgo.tick(10.0, float(t), set(), finished=True, force=True)
+    assert [h[2] for h in pgo.history] == [True] and pgo.final_done
+
+    def state(robot: int) -> AgentState:
+        return AgentState(robot=robot, keyframes=10, stamp=40.0, finished=True, epoch=1, complete=True,
+                          closures=0, rounds=0, bytes_sent=0)
+
+    pgo.handle(state(0), alive={0})  # itself, a member of the final epoch: nothing to do
+    assert pgo.final_done
+    pgo.handle(state(2), alive=set())  # heard of, but not present: not waited for
+    assert pgo.final_done
+    pgo.handle(state(2), alive={2})  # met again, its stream ended too
+    assert not pgo.final_done
+    for t in range(200, 400):  # the leader opens another final epoch, with it
+        pgo.tick(50.0, float(t), {2}, finished=True, force=True)
+    assert pgo.history[-1][1] == (0, 2) and pgo.history[-1][2]

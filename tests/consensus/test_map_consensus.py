@@ -259,3 +259,26 @@ def test_a_delta_on_top_of_a_lost_one_waits_until_the_lost_cells_are_resent() ->
     run(MapExchange(nodes), 4.0, 6)
     assert_exact(maps, nodes)
     assert b.ignored["evidence_gap"] == 1
+
+
+def test_gaps_say_what_stands_between_a_robot_and_a_whole_team_map() -> None:
+    """``MapConsensus.gaps``: what an agent checks before it exits (team/process.py). Empty
+    exactly when every robot's summary matches what the robot holds."""
+    maps, nodes = team(3)
+    assert nodes[0].gaps({0, 1, 2}) == {1: {"summary": "none received"}, 2: {"summary": "none received"}}
+    split = {0: {1}, 1: {0}, 2: set()}
+    net = MapExchange(nodes, links=lambda now: split if now < 10 else full_links([0, 1, 2]))
+    t = run(net, 0.0, 5)
+    assert nodes[0].gaps({1}) == {}  # robots 0 and 1 hold the same, robot 2 is cut off
+    assert nodes[0].gaps({2}) == {2: {"summary": "none received"}}
+    add_scan(maps[1], 0, np.array([0.2, -0.3, 1.0]), seed=57)  # robot 1's submap 0 changes
+    nodes[1].step(t)  # robot 1 takes it in (what it sends is lost): ahead of robot 0's summary
+    assert nodes[1].gaps({0}) == {0: {"submaps_ahead": [[1, 0]]}}
+    assert nodes[0].gaps({1}) == {}  # robot 0 cannot know yet: robot 1's last summary is older
+    run(net, max(t + 1, 10.0), 12)  # healed; the periodic summaries recover the lost messages
+    assert all(node.gaps({0, 1, 2}) == {} for node in nodes.values())
+    assert_exact(maps, nodes)
+    nodes[2].set_frame(2)  # a robot in another frame holds other maps, whatever its versions
+    nodes[2].step(100.0)
+    nodes[0]._on_versions(nodes[2]._versions())
+    assert nodes[0].gaps({2})[2]["frame"] == {"mine": 0, "theirs": 2}

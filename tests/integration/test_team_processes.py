@@ -59,6 +59,10 @@ def test_launch_runs_three_agent_processes_to_a_team_estimate(clean, odometry_at
     assert res["pgo_runs"] >= 2 and res["transport"] == "zenoh-processes"
     # one team frame, better than dead reckoning even when that is anchored at the true starts
     assert res["team"]["ate_rmse_m"] < odometry_ate
+    # every process waited until its team map was whole, and the team maps are the same map
+    assert {r: rep["whole"] for r, rep in res["linger"].items()} == {"0": True, "1": True, "2": True}
+    assert res["map_consensus"]["identical_to_robot0"] == {"0": 1.0, "1": 1.0, "2": 1.0}
+    assert res["map_consensus"]["agree"] is True
     for r in range(3):
         d = out / f"robot{r}"
         for name in ("trajectory.tum", "map.bt", "map.ply", "objects.json", "graph.g2o", "traffic.json"):
@@ -168,3 +172,19 @@ def test_a_robot_joining_late_is_aligned_into_the_team(tmp_path, odometry_ate):
              if c["weight"] is not None and c["weight"] >= 0.5}
     assert 2 in peers
     assert res["team"]["ate_rmse_m"] < odometry_ate
+
+
+@pytest.mark.slow
+def test_an_agent_whose_team_never_comes_says_what_it_is_missing(tmp_path):
+    """A team of two where robot 1 never starts: robot 0 waits ``--linger-max`` after its final
+    epoch, then exits and records that it never had robot 1's version summary."""
+    config = tmp_path / "team.yaml"
+    config.write_text("run:\n  robots: 2\n")
+    port = free_ports(1)[0]
+    res = cli("agent", "--robot", "0", "--source", f"sim:{FAULTS}:0", "--out", str(tmp_path / "run"),
+              "--listen", f"tcp/127.0.0.1:{port}", "--linger-max", "1", "--config", str(config))
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    linger = json.loads((tmp_path / "run" / "robot0" / "linger.json").read_text())
+    assert linger["checked"] and linger["whole"] is False and linger["robots"] == [0, 1]
+    assert linger["missing"] == {"1": {"summary": "none received"}}
+    assert "not whole" in res.stderr and "robot 1: summary" in res.stderr

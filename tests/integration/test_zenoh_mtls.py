@@ -1,7 +1,8 @@
 """Mutual TLS between ZenohBus sessions: both ends present a certificate of the team CA.
 
 A process that trusts the team CA but presents no certificate, or one signed by another CA,
-cannot join: it sees no peer, receives nothing, and the team does not see it.
+cannot join: refused at the handshake, as the router's log shows, it receives nothing
+(test_tls_refusal.py, and test_team_tls_strangers.py against a launched team).
 """
 
 from __future__ import annotations
@@ -10,8 +11,6 @@ from pathlib import Path
 
 import pytest
 
-from kimera_multi_py.comms import keys
-from kimera_multi_py.comms.messages.team import Heartbeat
 from kimera_multi_py.comms.zenoh_bus import Tls, ZenohBus, tls_settings
 from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.team.certs import make_certs
@@ -33,10 +32,8 @@ def test_tls_settings_name_zenohs_keys_and_refuse_half_identities(tmp_path: Path
         Tls(tmp_path / "nope.pem", tmp_path / "a.pem", tmp_path / "a.key").settings()
 
 
-async def test_mutual_tls_admits_team_certificates_only(tmp_path: Path, port: int, wait_until,
-                                                        heartbeat_link) -> None:
+async def test_mutual_tls_admits_team_certificates(tmp_path: Path, port: int, heartbeat_link) -> None:
     team = make_certs(tmp_path / "team", ["robot0", "robot1"])
-    rogue = make_certs(tmp_path / "rogue", ["robot2"])
     endpoint = f"tls/localhost:{port}"
 
     def tls(ident, **kw) -> Tls:
@@ -45,23 +42,7 @@ async def test_mutual_tls_admits_team_certificates_only(tmp_path: Path, port: in
     a = ZenohBus(TEAM, 0, listen=[endpoint], tls=tls(team["robot0"]))
     b = ZenohBus(TEAM, 1, connect=[endpoint], tls=tls(team["robot1"]))
     async with a, b:
-        sub = await heartbeat_link(a, b, timeout=10)
-        # strangers that trust the team CA: one presents no certificate, one a rogue CA's
-        no_cert = Tls(team["robot0"].ca, mtls=False)
-        rogue_cert = Tls(team["robot0"].ca, rogue["robot2"].cert, rogue["robot2"].key)
-        for robot, stranger_tls in ((2, no_cert), (3, rogue_cert)):
-            c = ZenohBus(TEAM, robot, connect=[endpoint], tls=stranger_tls)
-            async with c:
-                await c.announce()
-                sub_c = c.subscribe(keys.topic_all(TEAM, keys.HEARTBEAT))
-                with pytest.raises(TimeoutError):
-                    await a.wait_for_peers({robot}, timeout=2)
-                await a.publish(a.key(keys.HEARTBEAT), Heartbeat(robot=0, keyframes=robot))
-                assert (await sub.recv(timeout=5)).keyframes == robot  # the team still talks
-                assert sub_c.pending() == 0
-                assert c.peers() == frozenset()
-                assert list(c.session.info.peers_zid()) == []
-                assert list(c.session.info.routers_zid()) == []
+        await heartbeat_link(a, b, timeout=10)
         # a member of the team joins over the same endpoint
         d = ZenohBus(TEAM, 4, connect=[endpoint], tls=tls(team["robot1"]))
         async with d:
