@@ -80,7 +80,7 @@ class BagConfig(StrictModel):
     """Seconds: depth and semantic images pair within it; poses are not extrapolated further."""
     noise: NoiseModel = Field(default_factory=NoiseModel)
     ground_truth: str | None = "/ground_truth"
-    """geometry_msgs/PoseStamped or nav_msgs/Odometry of the true T_world_sensor, if the bag has it."""
+    """geometry_msgs/PoseStamped or nav_msgs/Odometry of the true T_world_base, if the bag has it."""
     origin: dict[str, str | int] | None = None
     """Written by `kimera-multi record`: the scenario and seed the bag was simulated from."""
 

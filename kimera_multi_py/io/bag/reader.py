@@ -16,7 +16,8 @@ the vocabulary is dropped and counted in :attr:`BagSource.dropped`.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+import re
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -63,6 +64,20 @@ def open_bag(path: Path) -> AnyReader:
     return reader
 
 
+def namespaced_robots(topics: Iterable[str]) -> list[int]:
+    """The robot ids ``r`` of a bag's ``/robot{r}/...`` topics."""
+    return sorted({int(m.group(1)) for t in topics if (m := re.match(r"^/robot(\d+)/", t))})
+
+
+def bag_robots(path: str | Path) -> list[int]:
+    """The robots of a team's bag (its ``/robot{r}`` namespaces); ``[0]`` for a bag of one robot."""
+    reader = open_bag(Path(path))
+    try:
+        return namespaced_robots(reader.topics) or [0]
+    finally:
+        reader.close()
+
+
 @dataclass
 class _Plan:
     """The keyframes a bag yields: per keyframe the scan's message ordinals, stamp and pose."""
@@ -71,6 +86,7 @@ class _Plan:
     labels: np.ndarray  # ordinals of the matched semantic images (depth input only)
     stamps: np.ndarray
     poses: np.ndarray  # T_odom_keyframe
+    T_base_kf: np.ndarray  # the keyframe frame in the base frame (extrinsics, optical turn)
 
 
 class BagSource:
@@ -147,12 +163,43 @@ class BagSource:
     def close(self) -> None:
         self._reader.close()
 
+    def ground_truth(self) -> np.ndarray | None:
+        """The true T_world_keyframe at every keyframe, from the bag's ``ground_truth`` topic (poses
+        of the base frame, PoseStamped or Odometry); None when the bag has no such topic."""
+        cfg = self.cfg
+        if cfg.ground_truth is None:
+            return None
+        reader = open_bag(self.path)
+        try:
+            topic = cfg.topic(cfg.ground_truth, self.namespace)
+            if topic not in reader.topics:
+                return None
+            msgtype = reader.topics[topic].msgtype
+            if msgtype not in (POSE, ODOM):
+                raise BagError(str(self.path), topic, f"is {msgtype}, expected {POSE} or {ODOM}")
+            rows = []
+            conns = [c for c in reader.connections if c.topic == topic]
+            for conn, _, data in reader.messages(connections=conns):
+                msg: Any = reader.deserialize(data, conn.msgtype)
+                pose = msg.pose.pose if msgtype == ODOM else msg.pose
+                rows.append((_stamp(msg), msg_pose(pose.position, pose.orientation)))
+        finally:
+            reader.close()
+        try:
+            truth = PoseSeries(np.array([t for t, _ in rows]), np.array([p for _, p in rows]).reshape(-1, 4, 4))
+            return truth.at(self.stamps, cfg.sync_tolerance) @ self._plan.T_base_kf
+        except TfGap as exc:
+            raise BagError(str(self.path), topic, f"ground truth: {exc}") from None
+
     # ------------------------------------------------------------------ topics
     def _namespace(self) -> str:
+        """The config's namespace; else ``/robot{r}`` if the bag has it, else the bag's only robot's, else none."""
         if self.cfg.namespace is not None:
             return self.cfg.namespace.format(robot=self.robot).rstrip("/")
-        own = f"/robot{self.robot}"
-        return own if any(t.startswith(own + "/") for t in self._reader.topics) else ""
+        robots = namespaced_robots(self._reader.topics)
+        if self.robot in robots:
+            return f"/robot{self.robot}"
+        return f"/robot{robots[0]}" if len(robots) == 1 else ""
 
     def _topic(self, name: str, msgtype: str | tuple[str, ...], global_ok: bool = False) -> str:
         """The namespaced topic ``name``, checked to exist with one of the types ``msgtype``."""
@@ -210,7 +257,8 @@ class BagSource:
         if not len(keep):
             raise BagError(str(self.path), scan_topic, f"robot {self.robot} yields no keyframe")
         idx = order[keep]
-        return _Plan(idx, labels[idx] if labels is not None else idx, stamps[idx], poses[keep])
+        return _Plan(idx, labels[idx] if labels is not None else idx, stamps[idx], poses[keep],
+                     T_base_sensor @ T_sensor_kf)
 
     def _select(self, poses: np.ndarray) -> np.ndarray:
         """Keyframes by distance and angle moved since the last one (the first scan always)."""

@@ -4,7 +4,7 @@ Robot ``r``'s topics are under ``/robot{r}``: the scan (``points``: PointCloud2 
 y, z and a ``class`` field; or with ``camera``: ``depth/image`` 32FC1 in metres with +inf for
 misses, ``semantic/image`` and ``camera_info``), ``odom`` (nav_msgs/Odometry, T_odom_base),
 ``tf`` (odom -> base_link), ``tf_static`` (base_link -> the sensor frame) and, when known,
-``ground_truth`` (geometry_msgs/PoseStamped, T_world_sensor). The bag's config, next to it as
+``ground_truth`` (geometry_msgs/PoseStamped, T_world_base). The bag's config, next to it as
 ``BAG.toml``, names all of them, so ``--source bag:BAG`` reads it back as it was written.
 """
 
@@ -87,7 +87,8 @@ class BagWriter:
         self._write(f"{ns}/odom", m.ODOM, m.odometry(kf.stamp, "odom", "base_link", T_base), kf.stamp)
         self._write(f"{ns}/tf", m.TF, m.tf_message([m.transform(kf.stamp, "odom", "base_link", T_base)]), kf.stamp)
         if true_pose is not None:
-            self._write(f"{ns}/ground_truth", m.POSE, m.pose_stamped(kf.stamp, "world", true_pose), kf.stamp)
+            true_base = true_pose @ np.linalg.inv(self.extrinsic)
+            self._write(f"{ns}/ground_truth", m.POSE, m.pose_stamped(kf.stamp, "world", true_base), kf.stamp)
         if self.camera is None:
             self._add_cloud(ns, kf)
         else:
