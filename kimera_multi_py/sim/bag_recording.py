@@ -17,7 +17,8 @@ from kimera_multi_py.sim.source import keyframe_input
 
 def write_bag(out: str | Path, cfg: ScenarioConfig, fmt: Format = "ros2", robots: int | None = None,
               seed: int | None = None, camera: bool = False, label_encoding: str = "mono16",
-              extrinsic: np.ndarray | None = None, scenario_path: str | Path | None = None) -> Path:
+              extrinsic: np.ndarray | None = None, scenario_path: str | Path | None = None,
+              float64: bool = False) -> Path:
     """Simulate a team for ``seed`` and write it into one bag (robot r under ``/robot{r}``); return
     the bag's config file. ``camera``: depth + semantic images (a pinhole sensor's rays are its pixels)."""
     if robots is not None and robots != len(cfg.robots):
@@ -27,7 +28,7 @@ def write_bag(out: str | Path, cfg: ScenarioConfig, fmt: Format = "ros2", robots
         raise ConfigError("camera", f"depth images need a pinhole sensor; the scenario's is {s.model!r}")
     cam = (camera_model(s.rows, s.cols, s.h_fov_deg, s.v_fov_deg), s.rows, s.cols) if camera else None
     sim = Simulation(cfg, seed)
-    writer = BagWriter(out, fmt, camera=cam, label_encoding=label_encoding, extrinsic=extrinsic)
+    writer = BagWriter(out, fmt, camera=cam, label_encoding=label_encoding, extrinsic=extrinsic, float64=float64)
     odom: dict[int, np.ndarray] = {}
     try:
         for kf in sim.stream():

@@ -50,9 +50,11 @@ def xyz_class(cloud: np.ndarray, class_field: str) -> tuple[np.ndarray, np.ndarr
 
 
 def cloud_payload(points: np.ndarray, classes: np.ndarray, class_field: str = "class",
-                  class_type: str = "u2") -> tuple[list[tuple[str, int, int]], int, bytes]:
-    """``(fields as (name, offset, datatype), point_step, data)`` of float32 x, y, z and a class field."""
-    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), (class_field, "<" + class_type)])
+                  class_type: str = "u2", xyz_type: str = "f4") -> tuple[list[tuple[str, int, int]], int, bytes]:
+    """``(fields as (name, offset, datatype), point_step, data)`` of x, y, z (float32, or float64
+    with ``xyz_type`` ``f8``) and a class field."""
+    f = "<" + xyz_type
+    dtype = np.dtype([("x", f), ("y", f), ("z", f), (class_field, "<" + class_type)])
     arr = np.empty(len(points), dtype=dtype)
     arr["x"], arr["y"], arr["z"] = points[:, 0], points[:, 1], points[:, 2]
     arr[class_field] = classes

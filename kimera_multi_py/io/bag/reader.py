@@ -51,7 +51,8 @@ MOTION_EPS = 1e-6  # metres and radians: below this a whole stream has not moved
 
 
 def _stamp(msg: Any) -> float:
-    return float(msg.header.stamp.sec) + float(msg.header.stamp.nanosec) * 1e-9
+    """Seconds of a header stamp: its nanoseconds, rounded once."""
+    return (int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)) / 1e9
 
 
 def open_bag(path: Path) -> AnyReader:

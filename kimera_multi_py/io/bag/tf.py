@@ -87,7 +87,7 @@ class TfTree:
                 self.static[edge] = T
             else:
                 stamps, poses = self._dynamic[edge]
-                stamps.append(tr.header.stamp.sec + tr.header.stamp.nanosec * 1e-9)
+                stamps.append((int(tr.header.stamp.sec) * 1_000_000_000 + int(tr.header.stamp.nanosec)) / 1e9)
                 poses.append(T)
         self._series.clear()
 

@@ -37,11 +37,12 @@ class BagWriter:
     """Writes robots' keyframes into one bag (``fmt`` ``ros1``: a ``.bag`` file; ``ros2``: a folder).
 
     ``camera`` = ``(K, rows, cols)`` writes depth + semantic images (the scan's rays must be the
-    camera's pixels, row-major); ``extrinsic`` is T_base_sensor (sensor frame: x forward, z up).
+    camera's pixels, row-major); ``extrinsic`` is T_base_sensor (sensor frame: x forward, z up);
+    ``float64``: the cloud's x, y, z as FLOAT64 fields (lossless; default FLOAT32).
     """
 
     def __init__(self, path: str | Path, fmt: Format = "ros2", *, camera: tuple[np.ndarray, int, int] | None = None,
-                 label_encoding: str = "mono16", extrinsic: np.ndarray | None = None) -> None:
+                 label_encoding: str = "mono16", extrinsic: np.ndarray | None = None, float64: bool = False) -> None:
         self.path = Path(path)
         if fmt not in ("ros1", "ros2"):
             raise ConfigError("format", f"expected ros1 or ros2, got {fmt!r}")
@@ -54,6 +55,7 @@ class BagWriter:
         self.fmt = fmt
         self.camera = camera
         self.label_encoding = label_encoding
+        self.xyz_type = "f8" if float64 else "f4"
         self.extrinsic = np.eye(4) if extrinsic is None else np.asarray(extrinsic, dtype=np.float64)
         self.msgs = Messages(fmt)
         self.writer = self.msgs.writer(self.path)
@@ -95,7 +97,7 @@ class BagWriter:
             self._add_images(ns, kf)
 
     def _add_cloud(self, ns: str, kf: KeyframeInput) -> None:
-        fields, step, data = cloud_payload(kf.points, np.where(kf.hit, kf.labels, 0))
+        fields, step, data = cloud_payload(kf.points, np.where(kf.hit, kf.labels, 0), xyz_type=self.xyz_type)
         msg = self.msgs.cloud(kf.stamp, self._sensor_frame(), fields, step, data, len(kf.points))
         self._write(f"{ns}/points", self.msgs.CLOUD, msg, kf.stamp)
 
