@@ -30,17 +30,10 @@ from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.geometry import inverse
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.io.bag.config import BagConfig, config_for, read_colour_table
-from kimera_multi_py.io.bag.depth import (
-    DEPTH_ENCODINGS,
-    LABEL_ENCODINGS,
-    R_FLU_OPTICAL,
-    back_project,
-    camera_matrix,
-    depth_metres,
-    label_ids,
-)
+from kimera_multi_py.io.bag.depth import DEPTH_ENCODINGS, LABEL_ENCODINGS, R_FLU_OPTICAL, camera_matrix
 from kimera_multi_py.io.bag.errors import BagError
-from kimera_multi_py.io.bag.pointcloud import CLASS_TYPES, cloud_dtype, read_cloud, xyz_class
+from kimera_multi_py.io.bag.pointcloud import CLASS_TYPES, cloud_dtype
+from kimera_multi_py.io.bag.scan import labelled_rays
 from kimera_multi_py.io.bag.tf import PoseSeries, TfGap, TfTree, msg_pose, pose7
 
 log = logging.getLogger(__name__)
@@ -434,34 +427,12 @@ class BagSource:
         return np.eye(4) if k == 0 else inverse(self._plan.poses[k - 1]) @ self._plan.poses[k]
 
     def _convert(self, k: int, scan: Any, labels: Any) -> KeyframeInput:
-        cfg = self.cfg
         try:
-            if cfg.camera:
-                depth = depth_metres(scan)
-                ids = label_ids(labels, *(self._colours or (None, None)))
-                if ids.shape != depth.shape:
-                    raise ValueError(f"semantic image {ids.shape} and depth image {depth.shape} differ in size")
-                pts, rng, keep = back_project(depth, self._K, cfg.max_range)
-                ids = ids.ravel()[keep]
-                pts = pts @ R_FLU_OPTICAL.T
-            else:
-                xyz, ids = xyz_class(read_cloud(scan), cfg.class_field)
-                finite = np.all(np.isfinite(xyz), axis=1)
-                self.dropped["invalid"] += int((~finite).sum())
-                xyz, ids = xyz[finite], ids[finite]
-                rng = np.linalg.norm(xyz, axis=1)
-                pts = xyz @ R_FLU_OPTICAL.T if cfg.is_optical else xyz
+            pts, ids, hit = labelled_rays(self.cfg, scan, labels, getattr(self, "_K", None), self._colours,
+                                          self.dropped)
         except (ValueError, KeyError, TypeError) as exc:
+            cfg = self.cfg
             topic = cfg.topic(cfg.depth if cfg.camera else cfg.points, self.namespace)  # type: ignore[arg-type]
             raise BagError(str(self.path), topic, f"keyframe {k}: unreadable scan: {exc}") from None
-        lut = cfg.class_lut(int(max(ids.max(initial=0), 0)) + 1)
-        mapped = np.where(ids >= 0, lut[np.clip(ids, 0, len(lut) - 1)], 0)
-        hit = mapped > 0
-        # a return without a class at (or beyond) max_range is free space up to it
-        miss = ~hit & (rng >= cfg.max_range * (1 - 1e-5))
-        far = miss & np.isfinite(rng) & (rng > 0)
-        pts[far] *= (cfg.max_range / rng[far])[:, None]
-        keep = hit | miss
-        self.dropped["unmapped"] += int((~keep).sum())
-        return KeyframeInput(k, float(self._plan.stamps[k]), self._odometry(k), pts[keep],
-                             mapped[keep].astype(np.int16), hit[keep], float(cfg.max_range))
+        return KeyframeInput(k, float(self._plan.stamps[k]), self._odometry(k), pts, ids, hit,
+                             float(self.cfg.max_range))

@@ -110,3 +110,10 @@ def test_keyframes_by_distance_and_angle(tiny_bags):
     for k in range(1, len(kfs)):
         np.testing.assert_allclose(kfs[k].odometry, np.linalg.inv(poses[chosen[k - 1]]) @ poses[chosen[k]],
                                    atol=1e-9)
+
+
+def test_float64_clouds_are_lossless(tmp_path):
+    cfg = load_scenario(TINY)
+    write_bag(tmp_path / "f64", cfg, "ros2", float64=True)
+    for a, b in zip(BagSource(tmp_path / "f64", 0), SimSource(cfg, None, 0), strict=True):
+        np.testing.assert_array_equal(a.points, b.points)
