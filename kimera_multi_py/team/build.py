@@ -62,17 +62,15 @@ def params_for(source: KeyframeSource, config: KimeraConfig | None = None) -> Ag
     return noise_params(rot, trans, dist, config)
 
 
-def source_from_spec(spec: str, robot: int, start: int = 0, resume: dict[str, Any] | None = None,
-                     bag_config: str | Path | None = None) -> KeyframeSource:
+def source_from_spec(spec: str, robot: int, start: int = 0, resume: dict[str, Any] | None = None) -> KeyframeSource:
     """``sim:SCENARIO[:SEED]`` (the scenario's seed by default), ``bag:PATH[:CONFIG]`` (a ROS 1 or
-    ROS 2 bag; its config: CONFIG, else ``bag_config``, else the bag's own ``PATH.toml``;
-    docs/bags.md) or a recording folder.
+    ROS 2 bag; its config: CONFIG, else the bag's own ``PATH.toml``; docs/bags.md) or a recording folder.
 
     ``resume`` is a source's :meth:`~KeyframeSource.state` saved when ``start`` was next.
     """
     if spec.startswith("bag:"):
         bag, config = bag_spec(spec)
-        return BagSource(bag, robot, start, resume, config or bag_config)
+        return BagSource(bag, robot, start, resume, config)
     if spec.startswith("sim:"):
         rest = spec[4:]
         path, _, tail = rest.rpartition(":")

@@ -175,8 +175,14 @@ class ReplayRunner(SimRunner):
         self.team, self.name = team, name
 
     def _evaluate(self, wall_s: float) -> Results:
-        if self.team.world is not None and self.team.has_truth:
-            return super()._evaluate(wall_s)
+        results = super()._evaluate(wall_s) if self.team.world is not None and self.team.has_truth \
+            else self._scored(wall_s)
+        results.extra["dropped_points"] = {str(r): dict(s.dropped) for r, s in enumerate(self.team.sources)
+                                           if isinstance(s, BagSource)}
+        return results
+
+    def _scored(self, wall_s: float) -> Results:
+        """What the ground truth allows without the world: trajectories and closures, or nothing."""
         truth = [np.array(tr.true) for tr in self.tracks]
         est = [o.poses for o in self.outcomes] if self.outcomes else [np.array(tr.est) for tr in self.tracks]
         extra: dict[str, Any] = {"rays": self.rays, "ground_truth": self.team.has_truth}

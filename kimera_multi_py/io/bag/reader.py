@@ -146,6 +146,11 @@ class BagSource:
 
     def __next__(self) -> KeyframeInput:
         if self._next >= self.num_keyframes:
+            if self._messages is not None and any(self.dropped.values()):
+                log.warning("%s: robot %d: dropped %d points of unmapped classes and %d non-finite points",
+                            self.path, self.robot, self.dropped["unmapped"], self.dropped["invalid"],
+                            extra={"robot": self.robot})
+                self._messages = None
             self.close()
             raise StopIteration
         if self._messages is None:

@@ -77,6 +77,7 @@ def test_replay_without_ground_truth_runs_and_says_so(tiny_bags, tmp_path):
     res = replay([f"bag:{tiny_bags['cloud']}"], mode="odometry", out_dir=tmp_path / "run", bag_config=cfg)
     out = res.to_dict()
     assert out["ground_truth"] is False and np.isnan(out["team"]["ate_rmse_m"])
+    assert out["dropped_points"] == {"0": {"unmapped": 0, "invalid": 0}, "1": {"unmapped": 0, "invalid": 0}}
     assert out["team"]["keyframes"] == 234 and out["scenario"] == "cloud"
     assert not (tmp_path / "run" / "robot0_gt.tum").exists() and (tmp_path / "run" / "robot0_est.tum").exists()
 
