@@ -245,7 +245,8 @@ class BagSource:
             base = motion.at(stamps[posed], cfg.sync_tolerance) if isinstance(motion, PoseSeries) else \
                 tree.lookup(cfg.odom_frame, cfg.base_frame, stamps[posed], cfg.sync_tolerance)
         except TfGap as exc:
-            raise BagError(str(self.path), motion_topic, f"TF chain with a gap: {exc}") from None
+            what = "TF chain with a gap" if cfg.motion == "tf" else "no odometry for the scans"
+            raise BagError(str(self.path), motion_topic, f"{what}: {exc}") from None
         unposed = int((~posed & np.isfinite(stamps)).sum())
         if unposed:
             log.warning("%s: robot %d: %d of %d scans lie outside the motion's time span and are skipped",

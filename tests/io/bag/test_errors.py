@@ -124,3 +124,12 @@ def test_a_bag_that_yields_no_keyframe_says_so(tmp_path):
 def test_not_a_bag(tmp_path):
     (tmp_path / "x.bag").write_bytes(b"not a bag")
     assert "not a readable ROS 1 or ROS 2 bag" in _error(tmp_path / "x.bag")
+
+
+def test_scans_outside_the_odometry_span(tmp_path):
+    bag = _moving_bag(tmp_path / "b", n=3, odom=False)
+    for k in range(3):
+        t = 100.0 + k
+        bag.put("/odom", bag.m.ODOM, bag.m.odometry(t, "odom", "base_link", pose_x(0.5 * k)), t)
+    text = _error(bag.close())
+    assert "/odom: no odometry for the scans: no scan stamp (1.000..2.000 s) within the motion's time span" in text
