@@ -39,7 +39,8 @@ from kimera_multi_py.io.bag.tf import PoseSeries, TfGap, TfTree, msg_pose, pose7
 log = logging.getLogger(__name__)
 
 CLOUD, IMAGE, INFO = "sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo"
-ODOM, TFM, POSE = "nav_msgs/msg/Odometry", "tf2_msgs/msg/TFMessage", "geometry_msgs/msg/PoseStamped"
+ODOM, POSE = "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped"
+TFM = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")  # ROS 1's older tf has the same layout
 MOTION_EPS = 1e-6  # metres and radians: below this a whole stream has not moved
 
 
@@ -283,8 +284,9 @@ class BagSource:
             topic = self.cfg.topic(name, self.namespace)
             topic = topic if topic in self._reader.topics else name
             if topic in self._reader.topics:
-                if self._reader.topics[topic].msgtype != TFM:
-                    raise BagError(str(self.path), topic, f"is {self._reader.topics[topic].msgtype}, expected {TFM}")
+                if self._reader.topics[topic].msgtype not in TFM:
+                    raise BagError(str(self.path), topic, f"is {self._reader.topics[topic].msgtype}, "
+                                                          f"expected {TFM[0]}")
                 for _, msg in self._read(topic):
                     tree.add(msg, static)
         return tree

@@ -133,3 +133,8 @@ def test_scans_outside_the_odometry_span(tmp_path):
         bag.put("/odom", bag.m.ODOM, bag.m.odometry(t, "odom", "base_link", pose_x(0.5 * k)), t)
     text = _error(bag.close())
     assert "/odom: no odometry for the scans: no scan stamp (1.000..2.000 s) within the motion's time span" in text
+
+
+def test_a_topic_of_another_type(tmp_path):
+    text = _error(_moving_bag(tmp_path / "b").close(), BagConfig(points="/odom"))
+    assert "/odom: is nav_msgs/msg/Odometry, expected sensor_msgs/msg/PointCloud2" in text
