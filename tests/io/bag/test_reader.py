@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.core.semantics import CLASS_COLORS, CLASS_IDS, CLASS_NAMES
-from kimera_multi_py.io.bag.config import load_bag_config
+from kimera_multi_py.io.bag.config import BagConfig, load_bag_config
 from kimera_multi_py.io.bag.reader import BagSource, bag_robots
 from kimera_multi_py.sim.bag_recording import write_bag
 from kimera_multi_py.sim.scenario import load_scenario
@@ -117,3 +117,34 @@ def test_float64_clouds_are_lossless(tmp_path):
     write_bag(tmp_path / "f64", cfg, "ros2", float64=True)
     for a, b in zip(BagSource(tmp_path / "f64", 0), SimSource(cfg, None, 0), strict=True):
         np.testing.assert_array_equal(a.points, b.points)
+
+
+def test_16uc1_depth_back_projects_in_millimetres(tmp_path):
+    """A 16UC1 depth image (mm) and mono8 labels 4 ms apart: pixels back-project with K into the
+    body convention; no reading (0) and unlabelled near returns are dropped, unlabelled far ones are misses."""
+    from tests.io.bag.conftest import HandBag, pose_x
+
+    bag = HandBag(tmp_path / "d")
+    m = bag.m
+    K = np.array([[50.0, 0.0, 2.0], [0.0, 40.0, 1.0], [0.0, 0.0, 1.0]])
+    depth = np.array([[2000, 0, 1500, 1000, 9000], [2500, 3000, 500, 700, 800], [1200, 1300, 1400, 1500, 1600]],
+                     dtype=np.uint16)
+    labels = np.array([[1, 5, 2, 0, 0], [3, 3, 4, 5, 6], [1, 1, 1, 1, 1]], dtype=np.uint8)
+    for k in range(3):
+        t = 1.0 + k
+        bag.put("/odom", m.ODOM, m.odometry(t, "odom", "base_link", pose_x(0.6 * k)), t)
+        bag.put("/depth", m.IMAGE, m.image(t, "cam", "16UC1", depth), t)
+        bag.put("/labels", m.IMAGE, m.image(t + 0.004, "cam", "mono8", labels), t + 0.004)
+        bag.put("/camera_info", m.INFO, m.camera_info(t, "cam", K, 3, 5), t)
+    bag.close()
+    cfg = BagConfig(depth="/depth", labels="/labels", extrinsic=[0, 0, 0, 0, 0, 0, 1], max_range=8.0)
+    src = BagSource(tmp_path / "d", 0, config=cfg)
+    kf = next(src)
+    # pixel (v=0, u=0): z = 2 m; optical x = (0 - 2) / 50 * 2, y = (0 - 1) / 40 * 2
+    np.testing.assert_allclose(kf.points[0], [2.0, 0.08, 0.05])
+    assert kf.labels[0] == 1 and kf.hit[0]
+    # kept: every pixel but the 0 mm one (v=0, u=1) and the unlabelled 1 m one (v=0, u=3)
+    assert len(kf.points) == 13 and src.dropped["unmapped"] == 1
+    miss = ~kf.hit
+    assert miss.sum() == 1 and np.linalg.norm(kf.points[miss][0]) == pytest.approx(8.0)  # the 9 m one
+    assert src.num_keyframes == 3
