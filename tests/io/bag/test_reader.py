@@ -13,7 +13,7 @@ from kimera_multi_py.sim.scenario import load_scenario
 from kimera_multi_py.sim.simulation import Simulation
 from kimera_multi_py.sim.source import SimSource
 from kimera_multi_py.team.build import source_from_spec
-from tests.io.bag.conftest import TINY
+from tests.io.bag.conftest import TINY, HandBag, pose_x
 
 FLOAT32 = 8.0 * 2.0**-23 * 2  # float32 rounding of a coordinate within the 8 m range
 
@@ -122,8 +122,6 @@ def test_float64_clouds_are_lossless(tmp_path):
 def test_16uc1_depth_back_projects_in_millimetres(tmp_path):
     """A 16UC1 depth image (mm) and mono8 labels 4 ms apart: pixels back-project with K into the
     body convention; no reading (0) and unlabelled near returns are dropped, unlabelled far ones are misses."""
-    from tests.io.bag.conftest import HandBag, pose_x
-
     bag = HandBag(tmp_path / "d")
     m = bag.m
     K = np.array([[50.0, 0.0, 2.0], [0.0, 40.0, 1.0], [0.0, 0.0, 1.0]])
