@@ -69,7 +69,7 @@ class RecordedTeam:
                  truth: Sequence[np.ndarray | None], seed: int = 0, world: Any = None) -> None:
         self.sources, self.truth, self.seed, self.world = list(sources), list(truth), seed, world
         self.origin = min((float(s[0]) for s in stamps if len(s)), default=0.0)
-        self._end = max((float(s[-1]) for s in stamps if len(s)), default=0.0) - self.origin
+        self._end = 0.0  # the last stamp streamed
 
     @property
     def num_robots(self) -> int:
@@ -92,6 +92,7 @@ class RecordedTeam:
         for kf in self.sources[robot]:
             scan = _scan(kf)
             pose = truth[kf.index] if truth is not None else np.eye(4)
+            self._end = max(self._end, kf.stamp - self.origin)
             yield Keyframe(robot, kf.index, kf.stamp - self.origin, kf.odometry, scan, pose, scan)
 
     def stream(self) -> Iterator[Keyframe]:
@@ -177,8 +178,9 @@ class ReplayRunner(SimRunner):
     def _evaluate(self, wall_s: float) -> Results:
         results = super()._evaluate(wall_s) if self.team.world is not None and self.team.has_truth \
             else self._scored(wall_s)
-        results.extra["dropped_points"] = {str(r): dict(s.dropped) for r, s in enumerate(self.team.sources)
-                                           if isinstance(s, BagSource)}
+        dropped = {str(r): dict(s.dropped) for r, s in enumerate(self.team.sources) if isinstance(s, BagSource)}
+        if dropped:
+            results.extra["dropped_points"] = dropped
         return results
 
     def _scored(self, wall_s: float) -> Results:

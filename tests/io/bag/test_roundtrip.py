@@ -22,6 +22,7 @@ from kimera_multi_py.io.bag.config import load_bag_config
 from kimera_multi_py.sim.bag_recording import write_bag
 from kimera_multi_py.sim.scenario import load_scenario
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
+from kimera_multi_py.sim.source import write_recording
 from kimera_multi_py.workflow.replay import replay
 from kimera_multi_py.workflow.simulate import SimRunner
 from tests.io.bag.conftest import SMALL, TINY
@@ -43,6 +44,7 @@ def simulated(scenario: Path, mode: str) -> dict:
 
 
 def assert_same_metrics(bag: dict, sim: dict) -> None:
+    assert bag["sim_seconds"] == pytest.approx(sim["sim_seconds"], abs=1e-6)
     assert bag["scenario"] == sim["scenario"] and bag["seed"] == sim["seed"] and bag["mode"] == sim["mode"]
     for a, b in zip(bag["robots"], sim["robots"], strict=True):
         assert a["keyframes"] == b["keyframes"]
@@ -65,8 +67,15 @@ def assert_same_metrics(bag: dict, sim: dict) -> None:
 @pytest.mark.parametrize("kind", ["cloud", "ros1", "camera"])
 def test_dead_reckoning_round_trip_is_exact(tiny_bags, kind, tmp_path):
     res = replay([f"bag:{tiny_bags[kind]}"], mode="odometry", out_dir=tmp_path / "run").metrics()
+    assert res.pop("dropped_points") == {"0": {"unmapped": 0, "invalid": 0}, "1": {"unmapped": 0, "invalid": 0}}
     assert res == simulated(TINY, "odometry")
     assert (tmp_path / "run" / "robot1_gt.tum").exists()
+
+
+def test_replay_takes_a_recorded_folder(tmp_path):
+    write_recording(tmp_path / "rec", load_scenario(TINY), scenario_path=TINY)
+    res = replay([str(tmp_path / "rec")], mode="odometry", out_dir=tmp_path / "run").metrics()
+    assert res == simulated(TINY, "odometry")
 
 
 def test_replay_without_ground_truth_runs_and_says_so(tiny_bags, tmp_path):
