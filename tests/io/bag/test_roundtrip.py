@@ -110,10 +110,10 @@ def test_replay_cli_with_tum_truth_and_out_bag(tiny_bags, tmp_path):
 
 
 @pytest.mark.slow
-def test_distributed_round_trip_on_tiny_with_out_bag(tiny_bags, tmp_path):
-    res = replay([f"bag:{tiny_bags['cloud']}"], mode="distributed", out_dir=tmp_path / "run",
-                 out_bag=tmp_path / "out")
-    assert_same_metrics(res.metrics(), simulated(TINY, "distributed"))
+@pytest.mark.parametrize("mode", ["distributed", "centralized"])
+def test_team_round_trip_on_tiny_with_out_bag(tiny_bags, tmp_path, mode):
+    res = replay([f"bag:{tiny_bags['cloud']}"], mode=mode, out_dir=tmp_path / "run", out_bag=tmp_path / "out")
+    assert_same_metrics(res.metrics(), simulated(TINY, mode))
     with AnyReader([tmp_path / "out"]) as reader:
         conns = {c.topic: c for c in reader.connections}
         cloud = reader.deserialize(next(reader.messages([conns["/robot0/team_map"]]))[2],
