@@ -23,7 +23,7 @@ from kimera_multi_py.core.errors import ConfigError, DatasetError
 from kimera_multi_py.core.keyframe import KeyframeInput
 from kimera_multi_py.eval.results import Results, RobotResult
 from kimera_multi_py.eval.team import alignment_report, closure_stats, traffic_totals, trajectory_results
-from kimera_multi_py.io.bag.config import BagConfig, config_for
+from kimera_multi_py.io.bag.config import config_for
 from kimera_multi_py.io.bag.outputs import RobotOutput, write_outputs_bag
 from kimera_multi_py.io.bag.reader import BagSource, bag_robots
 from kimera_multi_py.io.bag.tf import PoseSeries
@@ -141,7 +141,7 @@ def _truth(sources: Sequence[KeyframeSource], truth_files: Sequence[str | Path])
             if not isinstance(src, BagSource):
                 raise ConfigError("--truth", "TUM ground truth goes with bag sources")
             try:
-                out.append(PoseSeries(stamps, poses).at(src.stamps, src.cfg.sync_tolerance) @ src._plan.T_base_kf)
+                out.append(PoseSeries(stamps, poses).at(src.stamps, src.cfg.sync_tolerance) @ src.T_base_keyframe)
             except ValueError as exc:
                 raise DatasetError(f"{truth_files[i]}: {exc}") from None
         elif isinstance(src, BagSource):
@@ -171,8 +171,9 @@ class ReplayRunner(SimRunner):
     """:class:`SimRunner` over recorded sources; scoring what the ground truth allows."""
 
     def __init__(self, team: RecordedTeam, cfg: ScenarioConfig, name: str, **options: Any) -> None:
-        super().__init__(cfg, seed=team.seed, simulation=team, quality=team.world is not None and team.has_truth,  # type: ignore[arg-type]
-                         **options)
+        quality = team.world is not None and team.has_truth
+        super().__init__(cfg, seed=team.seed, simulation=team, quality=quality,  # type: ignore[arg-type]
+                         **options)  # (a RecordedTeam has the Simulation's shape SimRunner reads)
         self.team, self.name = team, name
 
     def _evaluate(self, wall_s: float) -> Results:
@@ -258,4 +259,4 @@ def robot_outputs(runner: SimRunner) -> list[RobotOutput]:
     return out
 
 
-__all__ = ["BagConfig", "RecordedTeam", "ReplayRunner", "open_sources", "replay"]
+__all__ = ["RecordedTeam", "ReplayRunner", "open_sources", "replay"]

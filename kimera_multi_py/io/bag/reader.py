@@ -132,6 +132,11 @@ class BagSource:
         return self._plan.poses
 
     @property
+    def T_base_keyframe(self) -> np.ndarray:
+        """The keyframe frame in the base frame (the extrinsic, and an optical frame's turn)."""
+        return self._plan.T_base_kf
+
+    @property
     def manifest(self) -> dict[str, Any]:
         """The agents' noise model, as a recording's manifest states it (see team/build.py)."""
         noise, kf = self.cfg.noise, self.cfg.keyframes
@@ -187,7 +192,7 @@ class BagSource:
             reader.close()
         try:
             truth = PoseSeries(np.array([t for t, _ in rows]), np.array([p for _, p in rows]).reshape(-1, 4, 4))
-            return truth.at(self.stamps, cfg.sync_tolerance) @ self._plan.T_base_kf
+            return truth.at(self.stamps, cfg.sync_tolerance) @ self.T_base_keyframe
         except TfGap as exc:
             raise BagError(str(self.path), topic, f"ground truth: {exc}") from None
 

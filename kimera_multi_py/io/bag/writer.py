@@ -10,7 +10,6 @@ misses, ``semantic/image`` and ``camera_info``), ``odom`` (nav_msgs/Odometry, T_
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -156,6 +155,8 @@ def _floats(v: np.ndarray) -> str:
 
 
 def _toml(v: Any) -> str:
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        return '"' + str(v).replace("\\", "\\\\").replace('"', '\\"') + '"'
-    return repr(v) if math.isfinite(v) else '"nan"'
+    """A TOML value: an int as is, anything else as a quoted string."""
+    if isinstance(v, int) and not isinstance(v, bool):
+        return str(v)
+    return '"' + str(v).replace("\\", "\\\\").replace('"', '\\"') + '"'
+

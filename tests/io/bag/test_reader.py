@@ -64,7 +64,7 @@ def test_tf_motion_with_a_sensor_extrinsic(tmp_path):
     config = write_bag(tmp_path / "tf", cfg, "ros2", extrinsic=ext, scenario_path=TINY)
     bag_cfg = load_bag_config(config).model_copy(update={"motion": "tf"})
     src = BagSource(tmp_path / "tf", 1, config=bag_cfg)
-    np.testing.assert_allclose(src._plan.T_base_kf, ext, atol=1e-12)  # found on /tf_static
+    np.testing.assert_allclose(src.T_base_keyframe, ext, atol=1e-12)  # found on /tf_static
     truth = src.ground_truth()
     assert_same_stream(src, SimSource(cfg, None, 1))
     sim = Simulation(cfg)
