@@ -1,6 +1,6 @@
 """Depth and semantic images -> labelled rays, and back (docs/bags.md).
 
-Depth is ``16UC1`` (millimetres, 0 = no reading) or ``32FC1`` (metres; NaN = no reading, +inf =
+Depth is ``16UC1`` (millimetres, 0 = no reading) or ``32FC1``/``64FC1`` (metres; NaN = no reading, +inf =
 nothing within range, as REP 118 has it: a miss). Semantic images are ``mono8``/``mono16`` class ids or
 ``rgb8``/``bgr8`` colours looked up in a colour table. Pixels are back-projected with the
 rectified camera model ``K`` of ``sensor_msgs/CameraInfo`` into the optical frame (z forward,
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-DEPTH_ENCODINGS = {"16UC1": "u2", "mono16": "u2", "32FC1": "f4"}
+DEPTH_ENCODINGS = {"16UC1": "u2", "mono16": "u2", "32FC1": "f4", "64FC1": "f8"}
 ID_ENCODINGS = {"mono8": "u1", "8UC1": "u1", "mono16": "u2", "16UC1": "u2"}
 COLOUR_ENCODINGS = ("rgb8", "bgr8")
 LABEL_ENCODINGS = (*ID_ENCODINGS, *COLOUR_ENCODINGS)
@@ -38,7 +38,7 @@ def image_array(msg: Any, channels: int, kind: str) -> np.ndarray:
 def depth_metres(msg: Any) -> np.ndarray:
     """``(h, w)`` float64 depth in metres: NaN where there is no reading, +inf where nothing is in range."""
     img = image_array(msg, 1, DEPTH_ENCODINGS[msg.encoding]).astype(np.float64)
-    if msg.encoding == "32FC1":
+    if msg.encoding in ("32FC1", "64FC1"):
         img[(img <= 0) | np.isneginf(img)] = np.nan
         return img
     img[img == 0] = np.nan

@@ -37,7 +37,7 @@ class BagWriter:
 
     ``camera`` = ``(K, rows, cols)`` writes depth + semantic images (the scan's rays must be the
     camera's pixels, row-major); ``extrinsic`` is T_base_sensor (sensor frame: x forward, z up);
-    ``float64``: the cloud's x, y, z as FLOAT64 fields (lossless; default FLOAT32).
+    ``float64``: the cloud's x, y, z as FLOAT64 fields, depth as 64FC1 (default FLOAT32, 32FC1).
     """
 
     def __init__(self, path: str | Path, fmt: Format = "ros2", *, camera: tuple[np.ndarray, int, int] | None = None,
@@ -106,10 +106,12 @@ class BagWriter:
         if len(kf.points) != rows * cols:
             raise ConfigError("camera", f"a scan of {len(kf.points)} rays is not a {rows} x {cols} image")
         z = (kf.points @ R_FLU_OPTICAL)[:, 2]  # optical z = sensor x
-        depth = np.where(kf.hit, z, np.inf).astype(np.float32).reshape(rows, cols)
+        depth = np.where(kf.hit, z, np.inf).astype(np.float64 if self.xyz_type == "f8" else np.float32)
+        depth = depth.reshape(rows, cols)
         labels = np.where(kf.hit, kf.labels, 0).reshape(rows, cols)
         m, frame = self.msgs, self._sensor_frame()
-        self._write(f"{ns}/depth/image", m.IMAGE, m.image(kf.stamp, frame, "32FC1", depth), kf.stamp)
+        encoding = "64FC1" if self.xyz_type == "f8" else "32FC1"
+        self._write(f"{ns}/depth/image", m.IMAGE, m.image(kf.stamp, frame, encoding, depth), kf.stamp)
         if self.label_encoding in ("rgb8", "bgr8"):
             img = CLASS_COLORS[labels]
             img = img[..., ::-1] if self.label_encoding == "bgr8" else img

@@ -18,12 +18,15 @@ SMALL = REPO / "sims" / "small.toml"
 
 @pytest.fixture(scope="session")
 def tiny_bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """The tiny scenario (seed 0) as bags: PointCloud2 (ROS 2, ROS 1), depth + labels (ROS 2)."""
+    """The tiny scenario (seed 0) as bags: PointCloud2 (ROS 2, ROS 1), depth + labels (ROS 2; 32FC1,
+    and 64FC1 as ``camera64``)."""
     d = tmp_path_factory.mktemp("bags")
     cfg = load_scenario(TINY)
     return {"cloud": write_bag(d / "cloud", cfg, "ros2", scenario_path=TINY).with_suffix(""),
             "ros1": Path(str(write_bag(d / "cloud.bag", cfg, "ros1", scenario_path=TINY)).removesuffix(".toml")),
-            "camera": write_bag(d / "camera", cfg, "ros2", camera=True, scenario_path=TINY).with_suffix("")}
+            "camera": write_bag(d / "camera", cfg, "ros2", camera=True, scenario_path=TINY).with_suffix(""),
+            "camera64": write_bag(d / "camera64", cfg, "ros2", camera=True, scenario_path=TINY,
+                                  float64=True).with_suffix("")}
 
 
 class HandBag:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -21,6 +23,18 @@ def _cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "kimera_multi_py.cli.main", *args]
 
 
+def _wait_listening(port: int, proc: subprocess.Popen[bytes], timeout: float = 120.0) -> None:
+    """Until the router accepts TCP connections on ``port`` (a loaded machine starts it slowly)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, "the router exited"
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.2)
+    raise TimeoutError(f"no router on port {port} after {timeout} s")
+
+
 @pytest.mark.slow
 def test_agent_processes_on_a_teams_bag_complete_a_team_run(tiny_bags, tmp_path):
     port = free_ports(1)[0]
@@ -29,6 +43,7 @@ def test_agent_processes_on_a_teams_bag_complete_a_team_run(tiny_bags, tmp_path)
     router = subprocess.Popen(_cmd("router", "--listen", endpoint), stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL)
     try:
+        _wait_listening(port, router)
         agents = [subprocess.Popen(_cmd("agent", "--robot", str(r), "--source", f"bag:{tiny_bags['cloud']}",
                                         "--out", str(out), "--connect", endpoint, "--pgo-period", "30"),
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in range(2)]
