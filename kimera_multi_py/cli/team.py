@@ -203,6 +203,8 @@ def register(app: typer.Typer) -> None:
         label_encoding: Annotated[str, typer.Option("--label-encoding", help="With --camera: mono8, mono16, "
                                                     "rgb8 or bgr8 (colours: a colour table OUT.colours.csv).")]
         = "mono16",
+        float64: Annotated[bool, typer.Option("--float64", help="Bags: FLOAT64 cloud fields, 64FC1 depth "
+                                                                "(lossless; default float32).")] = False,
     ) -> None:
         """Write the simulator's keyframe streams as a recorded folder or a ROS bag (ground truth apart)."""
         from kimera_multi_py.sim.scenario import load_scenario
@@ -217,7 +219,7 @@ def register(app: typer.Typer) -> None:
                 from kimera_multi_py.sim.bag_recording import write_bag
 
                 config = write_bag(out, cfg, fmt, seed=seed, camera=camera,  # type: ignore[arg-type]
-                                   label_encoding=label_encoding, scenario_path=scenario)
+                                   label_encoding=label_encoding, scenario_path=scenario, float64=float64)
                 console.print(f"wrote {config} (the bag's topics, frames and classes)")
             else:
                 raise ConfigError("format", f"expected npz, ros1 or ros2, got {fmt!r}")
