@@ -49,6 +49,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/allocator.py --json
 	$(BIN)/python benchmarks/cli_sim.py --json
 	$(BIN)/python benchmarks/sources_checkpoint.py --json
+	$(BIN)/python benchmarks/bag_source.py --json
 	$(BIN)/python benchmarks/registration.py --json
 	$(BIN)/python benchmarks/scene_graph.py --json
 	$(BIN)/python benchmarks/faults.py --json

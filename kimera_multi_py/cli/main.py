@@ -110,6 +110,7 @@ def _register_commands() -> None:
     cli_config.register(app)
     __import__("kimera_multi_py.cli.scenario", fromlist=["register"]).register(app)
     __import__("kimera_multi_py.cli.query", fromlist=["register"]).register(app)
+    __import__("kimera_multi_py.cli.replay", fromlist=["register"]).register(app)
 
 
 _register_commands()

@@ -11,7 +11,7 @@ from rich.live import Live
 from rich.table import Table
 
 from kimera_multi_py.cli.common import ConfigFile
-from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.errors import ConfigError, KimeraMultiError
 from kimera_multi_py.core.ids import MAX_AGENT_ID
 
 Connect = Annotated[list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to (repeatable).")]
@@ -51,7 +51,8 @@ def register(app: typer.Typer) -> None:
     @app.command()
     def agent(
         robot: Annotated[int, typer.Option("--robot", help=f"This robot's id (0..{MAX_AGENT_ID}).")],
-        source: Annotated[str, typer.Option("--source", help="sim:SCENARIO[:SEED] or a recorded folder.")],
+        source: Annotated[str, typer.Option("--source", help="sim:SCENARIO[:SEED], bag:PATH[:CONFIG] or a "
+                                                                          "recorded folder.")],
         out: Annotated[Path, typer.Option("--out", help="Run folder; outputs go to OUT/robotI/.")],
         connect: Connect = None, listen: Listen = None, zenoh_config: ZenohConfig = None, team: Team = "t0",
         rate: Annotated[str, typer.Option(help="Pace keyframes at RATE x their stamps; inf: no pacing.")] = "inf",
@@ -200,15 +201,35 @@ def register(app: typer.Typer) -> None:
         scenario: Annotated[Path, typer.Argument(help="Scenario TOML file.")] = Path("sims/office.toml"),
         robots: Annotated[int | None, typer.Option("--robots", "-n")] = None,
         seed: Annotated[int | None, typer.Option()] = None,
-        out: Annotated[Path, typer.Option(help="The recorded folder to write.")] = Path("runs/recording"),
+        out: Annotated[Path, typer.Option(help="The recorded folder (or bag) to write.")] = Path("runs/recording"),
+        fmt: Annotated[str, typer.Option("--format", help="npz (a recorded folder), ros1 (OUT.bag) or ros2 "
+                                                          "(a bag folder); bags get their config as OUT.toml.")]
+        = "npz",
+        camera: Annotated[bool, typer.Option("--camera", help="Bags: depth + semantic images + CameraInfo "
+                                                              "instead of a PointCloud2 with a class field.")] = False,
+        label_encoding: Annotated[str, typer.Option("--label-encoding", help="With --camera: mono8, mono16, "
+                                                    "rgb8 or bgr8 (colours: a colour table OUT.colours.csv).")]
+        = "mono16",
+        float64: Annotated[bool, typer.Option("--float64", help="Bags: FLOAT64 cloud fields, 64FC1 depth "
+                                                                "(lossless; default float32).")] = False,
     ) -> None:
-        """Write the simulator's keyframe streams as a recorded folder (ground truth apart)."""
+        """Write the simulator's keyframe streams as a recorded folder or a ROS bag (ground truth apart)."""
         from kimera_multi_py.sim.scenario import load_scenario
-        from kimera_multi_py.sim.source import write_recording
 
         try:
             cfg = load_scenario(scenario, robots=robots)
-            write_recording(out, cfg, robots=len(cfg.robots), seed=seed, scenario_path=scenario)
+            if fmt == "npz":
+                from kimera_multi_py.sim.source import write_recording
+
+                write_recording(out, cfg, robots=len(cfg.robots), seed=seed, scenario_path=scenario)
+            elif fmt in ("ros1", "ros2"):
+                from kimera_multi_py.sim.bag_recording import write_bag
+
+                config = write_bag(out, cfg, fmt, seed=seed, camera=camera,  # type: ignore[arg-type]
+                                   label_encoding=label_encoding, scenario_path=scenario, float64=float64)
+                console.print(f"wrote {config} (the bag's topics, frames and classes)")
+            else:
+                raise ConfigError("format", f"expected npz, ros1 or ros2, got {fmt!r}")
         except KimeraMultiError as exc:
             raise fail(exc) from None
         console.print(f"wrote {out}")

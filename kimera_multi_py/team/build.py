@@ -16,6 +16,7 @@ import numpy as np
 
 from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.core.errors import ConfigError
+from kimera_multi_py.io.bag.reader import BagSource
 from kimera_multi_py.io.sources import KeyframeSource, RecordedSource
 from kimera_multi_py.sim.scenario import KeyframeConfig, OdometryConfig, ScenarioConfig, load_scenario, with_team_size
 from kimera_multi_py.sim.source import SimSource
@@ -62,10 +63,14 @@ def params_for(source: KeyframeSource, config: KimeraConfig | None = None) -> Ag
 
 
 def source_from_spec(spec: str, robot: int, start: int = 0, resume: dict[str, Any] | None = None) -> KeyframeSource:
-    """``sim:SCENARIO[:SEED]`` (the scenario's seed by default) or a recording folder.
+    """``sim:SCENARIO[:SEED]`` (the scenario's seed by default), ``bag:PATH[:CONFIG]`` (a ROS 1 or
+    ROS 2 bag; its config: CONFIG, else the bag's own ``PATH.toml``; docs/bags.md) or a recording folder.
 
     ``resume`` is a source's :meth:`~KeyframeSource.state` saved when ``start`` was next.
     """
+    if spec.startswith("bag:"):
+        bag, config = bag_spec(spec)
+        return BagSource(bag, robot, start, resume, config)
     if spec.startswith("sim:"):
         rest = spec[4:]
         path, _, tail = rest.rpartition(":")
@@ -79,4 +84,17 @@ def source_from_spec(spec: str, robot: int, start: int = 0, resume: dict[str, An
         return SimSource(cfg, int(tail) if tail else None, robot, start, resume)
     if Path(spec).is_dir():
         return RecordedSource(spec, robot, start, resume)
-    raise ConfigError("--source", f"{spec!r} is neither sim:SCENARIO[:SEED] nor a recording folder")
+    raise ConfigError("--source", f"{spec!r} is neither sim:SCENARIO[:SEED], bag:PATH nor a recording folder")
+
+
+def bag_spec(spec: str) -> tuple[Path, Path | None]:
+    """``bag:PATH[:CONFIG]`` as ``(PATH, CONFIG)``; CONFIG ends in .toml, .yaml or .yml."""
+    rest = spec[4:]
+    head, _, tail = rest.rpartition(":")
+    if not head or Path(tail).suffix.lower() not in (".toml", ".yaml", ".yml"):
+        head, tail = rest, ""
+    if not head:
+        raise ConfigError("--source", f"{spec!r}: expected bag:PATH[:CONFIG]")
+    if not Path(head).exists():
+        raise ConfigError("--source", f"{spec!r}: no bag at {head}")
+    return Path(head), Path(tail) if tail else None

@@ -127,7 +127,8 @@ class SimRunner:
                  pgo_params: PgoParams | None = None, join: dict[int, float] | None = None,
                  leave: dict[int, float] | None = None, map_consensus: str | None = None,
                  comm_range: float | None = None, drop: float = 0.0, faults: Faults | None = None,
-                 quality: bool = True, config: KimeraConfig | None = None) -> None:
+                 quality: bool = True, config: KimeraConfig | None = None,
+                 simulation: Simulation | None = None) -> None:
         if mode not in MODES:
             raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
         if transport not in TRANSPORTS:
@@ -135,7 +136,7 @@ class SimRunner:
         self.cfg = cfg
         self.mode = mode
         self.transport = transport
-        self.sim = Simulation(cfg, seed)
+        self.sim = simulation or Simulation(cfg, seed)  # replay passes recorded streams (workflow/replay.py)
         self.out_dir = Path(out_dir) if out_dir is not None else None
         self.viz: Viz = viz or NullViz()
         self.on_progress = on_progress
