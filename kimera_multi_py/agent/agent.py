@@ -64,6 +64,7 @@ from kimera_multi_py.mapping.floor import FloorReference
 from kimera_multi_py.mapping.heading import HeadingReference
 from kimera_multi_py.mapping.registration import ScanRegistration
 from kimera_multi_py.mapping.scan_odometry import ScanOdometry
+from kimera_multi_py.people.tracking import PeopleTracker
 from kimera_multi_py.pgo.local_graph import LocalGraph
 
 log = logging.getLogger(__name__)
@@ -87,6 +88,8 @@ class Agent:
         self.spec = DescriptorSpec(num_classes=len(_OBJECT_IDS))
         self.map = get_submap_map(p.mapping)
         self.objects = get_object_map(p.mapping)
+        # people: tracked from the dynamic points the map masks out, anchored in submaps like objects
+        self.people = PeopleTracker(self.map.octree.dynamic_classes, p.people)
         self.stamps: list[float] = []
         self.odometry: list[np.ndarray] = []
         self.steps: list[np.ndarray] = []  # the chained step: odometry fused with scan registration
@@ -158,11 +161,15 @@ class Agent:
                 self.objects.merge_fragments(self.map.octree)
             self.map.new_submap(sid, pose)
             self.objects.set_submap_pose(sid, pose)
+            self.people.set_submap_pose(sid, pose)
             self.place_objects.set_submap_pose(sid, fe)  # never moved (nor fragment-merged: no octree here)
         self.submap_of.append(sid)
         T_sub = inverse(self.map.submaps[sid].T) @ pose
         self.map.integrate(sid, T_sub, kf.points, kf.labels, kf.max_range)
         self.objects.update(transform_points(pose, kf.points[hits]), kf.labels[hits], sid, kf.index)
+        if self.params.people.enabled:
+            self.people.update(kf.index, kf.stamp, sid, transform_points(pose, kf.points[hits]), kf.labels[hits],
+                               pose[:3, 3])
         seen = self.place_objects.update(transform_points(fe, kf.points[hits]), kf.labels[hits], sid, kf.index)
         self.kf_landmarks.append(seen)
         # the semantic cloud for ICP: walls and objects (floor and ceiling add bytes, not constraints)
@@ -469,4 +476,5 @@ class Agent:
             new = poses[sid * per]
             moved += bool(self.map.move_submap(sid, new))
             self.objects.set_submap_pose(sid, new)
+            self.people.set_submap_pose(sid, new)
         return moved

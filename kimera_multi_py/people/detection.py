@@ -4,10 +4,12 @@
 Points are linked within ``radius`` through core points (:func:`~kimera_multi_py.mapping.detection`'s
 DBSCAN rule on a KD-tree radius graph, scipy), so scattered label noise cannot chain into a
 person. A cluster is a person when it has at least ``min_points`` points, a horizontal extent of
-at most ``max_width`` and a vertical extent between ``min_height`` and ``max_height``; the others
-are dropped and counted by reason. A camera sees only the near side of a person, so the centroid
-is pushed away from the sensor by ``depth_offset`` (for an upright cylinder of radius r seen from
-the side, the visible points' mean lies ``pi r / 4`` in front of its axis).
+at most ``max_width``, a vertical extent between ``min_height`` and ``max_height``, and holds at
+least ``min_purity`` of all the points (any class) in the voxels (edge ``radius / 2``) it covers:
+label noise on a wall seen from close by is dense enough to cluster, but it is a small minority
+where it lies. The others are dropped and counted by reason. A camera sees only the near side of
+a person, so the centroid is pushed away from the sensor by ``depth_offset`` (for an upright
+cylinder of radius r seen from the side, the visible points' mean lies ``pi r / 4`` in front of its axis).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.detection import _core_clusters
 
 
@@ -44,12 +47,12 @@ class PersonDetections:
 def detect_people(points: np.ndarray, labels: np.ndarray, dynamic_classes: Iterable[int],
                   sensor: np.ndarray | None = None, *, radius: float = 0.3, min_core: int = 3,
                   min_points: int = 15, max_width: float = 1.2, min_height: float = 0.4,
-                  max_height: float = 2.4, depth_offset: float = 0.2,
+                  max_height: float = 2.4, depth_offset: float = 0.2, min_purity: float = 0.5,
                   dropped: Counter[str] | None = None) -> PersonDetections:
     """Person detections among ``points`` (n, 3, world frame) whose ``labels`` are in
     ``dynamic_classes``; ``sensor`` is the sensor's position (for the depth offset; none: no
     offset). Clusters that fail a gate are counted in ``dropped`` (``too_small``, ``too_wide``,
-    ``too_flat``, ``too_tall``); so are non-finite points (``non_finite_points``)."""
+    ``too_flat``, ``too_tall``, ``impure``); so are non-finite points (``non_finite_points``)."""
     dropped = Counter() if dropped is None else dropped
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     lab = np.asarray(labels).reshape(-1)
@@ -81,7 +84,14 @@ def detect_people(points: np.ndarray, labels: np.ndarray, dynamic_classes: Itera
                     ("too_tall", tall & ~small & ~wide & ~flat)):
         if (n := int(m.sum())):
             dropped[name] += n
-    good = ~(small | wide | flat | tall)
+    voxel = radius / 2
+    vox, vox_count = np.unique(morton.points_to_codes(pts[finite], voxel), return_counts=True)
+    cells = np.unique(np.stack([comp, morton.points_to_codes(P, voxel)], axis=1), axis=0)
+    total = np.bincount(cells[:, 0], weights=vox_count[np.searchsorted(vox, cells[:, 1])], minlength=len(sizes))
+    impure = (sizes < min_purity * total) & ~(small | wide | flat | tall)
+    if (n := int(impure.sum())):
+        dropped["impure"] += n
+    good = ~(small | wide | flat | tall | impure)
     centroid, ext, sizes = centroid[good], ext[good], sizes[good]
     if sensor is not None and depth_offset > 0 and len(centroid):
         ray = centroid[:, :2] - np.asarray(sensor, dtype=np.float64).reshape(3)[None, :2]

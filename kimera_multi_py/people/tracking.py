@@ -48,6 +48,8 @@ class PeopleParams:
     max_width: float = 1.2
     min_height: float = 0.4
     max_height: float = 2.4
+    min_purity: float = 0.5
+    """Share of the points in a detection's voxels that must be its own."""
     depth_offset: float = 0.2
     """How far behind the visible points a person's axis lies (m), along the view ray."""
     meas_sigma: float = 0.15
@@ -146,7 +148,8 @@ class PeopleTracker:
         p = self.params
         dets = detect_people(points, labels, self.dynamic_classes, sensor, radius=p.radius, min_core=p.min_core,
                              min_points=p.min_points, max_width=p.max_width, min_height=p.min_height,
-                             max_height=p.max_height, depth_offset=p.depth_offset, dropped=self.dropped)
+                             max_height=p.max_height, depth_offset=p.depth_offset, min_purity=p.min_purity,
+                             dropped=self.dropped)
         self.step(index, stamp, submap, dets)
         return dets
 
