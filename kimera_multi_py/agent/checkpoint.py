@@ -65,7 +65,7 @@ from kimera_multi_py.core.errors import CheckpointError
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 _HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
 
@@ -99,6 +99,10 @@ ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.mapping.submaps.Submap",
     "kimera_multi_py.mapping.submaps.SubmapMap",
     "kimera_multi_py.mapping.submaps._CellStore",
+    "kimera_multi_py.people.tracking.KeyframePeople",
+    "kimera_multi_py.people.tracking.PeopleParams",
+    "kimera_multi_py.people.tracking.PeopleTracker",
+    "kimera_multi_py.people.tracking.Track",
     "kimera_multi_py.pgo.local_graph.LocalGraph",
     "kimera_multi_py.pgo.params.PgoParams",
 })
