@@ -188,7 +188,8 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
     objects and trajectories of the robots kept out of the team frame (only those of
     :func:`team_frame_robots`): they are in their own frames."""
     from kimera_multi_py.eval.scene_graph import graphs_agree, scene_graph_and_outputs
-    from kimera_multi_py.mapping.object_fusion import fuse_team
+    from kimera_multi_py.mapping.object_fusion import fuse_team, team_id
+    from kimera_multi_py.people.fusion import TeamTrack, fuse_people
 
     graphs, per_robot = [], {}
     for o in outcomes:
@@ -197,8 +198,9 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
         objects = o.team_objects if o.team_objects is not None else o.objects
+        people = o.people.get("team") or o.people.get("tracks") or []
         g, fig = scene_graph_and_outputs(octree, T_world_team, objects, {o.robot: (o.stamps, o.poses)}, world, path,
-                                         params)
+                                         params, people)
         graphs.append(g)
         per_robot[str(o.robot)] = fig
     out: dict[str, Any] = dict(per_robot[str(outcomes[0].robot)])
@@ -207,8 +209,11 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
         team = [o for o in outcomes if o.robot in in_frame]
         objects = fuse_team({o.robot: o.objects for o in team})
         trajectories = {o.robot: (o.stamps, o.poses) for o in team}
+        people = fuse_people({team_id(o.robot, int(t["id"])): TeamTrack(o.robot, np.asarray(t["stamps"], float),
+                                                                         np.asarray(t["positions"], float))
+                              for o in team for t in o.people.get("tracks", [])})
         _, out = scene_graph_and_outputs(team_map, T_world_team, objects, trajectories, world,
-                                         out_dir / "dsg.json" if out_dir is not None else None, params)
+                                         out_dir / "dsg.json" if out_dir is not None else None, params, people)
         out = dict(out)
     out["robots"] = per_robot
     out["agree"] = graphs_agree(graphs)
