@@ -94,7 +94,7 @@ def register(app: typer.Typer) -> None:
         _show("room of object", [ans], as_json, ans)
 
     @query_app.command("objects-in")
-    def objects_in(ctx: typer.Context, room: Annotated[str, typer.Argument(help="Room, e.g. R(1) or 1.")],
+    def objects_in(ctx: typer.Context, room: Annotated[str, typer.Argument(help="Room, e.g. R(1), 1 or meeting.")],
                    cls: Annotated[str | None, typer.Option("--class", help="Only this class.")] = None,
                    robot: Robot = None, as_json: AsJson = False) -> None:
         """The objects in a room, optionally of one class."""
@@ -121,7 +121,7 @@ def register(app: typer.Typer) -> None:
         _show(f"robot {robot_id} at t={t}", [ans], as_json, ans)
 
     @query_app.command("people-in")
-    def people_in(ctx: typer.Context, room: Annotated[str, typer.Argument(help="Room, e.g. R(1) or 1.")],
+    def people_in(ctx: typer.Context, room: Annotated[str, typer.Argument(help="Room, e.g. R(1), 1 or office.")],
                   at: At, within: Within = 1.0, robot: Robot = None, as_json: AsJson = False) -> None:
         """The people in a room at a time."""
         ans, as_json = _run(ctx, robot, as_json, lambda g: queries.people_in(g, room, at, within))

@@ -90,6 +90,8 @@ def to_spark(g: SceneGraph) -> dsg.DynamicSceneGraph:
     for r in range(g.num_rooms):
         a = dsg.RoomNodeAttributes()
         a.position, a.name, a.color = g.room_pos[r], f"room {r}", _color(room_color(r))
+        if r < len(g.room_kind):
+            a.metadata.set({"kind": g.room_kind[r], "kind_confidence": float(g.room_kind_confidence[r])})
         inside = g.place_pos[g.place_room == r]
         if len(inside):
             a.bounding_box = _box(inside.min(0), inside.max(0))
@@ -225,6 +227,7 @@ def from_spark(G: dsg.DynamicSceneGraph) -> SceneGraph:
     a_meta = [n.attributes.metadata.get() for n in agents]
     meta = G.metadata.get().get("kimera_multi", {})
     boxes = [_box_min_max(n) for n in objects]
+    r_meta = [n.attributes.metadata.get() for n in rooms]
     people.sort(key=lambda n: n.id.category_id)
     p_meta = [n.attributes.metadata.get() for n in people]
 
@@ -259,6 +262,8 @@ def from_spark(G: dsg.DynamicSceneGraph) -> SceneGraph:
                                for m, n in zip(p_meta, people, strict=True)], dtype=np.float64),
         person_pos=arr([_vec(n, "position") for n in people]),
         person_place=np.array([parent_place(n) for n in people], dtype=np.int64),
+        room_kind=[str(m.get("kind", "unknown")) for m in r_meta],
+        room_kind_confidence=np.array([m.get("kind_confidence", 0.0) for m in r_meta], dtype=np.float64),
     )
 
 
@@ -290,7 +295,8 @@ def to_networkx(g: SceneGraph) -> nx.Graph:
     bs = str(BUILDING)
     G.add_node(bs, layer=BUILDING_LAYER, position=g.building_pos.copy())
     for r in range(g.num_rooms):
-        G.add_node(str(room_symbol(r)), layer=ROOMS_LAYER, position=g.room_pos[r].copy())
+        G.add_node(str(room_symbol(r)), layer=ROOMS_LAYER, position=g.room_pos[r].copy(),
+                   kind=g.room_kind[r] if r < len(g.room_kind) else None)
         G.add_edge(str(room_symbol(r)), bs, kind="hierarchy")
     for r, s in g.room_edges.tolist():
         G.add_edge(str(room_symbol(r)), str(room_symbol(s)), kind="room")

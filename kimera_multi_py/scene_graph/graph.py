@@ -34,6 +34,7 @@ from kimera_multi_py.core.semantics import CLASS_IDS, CLASS_NAMES
 from kimera_multi_py.mapping.object_fusion import team_id
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.scene_graph.grid import DistanceField, distance_field, fill_holes, occupancy_grid
+from kimera_multi_py.scene_graph.kinds import load_kind_table
 from kimera_multi_py.scene_graph.level import level_frame, levelled_grid
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 from kimera_multi_py.scene_graph.places import Places, extract_places
@@ -87,6 +88,9 @@ class SceneGraph:
     person_stamp: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (s,)
     person_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (s, 3)
     person_place: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (s,) place index
+    # rooms by kind (:mod:`.kinds`): per room, its kind and the kind's confidence
+    room_kind: list[str] = field(default_factory=list)
+    room_kind_confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def num_rooms(self) -> int:
@@ -303,10 +307,13 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
     meta = {"delta": rooms.delta, "sweep": {"deltas": rooms.deltas.tolist(), "counts": rooms.counts.tolist()},
             "params": p.to_dict(), "build_s": build_s, "resolution": grid.resolution,
             "level_rotation": None if R is None else R.tolist()}
+    kind_rooms = np.where(object_place >= 0, rooms.place_room[np.maximum(object_place, 0)], -1) \
+        if len(rooms.place_room) else np.full(len(obs.ids), -1, dtype=np.int64)
+    kinds, confidence = load_kind_table().kinds(kind_rooms, obs.labels, nr)
     return SceneGraph(
         places.ids, place_pos, places.clearance, rooms.place_room, places.edges, places.edge_clearance,
         room_pos, room_edges(places, rooms.place_room), obs.ids, obs.labels, obs.centroids, obs.lo, obs.hi,
         object_place, np.concatenate(robots) if robots else np.zeros(0, np.int64),
         np.concatenate(index) if index else np.zeros(0, np.int64),
         np.concatenate(stamps) if stamps else np.zeros(0), agent_pose, agent_place, building, meta,
-        person_id, person_stamp, person_pos, person_place)
+        person_id, person_stamp, person_pos, person_place, kinds, confidence)

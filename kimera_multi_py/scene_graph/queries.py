@@ -60,7 +60,7 @@ def room_of(g: SceneGraph, obj: str | int) -> dict[str, Any]:
 
 
 def objects_in(g: SceneGraph, room: str | int, cls: str | int | None = None) -> list[dict[str, Any]]:
-    """Objects whose place lies in ``room``, optionally of one class (name or id)."""
+    """Objects whose place lies in ``room`` (a room or a kind of room), optionally of one class (name or id)."""
     rooms = g.object_room()
     keep = np.isin(rooms, room_indices(g, room))
     if cls is not None:
@@ -142,7 +142,13 @@ def where(g: SceneGraph, robot: int | str, t: float) -> dict[str, Any]:
 
 # ---- people (docs/algorithms/people.md) ----------------------------------------------------------
 def room_indices(g: SceneGraph, room: str | int) -> list[int]:
-    """The rooms a name means: ``R(1)`` / ``R1`` / ``1``."""
+    """The rooms a name means: ``R(1)`` / ``R1`` / ``1``, or a kind (``meeting``: every room of
+    that kind, :mod:`.kinds`)."""
+    if isinstance(room, str) and room.strip() in g.room_kind:
+        return [r for r, k in enumerate(g.room_kind) if k == room.strip()]
+    if isinstance(room, str) and room.strip().isalpha() and len(room.strip()) > 1:
+        kinds = ", ".join(sorted(set(g.room_kind))) or "none"
+        raise SceneGraphError(f"no room of kind {room.strip()!r} in the scene graph (kinds: {kinds})")
     r = _parse(room, "R")
     if not 0 <= r < g.num_rooms:
         raise SceneGraphError(f"no room R({r}) in the scene graph ({g.num_rooms} rooms)")
