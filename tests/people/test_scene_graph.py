@@ -120,3 +120,14 @@ def test_empty_save(tmp_path: Path):
     g = build_scene_graph(octree_of(c, free))
     save_scene_graph(g, tmp_path / "dsg.json")
     assert len(load_scene_graph(tmp_path / "dsg.json").person_id) == 0
+
+
+def test_rerun_shows_each_person_with_their_id(tmp_path):
+    from kimera_multi_py.viz.rerun_viz import RerunViz
+
+    viz = RerunViz(tmp_path / "people.rrd")
+    viz.log_people(3.0, [(12, np.array([[1.0, 2.0, 0.9], [1.5, 2.0, 0.9]])), (5, np.zeros((0, 3)))])
+    viz.close()
+    data = (tmp_path / "people.rrd").read_bytes()
+    assert b"P12" in data and b"P(12)" in data  # the entity and the label with the person's id
+    assert b"P5" not in data  # nothing to show for a person without samples
