@@ -69,7 +69,10 @@ def people_in_view(sim: Simulation, pose: np.ndarray, stamp: float, min_hits: in
 
 def _truth_at(sim: Simulation, stamps: np.ndarray) -> np.ndarray:
     """True positions (people, len(stamps), 3)."""
-    return np.array([[h.position(float(t)) for t in stamps] for h in sim.humans]).reshape(len(sim.humans), -1, 3)
+    out = np.zeros((len(sim.humans), len(stamps), 3))
+    for j, h in enumerate(sim.humans):
+        out[j] = [h.position(float(t)) for t in stamps]
+    return out
 
 
 def _match(a: np.ndarray, b: np.ndarray, gate: float) -> list[tuple[int, int]]:

@@ -46,7 +46,7 @@ class PersonDetections:
 
 def detect_people(points: np.ndarray, labels: np.ndarray, dynamic_classes: Iterable[int],
                   sensor: np.ndarray | None = None, *, radius: float = 0.3, min_core: int = 3,
-                  min_points: int = 15, max_width: float = 1.2, min_height: float = 0.4,
+                  min_points: int = 10, max_width: float = 1.2, min_height: float = 0.25,
                   max_height: float = 2.4, depth_offset: float = 0.2, min_purity: float = 0.5,
                   dropped: Counter[str] | None = None) -> PersonDetections:
     """Person detections among ``points`` (n, 3, world frame) whose ``labels`` are in

@@ -4,8 +4,9 @@ Each track is a constant-velocity Kalman filter on the floor plane (state ``x, y
 height is a running mean). At a keyframe every track is predicted to the keyframe's stamp, a
 detection gates with a track when its Mahalanobis distance under the innovation covariance is
 within ``gate_chi2`` and its distance within ``max_gate``, and detections are assigned to tracks
-by ``scipy.optimize.linear_sum_assignment`` on the Mahalanobis cost. A detection left over starts
-a tentative track; a track is confirmed (born) once ``confirm_hits`` keyframes saw it, and dies
+by ``scipy.optimize.linear_sum_assignment`` on the Mahalanobis cost. A detection left over may
+re-acquire a track lost for a while that could have walked to it (a second assignment on the
+distance, :meth:`PeopleTracker._reacquire`); any other starts a tentative track; a track is confirmed (born) once ``confirm_hits`` keyframes saw it, and dies
 when it went unseen for ``max_unseen`` seconds (``tentative_unseen`` before it is confirmed).
 ``association = "nearest"`` replaces the motion model by nearest-neighbour association on the
 last positions (the baseline that swaps the ids of people who cross).
@@ -44,9 +45,9 @@ class PeopleParams:
     radius: float = 0.3
     """Cluster linking radius (m)."""
     min_core: int = 3
-    min_points: int = 15
+    min_points: int = 10
     max_width: float = 1.2
-    min_height: float = 0.4
+    min_height: float = 0.25
     max_height: float = 2.4
     min_purity: float = 0.5
     """Share of the points in a detection's voxels that must be its own."""
@@ -62,13 +63,17 @@ class PeopleParams:
     """Mahalanobis gate (chi-square, 2 dof, 99 %)."""
     max_gate: float = 1.5
     """Largest distance (m) between a track's prediction and its detection."""
-    confirm_hits: int = 3
+    confirm_hits: int = 2
     """Keyframes that must see a track before it is confirmed."""
     tentative_unseen: float = 2.0
     """Seconds a tentative track survives unseen."""
-    max_unseen: float = 5.0
+    max_unseen: float = 15.0
     """Seconds a confirmed track survives unseen."""
     association: Literal["kalman", "nearest"] = "kalman"
+    reacquire_speed: float = 1.0
+    """Re-acquisition of lost tracks: the speed (m/s) a person may have walked unseen; 0: off."""
+    reacquire_after: float = 1.5
+    """Seconds unseen before a track counts as lost (for re-acquisition)."""
 
 
 @dataclass
@@ -217,6 +222,7 @@ class PeopleTracker:
             t.confirmed |= t.hits >= p.confirm_hits
             self._sample(t, stamp, submap, C_inv)
             owner[c] = t.id
+        self._reacquire(tracks, xy, dets, owner, stamp, submap, C_inv)
         for c in np.flatnonzero(owner < 0).tolist():
             P0 = np.diag([p.meas_sigma ** 2] * 2 + [p.init_speed_sigma ** 2] * 2)
             t = Track(self._next_id, np.array([xy[c, 0], xy[c, 1], 0.0, 0.0]), P0, float(dets.centroids[c, 2]),
@@ -233,6 +239,34 @@ class PeopleTracker:
         self.log.append(KeyframePeople(int(index), stamp, int(submap),
                                        transform_points(C_inv, dets.centroids).reshape(-1, 3), owner.copy()))
         return owner.tolist()
+
+    def _reacquire(self, tracks: list[Track], xy: np.ndarray, dets: PersonDetections, owner: np.ndarray,
+                   stamp: float, submap: int, C_inv: np.ndarray) -> None:
+        """Second stage: a detection left over goes to a track lost for at least ``reacquire_after`` s
+        that could have walked to it (within ``reacquire_speed`` x the time unseen + ``max_gate``
+        of where it was last seen), by Hungarian assignment on that distance; the track restarts
+        from the detection with an unknown velocity."""
+        p = self.params
+        free = np.flatnonzero(owner < 0)
+        taken = set(owner[owner >= 0].tolist())
+        lost = [t for t in tracks if t.id not in taken and stamp - t.last_seen >= p.reacquire_after]
+        if p.reacquire_speed <= 0 or not len(free) or not lost:
+            return
+        last = np.array([t.x[:2] for t in lost])
+        reach = np.array([p.reacquire_speed * (stamp - t.last_seen) + p.max_gate for t in lost])
+        d = np.linalg.norm(xy[free][None] - last[:, None], axis=2)
+        cost = np.where(d <= reach[:, None], d, _INFEASIBLE)
+        for r, c in zip(*linear_sum_assignment(cost), strict=True):
+            if cost[r, c] >= _INFEASIBLE:
+                continue
+            t, k = lost[int(r)], int(free[int(c)])
+            t.x = np.array([xy[k, 0], xy[k, 1], 0.0, 0.0])
+            t.P = np.diag([p.meas_sigma ** 2] * 2 + [p.init_speed_sigma ** 2] * 2)
+            t.z = float(dets.centroids[k, 2])
+            t.hits += 1
+            t.confirmed |= t.hits >= p.confirm_hits
+            self._sample(t, stamp, submap, C_inv)
+            owner[k] = t.id
 
     def _sample(self, t: Track, stamp: float, submap: int, C_inv: np.ndarray) -> None:
         t.last_seen, t.submap = stamp, submap
