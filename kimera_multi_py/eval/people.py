@@ -13,6 +13,8 @@ Tracking
     ``motmetrics`` (CLEAR MOT): per robot, frames are its keyframes, objects the people in view and
     hypotheses the samples of its confirmed tracks at that keyframe (squared-distance gate
     ``match_distance``^2); ``mota``, ``num_switches`` and the rest, per robot and overall.
+    ``mot_team_ids``: the same with each track named by the team person it was fused into (the ids
+    the robot's scene graph gives), where another robot's track may bridge a gap.
 Trajectories
     The team's people (every robot's tracks fused, :func:`~kimera_multi_py.people.fusion.fuse_people`)
     in the world; each fused person stands for the true person nearest to it (median distance); the
@@ -116,11 +118,13 @@ def people_results(sim: Simulation, truth: Sequence[np.ndarray], outcomes: Seque
     tp = fp = seen = found = 0
     per_kf_p, per_kf_r = [], []
     accs: dict[str, Any] = {}
+    team_accs: dict[str, Any] = {}
     dropped: dict[str, int] = {}
     for o in team:
         samples = {(int(t["id"]), float(s)): p for t in o.people.get("tracks", [])
                    for s, p in zip(t["stamps"], t["positions"], strict=True)}
-        acc = mm.MOTAccumulator(auto_id=True)
+        acc, team_acc = mm.MOTAccumulator(auto_id=True), mm.MOTAccumulator(auto_id=True)
+        fused = {int(m): int(p["id"]) for p in (o.people.get("team") or []) for m in p.get("members", [])}
         for k, v in o.people.get("dropped", {}).items():
             dropped[k] = dropped.get(k, 0) + int(v)
         for rec in o.people["keyframes"]:
@@ -142,10 +146,13 @@ def people_results(sim: Simulation, truth: Sequence[np.ndarray], outcomes: Seque
                 per_kf_r.append(hit_view / len(view))
             hyp = [(int(tr), samples[(int(tr), stamp)]) for tr in rec["tracks"] if (int(tr), stamp) in samples]
             hyp_xyz = transform_points(T, np.array([p for _, p in hyp], dtype=np.float64).reshape(-1, 3))
-            acc.update(view.tolist(), [h for h, _ in hyp],
-                       mm.distances.norm2squared_matrix(true_xyz[view][:, :2], hyp_xyz[:, :2],
-                                                        max_d2=match_distance ** 2))
+            dist = mm.distances.norm2squared_matrix(true_xyz[view][:, :2], hyp_xyz[:, :2], max_d2=match_distance ** 2)
+            acc.update(view.tolist(), [h for h, _ in hyp], dist)
+            names = [fused.get(team_id(o.robot, h), team_id(o.robot, h)) for h, _ in hyp]
+            once = [i for i, h in enumerate(names) if h not in names[:i]]
+            team_acc.update(view.tolist(), [names[i] for i in once], dist[:, once])
         accs[str(o.robot)] = acc
+        team_accs[str(o.robot)] = team_acc
     mot = _mot(accs)
     overall = mot.get("overall", {})
     people = overall.get("num_unique_objects") or 0
@@ -156,6 +163,7 @@ def people_results(sim: Simulation, truth: Sequence[np.ndarray], outcomes: Seque
                       "recall_per_keyframe_mean": float(np.mean(per_kf_r)) if per_kf_r else None,
                       "detections": tp + fp, "people_in_view": seen, "dropped": dropped},
         "mot": mot,
+        "mot_team_ids": _mot(team_accs),
         "mota": overall.get("mota"),
         "id_switches": overall.get("num_switches"),
         "id_switches_per_person": (overall.get("num_switches", 0) / people) if people else None,

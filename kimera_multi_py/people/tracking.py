@@ -6,8 +6,9 @@ detection gates with a track when its Mahalanobis distance under the innovation 
 within ``gate_chi2`` and its distance within ``max_gate``, and detections are assigned to tracks
 by ``scipy.optimize.linear_sum_assignment`` on the Mahalanobis cost. A detection left over may
 re-acquire a track lost for a while that could have walked to it (a second assignment on the
-distance, :meth:`PeopleTracker._reacquire`); any other starts a tentative track; a track is confirmed (born) once ``confirm_hits`` keyframes saw it, and dies
-when it went unseen for ``max_unseen`` seconds (``tentative_unseen`` before it is confirmed).
+distance, :meth:`PeopleTracker._reacquire`); any other starts a tentative track. A track is
+confirmed (born) once ``confirm_hits`` keyframes saw it, and dies when it went unseen for
+``max_unseen`` seconds (``tentative_unseen`` before it is confirmed).
 ``association = "nearest"`` replaces the motion model by nearest-neighbour association on the
 last positions (the baseline that swaps the ids of people who cross).
 
