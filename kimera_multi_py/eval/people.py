@@ -146,7 +146,8 @@ def people_results(sim: Simulation, truth: Sequence[np.ndarray], outcomes: Seque
                 per_kf_r.append(hit_view / len(view))
             hyp = [(int(tr), samples[(int(tr), stamp)]) for tr in rec["tracks"] if (int(tr), stamp) in samples]
             hyp_xyz = transform_points(T, np.array([p for _, p in hyp], dtype=np.float64).reshape(-1, 3))
-            dist = mm.distances.norm2squared_matrix(true_xyz[view][:, :2], hyp_xyz[:, :2], max_d2=match_distance ** 2)
+            dist = np.asarray(mm.distances.norm2squared_matrix(true_xyz[view][:, :2], hyp_xyz[:, :2],
+                                                               max_d2=match_distance ** 2)).reshape(len(view), len(hyp))
             acc.update(view.tolist(), [h for h, _ in hyp], dist)
             names = [fused.get(team_id(o.robot, h), team_id(o.robot, h)) for h, _ in hyp]
             once = [i for i, h in enumerate(names) if h not in names[:i]]
