@@ -10,7 +10,8 @@ owns:
   registered to the last keyframes' scans; its Hessian is the factor's information, zero in
   degenerate directions; the estimate chains the fusion of both) and intra-robot loop closures;
 * submaps feeding a semantic octree (:class:`SubmapMap`) and an object map, both re-anchored
-  exactly when PGO moves the submaps;
+  exactly when PGO moves the submaps, and a people tracker (:mod:`kimera_multi_py.people`, fed by
+  the dynamic points the octree masks out; docs/algorithms/people.md), moved the same way;
 * its loop-closure front end, which works in the robot's own odometric frame (the chained
   registration-refined steps) and never reads the team estimate: what it verifies depends on the
   robot's sensor data and its peers' messages, not on when or how the back end ran, so the
