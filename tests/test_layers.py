@@ -18,7 +18,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("core",),
     ("comms", "io", "viz"),
     ("mapping",),
-    ("frontend", "alignment", "scene_graph"),
+    ("frontend", "alignment", "scene_graph", "people"),
     ("pgo",),
     ("mapshare",),
     ("agent",),

@@ -10,7 +10,8 @@ owns:
   registered to the last keyframes' scans; its Hessian is the factor's information, zero in
   degenerate directions; the estimate chains the fusion of both) and intra-robot loop closures;
 * submaps feeding a semantic octree (:class:`SubmapMap`) and an object map, both re-anchored
-  exactly when PGO moves the submaps;
+  exactly when PGO moves the submaps, and a people tracker (:mod:`kimera_multi_py.people`, fed by
+  the dynamic points the octree masks out; docs/algorithms/people.md), moved the same way;
 * its loop-closure front end, which works in the robot's own odometric frame (the chained
   registration-refined steps) and never reads the team estimate: what it verifies depends on the
   robot's sensor data and its peers' messages, not on when or how the back end ran, so the
@@ -66,6 +67,7 @@ from kimera_multi_py.mapping.floor import FloorReference
 from kimera_multi_py.mapping.heading import HeadingReference
 from kimera_multi_py.mapping.registration import ScanRegistration
 from kimera_multi_py.mapping.scan_odometry import ScanOdometry
+from kimera_multi_py.people.tracking import PeopleTracker
 from kimera_multi_py.pgo.local_graph import LocalGraph
 
 log = logging.getLogger(__name__)
@@ -89,6 +91,8 @@ class Agent:
         self.spec = DescriptorSpec(num_classes=len(_OBJECT_IDS))
         self.map = get_submap_map(p.mapping)
         self.objects = get_object_map(p.mapping)
+        # people: tracked from the dynamic points the map masks out, anchored in submaps like objects
+        self.people = PeopleTracker(self.map.octree.dynamic_classes, p.people)
         self.stamps: list[float] = []
         self.odometry: list[np.ndarray] = []
         self.steps: list[np.ndarray] = []  # the chained step: odometry fused with scan registration
@@ -160,11 +164,15 @@ class Agent:
                 self.objects.merge_fragments(self.map.octree)
             self.map.new_submap(sid, pose)
             self.objects.set_submap_pose(sid, pose)
+            self.people.set_submap_pose(sid, pose)
             self.place_objects.set_submap_pose(sid, fe)  # never moved (nor fragment-merged: no octree here)
         self.submap_of.append(sid)
         T_sub = inverse(self.map.submaps[sid].T) @ pose
         self.map.integrate(sid, T_sub, kf.points, kf.labels, kf.max_range)
         self.objects.update(transform_points(pose, kf.points[hits]), kf.labels[hits], sid, kf.index)
+        if self.params.people.enabled:
+            self.people.update(kf.index, kf.stamp, sid, transform_points(pose, kf.points[hits]), kf.labels[hits],
+                               pose[:3, 3])
         seen = self.place_objects.update(transform_points(fe, kf.points[hits]), kf.labels[hits], sid, kf.index)
         self.kf_landmarks.append(seen)
         # the semantic cloud for ICP: walls and objects (floor and ceiling add bytes, not constraints)
@@ -478,4 +486,5 @@ class Agent:
             new = poses[sid * per]
             moved += bool(self.map.move_submap(sid, new))
             self.objects.set_submap_pose(sid, new)
+            self.people.set_submap_pose(sid, new)
         return moved

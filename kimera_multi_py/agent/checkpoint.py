@@ -66,7 +66,9 @@ from kimera_multi_py.io.outdir import reason
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
+READABLE_VERSIONS = (6, 7)  # 6: before people were tracked (loads with an empty tracker)
+ADDED_FIELDS: dict[str, tuple[str, ...]] = {"kimera_multi_py.agent.params.AgentParams": ("people",)}
 _HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
 
@@ -100,6 +102,10 @@ ALLOWED_CLASSES: frozenset[str] = frozenset({
     "kimera_multi_py.mapping.submaps.Submap",
     "kimera_multi_py.mapping.submaps.SubmapMap",
     "kimera_multi_py.mapping.submaps._CellStore",
+    "kimera_multi_py.people.tracking.KeyframePeople",
+    "kimera_multi_py.people.tracking.PeopleParams",
+    "kimera_multi_py.people.tracking.PeopleTracker",
+    "kimera_multi_py.people.tracking.Track",
     "kimera_multi_py.pgo.local_graph.LocalGraph",
     "kimera_multi_py.pgo.params.PgoParams",
 })
@@ -313,7 +319,11 @@ class _Decoder:
             for k, v in fields.items():
                 object.__setattr__(obj, k, self.decode(v, f"{path}.{k}"))
             if dataclasses.is_dataclass(cls):
-                missing = [f.name for f in dataclasses.fields(cls) if f.name not in fields]
+                added = ADDED_FIELDS.get(name if name in ALLOWED_CLASSES else RENAMED_CLASSES.get(name, name), ())
+                for f in dataclasses.fields(cls):  # fields added since version 6 take their defaults
+                    if f.name not in fields and f.name in added and callable(f.default_factory):
+                        object.__setattr__(obj, f.name, f.default_factory())
+                missing = [f.name for f in dataclasses.fields(cls) if f.name not in fields and not hasattr(obj, f.name)]
                 if missing:
                     raise StateError(f"{path}: {name} lacks the fields {', '.join(missing)}")
             return obj
@@ -475,8 +485,9 @@ def parse_checkpoint(data: bytes, name: str = "<bytes>") -> tuple[Any, dict[str,
     if len(data) < head:
         raise CheckpointError(name, "truncated checkpoint (incomplete header)")
     version, flags, tree_size, raw_size, size, crc = _HEADER.unpack_from(data, len(MAGIC))
-    if version != FORMAT_VERSION:
-        raise CheckpointError(name, f"checkpoint format version {version}, this program reads version {FORMAT_VERSION}")
+    if version not in READABLE_VERSIONS:
+        raise CheckpointError(name, f"checkpoint format version {version}, this program reads versions "
+                                    f"{', '.join(map(str, READABLE_VERSIONS))}")
     if flags & ~_ZLIB:
         raise CheckpointError(name, f"unknown checkpoint flags {flags:#x}")
     body = memoryview(data)[head:]
@@ -496,8 +507,8 @@ def parse_checkpoint(data: bytes, name: str = "<bytes>") -> tuple[Any, dict[str,
         doc = msgpack.unpackb(body[:tree_size], raw=False, use_list=True, strict_map_key=False)
     except (ValueError, msgpack.UnpackException, TypeError) as exc:
         raise CheckpointError(name, f"corrupt checkpoint payload: {exc}") from None
-    if type(doc) is not dict or doc.get("format") != FORMAT or doc.get("version") != FORMAT_VERSION:
-        raise CheckpointError(name, f"payload is not a {FORMAT} of version {FORMAT_VERSION}")
+    if type(doc) is not dict or doc.get("format") != FORMAT or doc.get("version") != version:
+        raise CheckpointError(name, f"payload is not a {FORMAT} of version {version}")
     arrays = body[tree_size:]
     try:
         agent = _Decoder(ALLOWED_CLASSES, arrays).decode(doc.get("agent"), "agent")
@@ -508,4 +519,16 @@ def parse_checkpoint(data: bytes, name: str = "<bytes>") -> tuple[Any, dict[str,
         raise CheckpointError(name, f"bad checkpoint content: {type(exc).__name__}: {exc}") from None
     if not isinstance(agent, Agent) or type(extra) is not dict:
         raise CheckpointError(name, "checkpoint does not hold an Agent and a dict")
+    if version < 7:
+        _add_people(agent)
     return agent, extra
+
+
+def _add_people(agent: Any) -> None:
+    """A version-6 agent tracked no people: give it an empty tracker (default knobs) that knows its
+    submaps."""
+    from kimera_multi_py.people.tracking import PeopleTracker
+
+    agent.people = PeopleTracker(agent.map.octree.dynamic_classes, agent.params.people)
+    for sid in agent.map.submap_ids():
+        agent.people.set_submap_pose(sid, agent.map.submaps[sid].T)

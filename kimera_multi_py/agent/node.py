@@ -53,6 +53,7 @@ from kimera_multi_py.core.posegraph import split_key
 from kimera_multi_py.mapshare.agreement import MapView, frame_check, map_view
 from kimera_multi_py.mapshare.consensus import MAP_MESSAGES, MapConsensus, MapConsensusParams, get_map_consensus
 from kimera_multi_py.mapshare.objects import OBJECT_MESSAGES, ObjectExchange
+from kimera_multi_py.mapshare.people import PEOPLE_MESSAGES, PeopleExchange
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.params import PgoParams, team_params
 from kimera_multi_py.pgo.pose_stream import PoseStreamParams
@@ -124,6 +125,12 @@ class AgentNode:
             self.objects = ObjectExchange(agent.robot, agent.objects.confirmed,
                                           lambda src: maps.poses[src][0] if src in maps.poses else None,
                                           agent.objects.num_classes + 1)
+        # and so do its people (docs/algorithms/people.md)
+        self.people: PeopleExchange | None = None
+        if self.maps is not None and self.maps.mode == "exact" and agent.params.people.enabled:
+            maps = self.maps
+            self.people = PeopleExchange(agent.robot, lambda: agent.people,
+                                         lambda src: maps.poses[src][0] if src in maps.poses else None)
         # one-hop map neighbours (None: whoever is alive; the simulation can apply a radio range)
         self.map_neighbours: Callable[[], Iterable[int]] | None = None
         self.frame = agent.robot  # root robot of the frame our poses are in
@@ -250,6 +257,13 @@ class AgentNode:
             pending = self._unacked.get(msg.robot)
             if pending is not None and msg.batch >= pending.batch:
                 del self._unacked[msg.robot]
+        if isinstance(msg, PEOPLE_MESSAGES):
+            if self.people is not None:
+                try:
+                    self.people.handle(msg)
+                except (KimeraMultiError, ValueError, KeyError, IndexError) as exc:
+                    self._refuse(type(msg).__name__, exc)
+            return
         if isinstance(msg, MAP_MESSAGES + OBJECT_MESSAGES):
             sink = self.maps if isinstance(msg, MAP_MESSAGES) else self.objects
             if sink is not None:
@@ -396,6 +410,10 @@ class AgentNode:
             self.objects.set_neighbours(neighbours)
             self.objects.set_frame(self.frame)
             out += self.objects.step(now)
+        if self.people is not None:
+            self.people.set_neighbours(neighbours)
+            self.people.set_frame(self.frame)
+            out += self.people.step(now)
         return out
 
     @property

@@ -13,7 +13,10 @@ simulation and N agent processes from the same data. Files (docs/deployment.md):
 * ``graph.g2o``: the robot's own pose graph (odometry and intra-robot closures);
 * ``closures.json``: every closure it verified (inter- and intra-robot) with its PCM decision and
   its back-end weight, and the front end's counters;
-* ``traffic.json``: bytes and messages per topic, sent and received, and refused messages.
+* ``traffic.json``: bytes and messages per topic, sent and received, and refused messages;
+* ``people.json``: the robot's confirmed people tracks (estimate frame), what each keyframe detected
+  and the track each detection went to, the dropped detections by reason, and (with people sharing)
+  ``team``: the team's fused people (docs/algorithms/people.md).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import numpy as np
 
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.core.errors import DatasetError, MapError
+from kimera_multi_py.core.geometry import transform_points
 from kimera_multi_py.core.posegraph import PoseGraph, robot_key, split_key
 from kimera_multi_py.io.g2o import write_g2o
 from kimera_multi_py.io.tum import read_tum, write_tum
@@ -64,6 +68,9 @@ class RobotOutcome:
     # the robot's team object map (object sharing, exact map consensus): fused objects with team
     # ids (source << 24 | landmark id) and ``members``; None without object sharing
     team_objects: list[dict[str, Any]] | None = None
+    # people (docs/algorithms/people.md): ``tracks`` (own, confirmed), ``keyframes`` (detections and
+    # their tracks), ``dropped``, and ``team`` (the fused team people, None without sharing)
+    people: dict[str, Any] = field(default_factory=dict)
 
 
 def _weights(node: Any) -> dict[tuple[int, int, int], float]:
@@ -107,11 +114,18 @@ def outcome_of(node: Any, server_weights: dict[tuple[int, int, int, int], float]
     # the frame the poses are in (own id: its own frame)
     alignment = dict(getattr(node, "alignment", {}) or {})
     sharing = getattr(node, "objects", None)
+    people_sharing = getattr(node, "people", None)
+    tracker = agent.people
+    people = {"tracks": tracker.people(), "dropped": dict(tracker.dropped),
+              "keyframes": [{"index": r.index, "stamp": r.stamp, "tracks": r.tracks.tolist(),
+                             "detections": transform_points(tracker.correction(r.submap), r.refs).tolist()}
+                            for r in tracker.log],
+              "team": None if people_sharing is None else people_sharing.team_people()}
     return RobotOutcome(agent.robot, np.array(agent.stamps), np.array(agent.poses).reshape(-1, 4, 4),
                         agent.map.octree, objects, rows,
                         {"candidates": s.candidates, "verified": s.verified,
                          "rejected_verification": s.rejected_verification}, traffic, epochs, alignment,
-                        None if sharing is None else sharing.team_objects())
+                        None if sharing is None else sharing.team_objects(), people)
 
 
 def own_graph(agent: Agent) -> PoseGraph:
@@ -142,6 +156,8 @@ def write_outcome(out_dir: str | Path, outcome: RobotOutcome, graph: PoseGraph |
         "closures": [{"own_kf": c.own_kf, "peer": c.peer, "peer_kf": c.peer_kf, "Z": c.Z.tolist(),
                       "accepted": c.accepted, "weight": c.weight} for c in outcome.closures]})
     _write_json(d / "traffic.json", outcome.traffic)
+    _write_json(d / "people.json", {"version": OUTCOME_VERSION, "robot": outcome.robot, "frame": "estimate",
+                                    **outcome.people})
     if graph is not None:
         write_g2o(d / "graph.g2o", graph)
     return d
@@ -177,6 +193,7 @@ def read_outcome(run_dir: str | Path, robot: int) -> RobotOutcome:
     cl = _read_json(d / "closures.json")
     traffic = _read_json(d / "traffic.json") if (d / "traffic.json").exists() else {}
     team_objs = _read_json(d / "team_objects.json") if (d / "team_objects.json").exists() else None
+    people = _read_json(d / "people.json") if (d / "people.json").exists() else {}
     try:
         rows = [ClosureRow(int(c["own_kf"]), int(c["peer"]), int(c["peer_kf"]), np.array(c["Z"], dtype=float),
                            bool(c["accepted"]), None if c["weight"] is None else float(c["weight"]))
@@ -184,6 +201,7 @@ def read_outcome(run_dir: str | Path, robot: int) -> RobotOutcome:
         return RobotOutcome(robot, stamps, poses, octree, list(objs["objects"]), rows,
                             {k: int(v) for k, v in cl["front_end"].items()}, traffic, int(cl.get("pgo_epochs", 0)),
                             dict(cl.get("alignment") or {}),
-                            None if team_objs is None else list(team_objs["objects"]))
+                            None if team_objs is None else list(team_objs["objects"]),
+                            {k: people[k] for k in ("tracks", "keyframes", "dropped", "team") if k in people})
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{d}: malformed outputs ({exc!r})") from None

@@ -11,6 +11,7 @@ import numpy as np
 
 from kimera_multi_py.frontend.pcm import PcmNoise
 from kimera_multi_py.mapping.config import MappingConfig
+from kimera_multi_py.people.tracking import PeopleParams
 
 
 @dataclass
@@ -19,6 +20,8 @@ class AgentParams:
 
     mapping: MappingConfig = field(default_factory=MappingConfig)
     """The robot's maps (octree, objects, submaps): the ``mapping`` section of the configuration."""
+    people: PeopleParams = field(default_factory=PeopleParams)
+    """Person detection and tracking (docs/algorithms/people.md); the library's defaults."""
     odom_sigmas: tuple[float, float] = (np.deg2rad(0.5), 0.03)
     """Odometry noise per keyframe: rotation (rad), translation (m). Runs set it from their keyframe
     source's noise model (the scenario's ``[odometry]``, a recording's manifest) unless given."""

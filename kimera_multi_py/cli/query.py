@@ -1,7 +1,9 @@
 """The ``kimera-multi query`` commands. ``cli/main.py`` calls :func:`register`.
 
 ``kimera-multi query RUN_DIR room-of O(3)``, ``... objects-in R(1) [--class chair]``,
-``... path X,Y,Z X,Y,Z`` (or object / place names), ``... where ROBOT T``. They read
+``... path X,Y,Z X,Y,Z`` (or object / place names), ``... where ROBOT T``, and about people
+``... people-in ROOM --at T``, ``... occupied-rooms --at T``, ``... where-was PERSON --at T``,
+``... rooms-visited PERSON``. They read
 ``RUN_DIR/dsg.json``, or ``RUN_DIR/robotI/dsg.json`` with ``--robot I``; ``--json`` prints JSON
 instead of a table (both options after the sub-command, or before RUN_DIR).
 """
@@ -18,6 +20,8 @@ from kimera_multi_py.core.errors import KimeraMultiError
 
 Robot = Annotated[int | None, typer.Option("--robot", help="Read RUN_DIR/robotI/dsg.json.")]
 AsJson = Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")]
+At = Annotated[float, typer.Option("--at", help="Time (s).")]
+Within = Annotated[float, typer.Option("--within", help="A person counts when seen within this many s of --at.")]
 
 
 def _graph_path(run_dir: Path, robot: int | None) -> Path:
@@ -90,7 +94,7 @@ def register(app: typer.Typer) -> None:
         _show("room of object", [ans], as_json, ans)
 
     @query_app.command("objects-in")
-    def objects_in(ctx: typer.Context, room: Annotated[str, typer.Argument(help="Room, e.g. R(1) or 1.")],
+    def objects_in(ctx: typer.Context, room: Annotated[str, typer.Argument(help="Room, e.g. R(1), 1 or meeting.")],
                    cls: Annotated[str | None, typer.Option("--class", help="Only this class.")] = None,
                    robot: Robot = None, as_json: AsJson = False) -> None:
         """The objects in a room, optionally of one class."""
@@ -115,3 +119,31 @@ def register(app: typer.Typer) -> None:
         """Where a robot was at time T: its keyframe, place and room."""
         ans, as_json = _run(ctx, robot, as_json, lambda g: queries.where(g, robot_id, t))
         _show(f"robot {robot_id} at t={t}", [ans], as_json, ans)
+
+    @query_app.command("people-in")
+    def people_in(ctx: typer.Context, room: Annotated[str, typer.Argument(help="Room, e.g. R(1), 1 or office.")],
+                  at: At, within: Within = 1.0, robot: Robot = None, as_json: AsJson = False) -> None:
+        """The people in a room at a time."""
+        ans, as_json = _run(ctx, robot, as_json, lambda g: queries.people_in(g, room, at, within))
+        _show(f"people in {room} at t={at}", ans, as_json, ans)
+
+    @query_app.command("occupied-rooms")
+    def occupied_rooms(ctx: typer.Context, at: At, within: Within = 1.0, robot: Robot = None,
+                       as_json: AsJson = False) -> None:
+        """The rooms with people in them at a time, and who."""
+        ans, as_json = _run(ctx, robot, as_json, lambda g: queries.occupied_rooms(g, at, within))
+        _show(f"occupied rooms at t={at}", ans, as_json, ans)
+
+    @query_app.command("where-was")
+    def where_was(ctx: typer.Context, person: Annotated[str, typer.Argument(help="Person, e.g. P(3) or 3.")],
+                  at: At, robot: Robot = None, as_json: AsJson = False) -> None:
+        """Where a person was at a time: position, place and room."""
+        ans, as_json = _run(ctx, robot, as_json, lambda g: queries.where_was(g, person, at))
+        _show(f"{person} at t={at}", [ans], as_json, ans)
+
+    @query_app.command("rooms-visited")
+    def rooms_visited(ctx: typer.Context, person: Annotated[str, typer.Argument(help="Person, e.g. P(3) or 3.")],
+                      robot: Robot = None, as_json: AsJson = False) -> None:
+        """The rooms a person was seen in, visit by visit."""
+        ans, as_json = _run(ctx, robot, as_json, lambda g: queries.rooms_visited(g, person))
+        _show(f"rooms visited by {person}", ans, as_json, ans)

@@ -32,10 +32,12 @@ def scene_graph_outputs(octree: SemanticOctree, T_world_map: np.ndarray | None, 
 def scene_graph_and_outputs(octree: SemanticOctree, T_world_map: np.ndarray | None, landmarks: Iterable[Any],
                             trajectories: Mapping[int, tuple[np.ndarray, np.ndarray]] | None,
                             world_or_scenario: World | ScenarioConfig | None, out_path: str | Path | None,
-                            params: SceneGraphParams | None = None) -> tuple[SceneGraph, dict[str, Any]]:
-    """:func:`scene_graph_outputs`, also returning the graph (for agreement checks and Rerun)."""
+                            params: SceneGraphParams | None = None,
+                            people: Iterable[Any] = ()) -> tuple[SceneGraph, dict[str, Any]]:
+    """:func:`scene_graph_outputs`, also returning the graph (for agreement checks and Rerun);
+    ``people`` are the map frame's people (docs/algorithms/people.md)."""
     T = np.eye(4) if T_world_map is None else np.asarray(T_world_map, dtype=np.float64)
-    g = build_scene_graph(octree, landmarks, trajectories, params)
+    g = build_scene_graph(octree, landmarks, trajectories, params, people)
     g.metadata["T_world_map"] = T.tolist()
     if out_path is not None:
         save_scene_graph(g, out_path)

@@ -14,6 +14,9 @@ Objects
 Places
     ``place_coverage``: the fraction of free floor cells (free ground-truth cells in the first layer
     above the floor, inside the true rooms) within ``coverage_radius`` (horizontally) of a place.
+Room kinds
+    ``room_kinds.accuracy``: the share of estimated rooms whose kind (:mod:`~kimera_multi_py.scene_graph.kinds`)
+    is the kind the kind table gives the layout of the true room they stand for.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from scipy.spatial import cKDTree
 from kimera_multi_py.core.geometry import transform_points
 from kimera_multi_py.eval.scene_graph_truth import TrueRooms, as_world, true_rooms
 from kimera_multi_py.scene_graph.graph import SceneGraph
+from kimera_multi_py.scene_graph.kinds import load_kind_table
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.world import World
 
@@ -49,6 +53,23 @@ def room_overlap(g: SceneGraph, truth: TrueRooms, voxels: np.ndarray, T_world_ma
     est_size = np.bincount(est, minlength=ne).astype(np.float64)
     overlap = np.bincount(t_of[vox] * ne + est, minlength=nt * ne).reshape(nt, ne).astype(np.float64)
     return overlap, true_size, est_size
+
+
+def room_kind_scores(g: SceneGraph, world: World, truth: TrueRooms, match: np.ndarray) -> dict[str, Any]:
+    """Each estimated room's kind against the layout of the true room it stands for (rooms whose true
+    room has no layout the kind table knows are not scored)."""
+    table = load_kind_table()
+    layout = {s.name: s.layout for s in world.cfg.spaces}
+    rooms, right = {}, []
+    for e, t in enumerate(match.tolist()):
+        kind = g.room_kind[e] if e < len(g.room_kind) else None
+        spaces = truth.names[t].split("+") if t >= 0 else []
+        expected = sorted({k for s in spaces if (k := table.layouts.get(layout.get(s) or "")) is not None})
+        if expected:
+            right.append(kind in expected)
+        rooms[f"R({e})"] = {"kind": kind, "confidence": float(g.room_kind_confidence[e]) if kind else None,
+                            "true": truth.names[t] if t >= 0 else None, "expected": expected or None}
+    return {"accuracy": float(np.mean(right)) if right else None, "scored": len(right), "rooms": rooms}
 
 
 def scene_graph_metrics(g: SceneGraph, world_or_scenario: World | ScenarioConfig,
@@ -88,6 +109,7 @@ def scene_graph_metrics(g: SceneGraph, world_or_scenario: World | ScenarioConfig
         d, _ = cKDTree(P[:, :2]).query(floor[:, :2])
         coverage = float(np.mean(d <= coverage_radius))
     return {
+        "room_kinds": room_kind_scores(g, world, truth, match),
         "rooms_found": int(g.num_rooms),
         "rooms_true": len(truth),
         "room_precision": precision,

@@ -177,7 +177,8 @@ def traffic_totals(outcomes: Sequence[RobotOutcome]) -> dict[str, Any]:
 
 def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray,
                         out_dir: Path | None, robot_maps: dict[int, Any] | None = None,
-                        team_map: Any = None, params: SceneGraphParams | None = None) -> dict[str, Any]:
+                        team_map: Any = None, params: SceneGraphParams | None = None,
+                        graphs: dict[str, Any] | None = None) -> dict[str, Any]:
     """Every robot's scene graph (from its team map and team objects when it has them, else its own
     map and objects), and the team's (from the fused team map, with every robot's objects fused
     and every trajectory), scored against
@@ -186,32 +187,41 @@ def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_te
     The top-level figures are the team graph's (or robot 0's without a team map); ``robots`` holds
     each robot's and ``agree`` whether the robots' graphs match. The team graph leaves out the
     objects and trajectories of the robots kept out of the team frame (only those of
-    :func:`team_frame_robots`): they are in their own frames."""
+    :func:`team_frame_robots`): they are in their own frames. ``graphs``, when given, receives the
+    graph the top-level figures are of (``team``) and its ``room_match``."""
     from kimera_multi_py.eval.scene_graph import graphs_agree, scene_graph_and_outputs
-    from kimera_multi_py.mapping.object_fusion import fuse_team
+    from kimera_multi_py.mapping.object_fusion import fuse_team, team_id
+    from kimera_multi_py.people.fusion import TeamTrack, fuse_people
 
-    graphs, per_robot = [], {}
+    built, per_robot = [], {}
     for o in outcomes:
         octree = (robot_maps or {}).get(o.robot, o.octree)
         path = out_dir / f"robot{o.robot}" / "dsg.json" if out_dir is not None else None
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
         objects = o.team_objects if o.team_objects is not None else o.objects
+        people = o.people.get("team") or o.people.get("tracks") or []
         g, fig = scene_graph_and_outputs(octree, T_world_team, objects, {o.robot: (o.stamps, o.poses)}, world, path,
-                                         params)
-        graphs.append(g)
+                                         params, people)
+        built.append(g)
         per_robot[str(o.robot)] = fig
     out: dict[str, Any] = dict(per_robot[str(outcomes[0].robot)])
+    chosen = built[0]
     if team_map is not None:
         in_frame = set(team_frame_robots(outcomes))
         team = [o for o in outcomes if o.robot in in_frame]
         objects = fuse_team({o.robot: o.objects for o in team})
         trajectories = {o.robot: (o.stamps, o.poses) for o in team}
-        _, out = scene_graph_and_outputs(team_map, T_world_team, objects, trajectories, world,
-                                         out_dir / "dsg.json" if out_dir is not None else None, params)
+        people = fuse_people({team_id(o.robot, int(t["id"])): TeamTrack(o.robot, np.asarray(t["stamps"], float),
+                                                                         np.asarray(t["positions"], float))
+                              for o in team for t in o.people.get("tracks", [])})
+        chosen, out = scene_graph_and_outputs(team_map, T_world_team, objects, trajectories, world,
+                                              out_dir / "dsg.json" if out_dir is not None else None, params, people)
         out = dict(out)
+    if graphs is not None:
+        graphs.update(team=chosen, room_match=out.get("room_match"))
     out["robots"] = per_robot
-    out["agree"] = graphs_agree(graphs)
+    out["agree"] = graphs_agree(built)
     return out
 
 

@@ -70,8 +70,13 @@ class ObjectExchange:
     """One robot's object sharing (see the module docstring).
 
     ``landmarks`` gives the robot's confirmed landmarks; ``poses(source)`` the newest pose table
-    the robot holds for ``source`` (its own included), or None.
+    the robot holds for ``source`` (its own included), or None. Subclasses share other tables
+    (:class:`~kimera_multi_py.mapshare.people.PeopleExchange`) through ``MESSAGE``, ``_check``,
+    ``_own_table``, ``_relay`` and ``_content``.
     """
+
+    MESSAGE: type[Message] = ObjectUpdate
+    WHAT = "objects"
 
     def __init__(self, robot: int, landmarks: Callable[[], Iterable[Landmark]],
                  poses: Callable[[int], SubmapPoses | None], num_classes: int, period: float = 5.0,
@@ -86,7 +91,7 @@ class ObjectExchange:
         self.refresh_every = int(refresh_every)
         self.frame = self.robot
         self.neighbours: set[int] = set()
-        self.tables: dict[int, ObjectUpdate] = {}  # source -> newest table
+        self.tables: dict[int, Any] = {}  # source -> newest table
         self.ignored: Counter[str] = Counter()
         self.rounds = 0
         self._version = 0
@@ -99,22 +104,40 @@ class ObjectExchange:
     def set_frame(self, frame: int) -> None:
         self.frame = int(frame)
 
-    def handle(self, msg: Message) -> None:
+    def handle(self, message: Message) -> None:
         """Absorb one table; raises :class:`MessageError` on inconsistent content."""
-        if not isinstance(msg, ObjectUpdate) or msg.robot == self.robot or msg.source == self.robot:
+        if not isinstance(message, self.MESSAGE):
+            return
+        msg: Any = message
+        if msg.robot == self.robot or msg.source == self.robot:
             return
         if msg.robot not in self.neighbours:
             self.ignored["not_neighbour"] += 1
             return
+        self._check(msg)
+        old = self.tables.get(msg.source)
+        if old is not None and msg.version <= old.version:
+            self.ignored[f"{self.WHAT}_duplicate"] += 1
+            return
+        self.tables[msg.source] = msg
+
+    def _check(self, msg: Any) -> None:
         if msg.probs.shape[1] != self.num_classes:
             raise MessageError(f"ObjectUpdate.probs: expected {self.num_classes} classes, got {msg.probs.shape[1]}")
         if len(np.unique(msg.ids)) != len(msg.ids):
             raise MessageError("ObjectUpdate.ids: duplicate object ids")
-        old = self.tables.get(msg.source)
-        if old is not None and msg.version <= old.version:
-            self.ignored["objects_duplicate"] += 1
-            return
-        self.tables[msg.source] = msg
+
+    def _own_table(self, version: int) -> Any:
+        return own_table(self.robot, version, self.frame, self.landmarks(), self.num_classes, self.poses(self.robot))
+
+    def _relay(self, t: Any) -> Message:
+        return ObjectUpdate(robot=self.robot, source=t.source, version=t.version, frame=self.frame, ids=t.ids,
+                            submaps=t.submaps, classes=t.classes, probs=t.probs, centroids=t.centroids,
+                            extents=t.extents, sightings=t.sightings)
+
+    @staticmethod
+    def _content(t: Any) -> bytes:
+        return _content(t)
 
     def step(self, now: float) -> list[Message]:
         """Publish what is due at time ``now`` (seconds): nothing between periods."""
@@ -122,10 +145,9 @@ class ObjectExchange:
             return []
         self._next = float(now) + self.period
         self.rounds += 1
-        table = own_table(self.robot, self._version + 1, self.frame, self.landmarks(), self.num_classes,
-                          self.poses(self.robot))
+        table = self._own_table(self._version + 1)
         old = self.tables.get(self.robot)
-        if (old is None and len(table.ids)) or (old is not None and _content(old) != _content(table)):
+        if (old is None and self._content(table)) or (old is not None and self._content(old) != self._content(table)):
             self._version += 1
             self.tables[self.robot] = table
         if not self.neighbours:
@@ -134,9 +156,7 @@ class ObjectExchange:
         out: list[Message] = []
         for src, t in sorted(self.tables.items()):
             if refresh or t.version > self._published.get(src, 0):
-                out.append(ObjectUpdate(robot=self.robot, source=t.source, version=t.version, frame=self.frame,
-                                        ids=t.ids, submaps=t.submaps, classes=t.classes, probs=t.probs,
-                                        centroids=t.centroids, extents=t.extents, sightings=t.sightings))
+                out.append(self._relay(t))
                 self._published[src] = t.version
         return out
 

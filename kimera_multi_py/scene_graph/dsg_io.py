@@ -2,7 +2,10 @@
 
 Node ids are ``spark_dsg.NodeSymbol`` values: ``O`` + object id, ``p`` + place id (geometric,
 see :func:`~.places.place_ids`), ``R`` + room index, ``B0`` the building and the robot's letter +
-keyframe index for agents (layer 2, partition = the letter's code). Hierarchy edges run child ->
+keyframe index for agents (layer 2, partition = the letter's code), and ``H`` + a running sample
+index for people: dynamic agents of layer 2, one partition per person (``PEOPLE_PARTITION`` + the
+person's rank by id), one node per sample with its stamp, position and person id, chained in time,
+with edges to the sample's place and room (docs/algorithms/people.md). Hierarchy edges run child ->
 parent (object/agent -> place -> room -> building); place-place edges carry the clearance as
 their weight; room-room edges join rooms a place edge crosses; agent poses are chained in order.
 What Spark-DSG has no field for (exact stamps and poses, the build's parameters) goes in metadata.
@@ -52,6 +55,12 @@ def agent_symbol(robot: int, k: int) -> dsg.NodeSymbol:
 
 
 BUILDING = dsg.NodeSymbol("B", 0)
+PERSON = "H"
+PEOPLE_PARTITION = 1000  # people's partitions start here (robots' are their letters' codes)
+
+
+def person_symbol(sample: int) -> dsg.NodeSymbol:
+    return dsg.NodeSymbol(PERSON, int(sample))
 
 
 def room_color(r: int) -> np.ndarray:
@@ -81,6 +90,8 @@ def to_spark(g: SceneGraph) -> dsg.DynamicSceneGraph:
     for r in range(g.num_rooms):
         a = dsg.RoomNodeAttributes()
         a.position, a.name, a.color = g.room_pos[r], f"room {r}", _color(room_color(r))
+        if r < len(g.room_kind):
+            a.metadata.set({"kind": g.room_kind[r], "kind_confidence": float(g.room_kind_confidence[r])})
         inside = g.place_pos[g.place_room == r]
         if len(inside):
             a.bounding_box = _box(inside.min(0), inside.max(0))
@@ -118,8 +129,27 @@ def to_spark(g: SceneGraph) -> dsg.DynamicSceneGraph:
             G.insert_edge(sym, place_symbol(g.place_ids[g.agent_place[k]]))
         if k and g.agent_robot[k - 1] == robot:
             G.insert_edge(agent_symbol(robot, int(g.agent_index[k - 1])), sym)
+    _add_people(G, g)
     G.metadata.set({"kimera_multi": _jsonable(g.metadata)})
     return G
+
+
+def _add_people(G: dsg.DynamicSceneGraph, g: SceneGraph) -> None:
+    rank = {pid: i for i, pid in enumerate(np.unique(g.person_id).tolist())}
+    rooms = g.person_room()
+    for k in range(len(g.person_id)):
+        pid = int(g.person_id[k])
+        a = dsg.AgentNodeAttributes()
+        a.position, a.world_R_body = g.person_pos[k], dsg.Quaternion(1.0, 0.0, 0.0, 0.0)
+        a.timestamp = datetime.timedelta(seconds=float(g.person_stamp[k]))
+        a.metadata.set({"person": pid, "stamp": float(g.person_stamp[k])})
+        G.add_node(AGENTS_LAYER, person_symbol(k), a, PEOPLE_PARTITION + rank[pid])
+        if g.person_place[k] >= 0:
+            G.insert_edge(person_symbol(k), place_symbol(g.place_ids[g.person_place[k]]))
+        if rooms[k] >= 0:
+            G.insert_edge(person_symbol(k), room_symbol(int(rooms[k])))
+        if k and g.person_id[k - 1] == pid:
+            G.insert_edge(person_symbol(k - 1), person_symbol(k))
 
 
 def _jsonable(x: Any) -> Any:
@@ -149,7 +179,7 @@ def _box_min_max(node: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def from_spark(G: dsg.DynamicSceneGraph) -> SceneGraph:
     """The arrays of a Spark-DSG graph written by :func:`to_spark`."""
-    places, rooms, objects, agents = [], [], [], []
+    places, rooms, objects, agents, people = [], [], [], [], []
     building = np.zeros(3)
     for node in G.nodes:
         sym = node.id
@@ -162,6 +192,8 @@ def from_spark(G: dsg.DynamicSceneGraph) -> SceneGraph:
             building = _vec(node, "position")
         elif layer == OBJECTS_LAYER and node.layer.partition == 0 and cat == "O":
             objects.append(node)
+        elif layer == AGENTS_LAYER and cat == PERSON and node.layer.partition >= PEOPLE_PARTITION:
+            people.append(node)
         elif layer == AGENTS_LAYER and node.layer.partition != 0:
             agents.append(node)
     places.sort(key=lambda n: n.id.category_id)
@@ -195,6 +227,9 @@ def from_spark(G: dsg.DynamicSceneGraph) -> SceneGraph:
     a_meta = [n.attributes.metadata.get() for n in agents]
     meta = G.metadata.get().get("kimera_multi", {})
     boxes = [_box_min_max(n) for n in objects]
+    r_meta = [n.attributes.metadata.get() for n in rooms]
+    people.sort(key=lambda n: n.id.category_id)
+    p_meta = [n.attributes.metadata.get() for n in people]
 
     def arr(rows: list[Any], dim: int = 3) -> np.ndarray:
         return np.array(rows, dtype=np.float64).reshape(-1, dim)
@@ -222,6 +257,13 @@ def from_spark(G: dsg.DynamicSceneGraph) -> SceneGraph:
         agent_place=np.array([parent_place(n) for n in agents], dtype=np.int64),
         building_pos=building,
         metadata=meta,
+        person_id=np.array([m.get("person", -1) for m in p_meta], dtype=np.int64),
+        person_stamp=np.array([m.get("stamp", n.attributes.timestamp.total_seconds())
+                               for m, n in zip(p_meta, people, strict=True)], dtype=np.float64),
+        person_pos=arr([_vec(n, "position") for n in people]),
+        person_place=np.array([parent_place(n) for n in people], dtype=np.int64),
+        room_kind=[str(m.get("kind", "unknown")) for m in r_meta],
+        room_kind_confidence=np.array([m.get("kind_confidence", 0.0) for m in r_meta], dtype=np.float64),
     )
 
 
@@ -253,7 +295,8 @@ def to_networkx(g: SceneGraph) -> nx.Graph:
     bs = str(BUILDING)
     G.add_node(bs, layer=BUILDING_LAYER, position=g.building_pos.copy())
     for r in range(g.num_rooms):
-        G.add_node(str(room_symbol(r)), layer=ROOMS_LAYER, position=g.room_pos[r].copy())
+        G.add_node(str(room_symbol(r)), layer=ROOMS_LAYER, position=g.room_pos[r].copy(),
+                   kind=g.room_kind[r] if r < len(g.room_kind) else None)
         G.add_edge(str(room_symbol(r)), bs, kind="hierarchy")
     for r, s in g.room_edges.tolist():
         G.add_edge(str(room_symbol(r)), str(room_symbol(s)), kind="room")
@@ -280,4 +323,15 @@ def to_networkx(g: SceneGraph) -> nx.Graph:
         if k and g.agent_robot[k - 1] == g.agent_robot[k]:
             prev = str(agent_symbol(int(g.agent_robot[k]), int(g.agent_index[k - 1])))
             G.add_edge(prev, name, kind="agent")
+    rooms = g.person_room()
+    for k in range(len(g.person_id)):
+        name = str(person_symbol(k))
+        G.add_node(name, layer=AGENTS_LAYER, position=g.person_pos[k].copy(), stamp=float(g.person_stamp[k]),
+                   person=int(g.person_id[k]))
+        if g.person_place[k] >= 0:
+            G.add_edge(name, pnames[g.person_place[k]], kind="hierarchy")
+        if rooms[k] >= 0:
+            G.add_edge(name, str(room_symbol(int(rooms[k]))), kind="hierarchy")
+        if k and g.person_id[k - 1] == g.person_id[k]:
+            G.add_edge(str(person_symbol(k - 1)), name, kind="person")
     return G

@@ -13,6 +13,9 @@ Inputs
     be unique.
     ``trajectories``: ``{robot index: (stamps (n,), poses (n, 4, 4))}``, keyframe poses in the
     map frame; robot ``i`` has the letter ``chr(ord('a') + i)``.
+    ``people``: dicts with ``id``, ``stamps`` (n,) and ``positions`` (n, 3) in the map frame (a
+    robot's tracks or the team's fused people, docs/algorithms/people.md): dynamic agents of
+    layer 2, one sample per node, each attached to the place it is in (and so to a room).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from kimera_multi_py.core.semantics import CLASS_IDS, CLASS_NAMES
 from kimera_multi_py.mapping.object_fusion import team_id
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.scene_graph.grid import DistanceField, distance_field, fill_holes, occupancy_grid
+from kimera_multi_py.scene_graph.kinds import load_kind_table
 from kimera_multi_py.scene_graph.level import level_frame, levelled_grid
 from kimera_multi_py.scene_graph.params import SceneGraphParams
 from kimera_multi_py.scene_graph.places import Places, extract_places
@@ -79,6 +83,14 @@ class SceneGraph:
     agent_place: np.ndarray  # (a,)
     building_pos: np.ndarray  # (3,)
     metadata: dict[str, Any] = field(default_factory=dict)
+    # people: one row per sample, grouped by person and in time order within a person
+    person_id: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (s,)
+    person_stamp: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (s,)
+    person_pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (s, 3)
+    person_place: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (s,) place index
+    # rooms by kind (:mod:`.kinds`): per room, its kind and the kind's confidence
+    room_kind: list[str] = field(default_factory=list)
+    room_kind_confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def num_rooms(self) -> int:
@@ -89,9 +101,42 @@ class SceneGraph:
         return np.where(self.object_place >= 0, self.place_room[np.maximum(self.object_place, 0)], -1) \
             if len(self.place_room) else np.full(len(self.object_ids), -1, dtype=np.int64)
 
+    def person_room(self) -> np.ndarray:
+        """Room index of each person sample through its place (-1 when none)."""
+        return np.where(self.person_place >= 0, self.place_room[np.maximum(self.person_place, 0)], -1) \
+            if len(self.place_room) else np.full(len(self.person_id), -1, dtype=np.int64)
+
     def nodes_per_layer(self) -> dict[str, int]:
-        return {"objects": len(self.object_ids), "agents": len(self.agent_robot), "places": len(self.place_ids),
-                "rooms": self.num_rooms, "building": 1}
+        out = {"objects": len(self.object_ids), "agents": len(self.agent_robot), "places": len(self.place_ids),
+               "rooms": self.num_rooms, "building": 1}
+        if len(self.person_id):
+            out["people"] = len(np.unique(self.person_id))
+            out["people_samples"] = len(self.person_id)
+        return out
+
+
+def as_people(people: Iterable[Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(ids, stamps, positions)`` of person dicts, one row per sample, sorted by id then stamp."""
+    ids, stamps, pos = [], [], []
+    for i, p in enumerate(people):
+        try:
+            st = np.asarray(p["stamps"], dtype=np.float64).reshape(-1)
+            xyz = np.asarray(p["positions"], dtype=np.float64).reshape(-1, 3)
+            pid = int(p["id"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SceneGraphError(f"people[{i}]: expected id, stamps and positions ({exc})") from None
+        if len(st) != len(xyz):
+            raise SceneGraphError(f"people[{i}]: {len(st)} stamps for {len(xyz)} positions")
+        ids.append(np.full(len(st), pid, np.int64))
+        stamps.append(st)
+        pos.append(xyz)
+    if not ids:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    I, S, P = np.concatenate(ids), np.concatenate(stamps), np.concatenate(pos)
+    if not (np.all(np.isfinite(S)) and np.all(np.isfinite(P))):
+        raise SceneGraphError("people: stamps and positions must be finite")
+    order = np.lexsort((S, I))
+    return I[order], S[order], P[order]
 
 
 @dataclass
@@ -209,8 +254,8 @@ def _level_boxes(R: np.ndarray, c: np.ndarray, lo: np.ndarray, hi: np.ndarray) -
 
 def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
                       trajectories: Mapping[int, tuple[np.ndarray, np.ndarray]] | None = None,
-                      params: SceneGraphParams | None = None) -> SceneGraph:
-    """Places, rooms and building from the octree; objects and agents attached (see module docs)."""
+                      params: SceneGraphParams | None = None, people: Iterable[Any] = ()) -> SceneGraph:
+    """Places, rooms and building from the octree; objects, agents and people attached (see module docs)."""
     p = params or SceneGraphParams()
     t0 = time.perf_counter()
     # a tilted map is built in its level frame (p_level = R p_map) and the results turned back
@@ -251,6 +296,10 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
     agent_pose = np.concatenate(poses) if poses else np.zeros((0, 4, 4))
     xyz = agent_pose[:, :3, 3] if R is None else agent_pose[:, :3, 3] @ R.T
     agent_place = _attach(field, places, usable, xyz, xyz, xyz, np.zeros(len(xyz), np.int64), p.attach_candidates)
+    person_id, person_stamp, person_pos = as_people(people)
+    pxyz = person_pos if R is None else person_pos @ R.T
+    person_place = _attach(field, places, usable, pxyz, pxyz, pxyz, np.zeros(len(pxyz), np.int64),
+                           p.attach_candidates)
     place_pos = places.positions if R is None else places.positions @ R
     if R is not None:
         room_pos, building = room_pos @ R, building @ R
@@ -258,9 +307,13 @@ def build_scene_graph(octree: SemanticOctree, objects: Iterable[Any] = (),
     meta = {"delta": rooms.delta, "sweep": {"deltas": rooms.deltas.tolist(), "counts": rooms.counts.tolist()},
             "params": p.to_dict(), "build_s": build_s, "resolution": grid.resolution,
             "level_rotation": None if R is None else R.tolist()}
+    kind_rooms = np.where(object_place >= 0, rooms.place_room[np.maximum(object_place, 0)], -1) \
+        if len(rooms.place_room) else np.full(len(obs.ids), -1, dtype=np.int64)
+    kinds, confidence = load_kind_table().kinds(kind_rooms, obs.labels, nr)
     return SceneGraph(
         places.ids, place_pos, places.clearance, rooms.place_room, places.edges, places.edge_clearance,
         room_pos, room_edges(places, rooms.place_room), obs.ids, obs.labels, obs.centroids, obs.lo, obs.hi,
         object_place, np.concatenate(robots) if robots else np.zeros(0, np.int64),
         np.concatenate(index) if index else np.zeros(0, np.int64),
-        np.concatenate(stamps) if stamps else np.zeros(0), agent_pose, agent_place, building, meta)
+        np.concatenate(stamps) if stamps else np.zeros(0), agent_pose, agent_place, building, meta,
+        person_id, person_stamp, person_pos, person_place, kinds, confidence)

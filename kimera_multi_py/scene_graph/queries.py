@@ -1,9 +1,12 @@
 """Queries on a scene graph: the room of an object, the objects in a room, a shortest route over
-places, and where a robot was at a time (docs/algorithms/scene_graph.md).
+places, where a robot was at a time (docs/algorithms/scene_graph.md), and the people: who is in a
+room at a time, which rooms are occupied, where a person was, the rooms a person visited
+(docs/algorithms/people.md).
 
 Nodes are named as Spark-DSG prints them (``O(3)``, ``R(1)``, ``p(…)``, ``a(12)``); ``O3`` and
 ``R1`` are accepted too, and plain integers mean object ids for objects and room indices for
-rooms. Answers are plain dicts of JSON types (the CLI prints them as tables or JSON).
+rooms; people are ``P(12)`` (their id). Answers are plain dicts of JSON types (the CLI prints
+them as tables or JSON).
 """
 
 from __future__ import annotations
@@ -57,12 +60,9 @@ def room_of(g: SceneGraph, obj: str | int) -> dict[str, Any]:
 
 
 def objects_in(g: SceneGraph, room: str | int, cls: str | int | None = None) -> list[dict[str, Any]]:
-    """Objects whose place lies in ``room``, optionally of one class (name or id)."""
-    r = _parse(room, "R")
-    if not 0 <= r < g.num_rooms:
-        raise SceneGraphError(f"no room R({r}) in the scene graph ({g.num_rooms} rooms)")
+    """Objects whose place lies in ``room`` (a room or a kind of room), optionally of one class (name or id)."""
     rooms = g.object_room()
-    keep = rooms == r
+    keep = np.isin(rooms, room_indices(g, room))
     if cls is not None:
         c = CLASS_IDS.get(str(cls)) if not str(cls).isdigit() else int(cls)
         if c is None or not 0 < c < len(CLASS_NAMES):
@@ -138,3 +138,96 @@ def where(g: SceneGraph, robot: int | str, t: float) -> dict[str, Any]:
     return {"robot": r, "t": float(t), "node": str(agent_symbol(r, int(g.agent_index[k]))),
             "stamp": float(g.agent_stamp[k]), "position": g.agent_pose[k, :3, 3].round(3).tolist(),
             "place": str(place_symbol(int(g.place_ids[p]))) if p >= 0 else None, "room": _room_name(g, room)}
+
+
+# ---- people (docs/algorithms/people.md) ----------------------------------------------------------
+def room_indices(g: SceneGraph, room: str | int) -> list[int]:
+    """The rooms a name means: ``R(1)`` / ``R1`` / ``1``, or a kind (``meeting``: every room of
+    that kind, :mod:`.kinds`)."""
+    if isinstance(room, str) and room.strip() in g.room_kind:
+        return [r for r, k in enumerate(g.room_kind) if k == room.strip()]
+    if isinstance(room, str) and room.strip().isalpha() and len(room.strip()) > 1:
+        kinds = ", ".join(sorted(set(g.room_kind))) or "none"
+        raise SceneGraphError(f"no room of kind {room.strip()!r} in the scene graph (kinds: {kinds})")
+    r = _parse(room, "R")
+    if not 0 <= r < g.num_rooms:
+        raise SceneGraphError(f"no room R({r}) in the scene graph ({g.num_rooms} rooms)")
+    return [r]
+
+
+def _person(g: SceneGraph, person: str | int) -> np.ndarray:
+    """Sample rows of a person named ``P(12)`` / ``P12`` / ``12``."""
+    pid = _parse(person, "P")
+    rows = np.flatnonzero(g.person_id == pid)
+    if len(rows) == 0:
+        known = ", ".join(f"P({i})" for i in np.unique(g.person_id).tolist()) or "none"
+        raise SceneGraphError(f"no person P({pid}) in the scene graph (people: {known})")
+    return rows
+
+
+def _sample(g: SceneGraph, k: int, rooms: np.ndarray) -> dict[str, Any]:
+    p = int(g.person_place[k])
+    return {"person": f"P({int(g.person_id[k])})", "stamp": round(float(g.person_stamp[k]), 3),
+            "position": g.person_pos[k].round(3).tolist(),
+            "place": str(place_symbol(int(g.place_ids[p]))) if p >= 0 else None, "room": _room_name(g, int(rooms[k]))}
+
+
+def _at(g: SceneGraph, t: float, within: float) -> np.ndarray:
+    """Per person seen within ``within`` s of ``t``: the row of their sample nearest to ``t``."""
+    dt = np.abs(g.person_stamp - float(t))
+    near = np.flatnonzero(dt <= within)
+    if len(near) == 0:
+        return near
+    order = near[np.lexsort((dt[near], g.person_id[near]))]
+    first = np.concatenate([[True], g.person_id[order][1:] != g.person_id[order][:-1]])
+    return order[first]
+
+
+def people_in(g: SceneGraph, room: str | int, t: float, within: float = 1.0) -> list[dict[str, Any]]:
+    """The people in ``room`` at time ``t``: each person seen within ``within`` s of ``t``, by the
+    room of their sample nearest in time."""
+    rooms = g.person_room()
+    wanted = set(room_indices(g, room))
+    return [_sample(g, int(k), rooms) for k in _at(g, t, within) if int(rooms[k]) in wanted]
+
+
+def occupied_rooms(g: SceneGraph, t: float, within: float = 1.0) -> list[dict[str, Any]]:
+    """The rooms with people in them at time ``t`` (as :func:`people_in`), with who is there."""
+    rooms = g.person_room()
+    out: dict[int, list[str]] = {}
+    for k in _at(g, t, within).tolist():
+        if rooms[k] >= 0:
+            out.setdefault(int(rooms[k]), []).append(f"P({int(g.person_id[k])})")
+    return [{"room": _room_name(g, r), "people": people} for r, people in sorted(out.items())]
+
+
+def where_was(g: SceneGraph, person: str | int, t: float) -> dict[str, Any]:
+    """Where ``person`` was at time ``t``: between two samples, the position interpolated and the room
+    of the nearer one; before the first or after the last sample, that sample (``seen`` says whether
+    ``t`` lies within the person's track)."""
+    rows = _person(g, person)
+    stamps = g.person_stamp[rows]
+    rooms = g.person_room()
+    k = int(rows[int(np.argmin(np.abs(stamps - float(t))))])
+    out = _sample(g, k, rooms)
+    seen = bool(stamps[0] <= t <= stamps[-1])
+    if seen and len(rows) > 1:
+        out["position"] = [round(float(np.interp(t, stamps, g.person_pos[rows, a])), 3) for a in range(3)]
+    out.update(t=float(t), seen=seen)
+    return out
+
+
+def rooms_visited(g: SceneGraph, person: str | int) -> list[dict[str, Any]]:
+    """The rooms ``person`` was seen in, visit by visit in time order (samples outside every room
+    are skipped): room, first and last stamp, samples."""
+    rows = _person(g, person)
+    rooms = g.person_room()[rows]
+    keep = rooms >= 0
+    rows, rooms = rows[keep], rooms[keep]
+    if len(rows) == 0:
+        return []
+    start = np.flatnonzero(np.concatenate([[True], rooms[1:] != rooms[:-1]]))
+    end = np.concatenate([start[1:], [len(rows)]])
+    return [{"room": _room_name(g, int(rooms[a])), "first": round(float(g.person_stamp[rows[a]]), 3),
+             "last": round(float(g.person_stamp[rows[b - 1]]), 3), "samples": int(b - a)}
+            for a, b in zip(start.tolist(), end.tolist(), strict=True)]

@@ -101,17 +101,30 @@ class RobotConfig(StrictModel):
 
 
 class HumanConfig(StrictModel):
-    waypoints: list[Vec2]
+    """A walking person (class ``human``): along ``waypoints``, or from room to room along ``route``
+    (space names; the path is planned through doors and follows each room's tour, as a robot's)."""
+
+    waypoints: list[Vec2] | None = None
+    route: list[str] | None = None
     speed: PosFloat = 0.8
     radius: PosFloat = 0.25
     height: PosFloat = 1.75
+    pause: NonNegFloat = 0.0
+    """Seconds the person stands still at each waypoint (a route's door passages excepted)."""
+    start: NonNegFloat = 0.0
+    """Seconds the person stands at the first waypoint before setting off."""
+    loop: bool = False
+    """Walk back to the first waypoint and round again; false: back and forth along the path."""
 
-    @field_validator("waypoints")
-    @classmethod
-    def _two_points(cls, v: list[Vec2]) -> list[Vec2]:
-        if len(v) < 2:
+    @model_validator(mode="after")
+    def _one_path(self) -> HumanConfig:
+        if (self.route is None) == (self.waypoints is None):
+            raise ValueError("give exactly one of 'route' or 'waypoints'")
+        if self.waypoints is not None and len(self.waypoints) < 2:
             raise ValueError("waypoints need at least two points")
-        return v
+        if self.route is not None and len(self.route) < 1:
+            raise ValueError("route needs at least one space")
+        return self
 
 
 class SensorConfig(StrictModel):
@@ -185,10 +198,12 @@ def check_references(cfg: ScenarioConfig) -> None:
     for i, space in enumerate(cfg.spaces):
         if space.layout is not None and space.layout not in cfg.layouts:
             raise ConfigError(f"spaces[{i}].layout", f"unknown layout {space.layout!r}")
-    for i, robot in enumerate(cfg.robots):
-        for j, name in enumerate(robot.route or []):
+    routes = [("robots", i, r.route) for i, r in enumerate(cfg.robots)]
+    routes += [("humans", i, h.route) for i, h in enumerate(cfg.humans)]
+    for group, i, route in routes:
+        for j, name in enumerate(route or []):
             if name not in names:
-                raise ConfigError(f"robots[{i}].route[{j}]", f"unknown space {name!r}")
+                raise ConfigError(f"{group}[{i}].route[{j}]", f"unknown space {name!r}")
     if cfg.sensor.confusion is not None:
         import numpy as np
 

@@ -19,7 +19,7 @@ from kimera_multi_py.core.geometry import relative, yaw_pose
 from kimera_multi_py.core.semantics import CLASS_IDS
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.sensors import OdometryModel, RangeCategorySensor, Scan, flip_confusion, ray_pattern
-from kimera_multi_py.sim.world import ELLIPSOID, Primitives, World
+from kimera_multi_py.sim.world import DOOR_APPROACH, ELLIPSOID, Primitives, World
 
 
 @dataclass
@@ -81,18 +81,30 @@ def keyframe_poses(waypoints: np.ndarray, z: float, speed: float, turn_rate: flo
 
 
 class Human:
-    """A walking person: an upright ellipsoid going back and forth along its waypoints."""
+    """A walking person: an upright ellipsoid along its waypoints at ``speed``, standing ``pauses[i]``
+    seconds at waypoint ``i``, still at the first one until ``start``; back and forth along the
+    path, or round it when ``loop``."""
 
-    def __init__(self, waypoints: np.ndarray, speed: float, radius: float, height: float, floor_z: float):
-        self.waypoints = waypoints
+    def __init__(self, waypoints: np.ndarray, speed: float, radius: float, height: float, floor_z: float,
+                 pauses: np.ndarray | None = None, start: float = 0.0, loop: bool = False) -> None:
+        self.waypoints = np.asarray(waypoints, dtype=float)
         self.speed, self.radius, self.height, self.floor_z = speed, radius, height, floor_z
-        self.cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(waypoints, axis=0), axis=1))])
+        self.start = float(start)
+        pause = np.zeros(len(self.waypoints)) if pauses is None else np.asarray(pauses, dtype=float)
+        idx = np.arange(len(self.waypoints))
+        idx = np.concatenate([idx, [0]]) if loop else np.concatenate([idx, idx[-2::-1]])
+        pts, waits = self.waypoints[idx], pause[idx]
+        legs = np.linalg.norm(np.diff(pts, axis=0), axis=1) / speed
+        # key times: arrive at each waypoint, leave it after its pause
+        arrive = np.concatenate([[0.0], np.cumsum(waits[:-1] + legs)])
+        self.times = np.stack([arrive, arrive + waits], axis=1).reshape(-1)[:-1]  # the last pause is the first's
+        self.points = np.repeat(pts, 2, axis=0)[:-1]
+        self.period = float(self.times[-1])
 
     def position(self, t: float) -> np.ndarray:
-        L = self.cum[-1]
-        s = (t * self.speed) % (2 * L)
-        s = 2 * L - s if s > L else s
-        xy = np.array([np.interp(s, self.cum, self.waypoints[:, 0]), np.interp(s, self.cum, self.waypoints[:, 1])])
+        tau = max(float(t) - self.start, 0.0)
+        tau = tau % self.period if self.period > 0 else 0.0
+        xy = [np.interp(tau, self.times, self.points[:, a]) for a in (0, 1)]
         return np.array([xy[0], xy[1], self.floor_z + self.height / 2])
 
 
@@ -108,12 +120,23 @@ class Simulation:
         self.sensor = RangeCategorySensor(ray_pattern(s.model, s.h_fov_deg, s.v_fov_deg, s.rows, s.cols),
                                           s.max_range, s.range_sigma, confusion)
         self.odometry = OdometryModel(np.deg2rad(cfg.odometry.rot_sigma_deg), cfg.odometry.trans_sigma)
-        self.humans = []
-        for i, h in enumerate(cfg.humans):
-            wp = np.asarray(h.waypoints, dtype=float)
-            self.world.check_path(wp, f"humans[{i}].waypoints")
-            self.humans.append(Human(wp, h.speed, h.radius, h.height, self.world.floor_z))
+        self.humans = [self._human(i) for i in range(len(cfg.humans))]
         self.plans = [self._plan(i) for i in range(len(cfg.robots))]
+
+    def _human(self, i: int) -> Human:
+        h = self.cfg.humans[i]
+        if h.waypoints is not None:
+            wp, fname = np.asarray(h.waypoints, dtype=float), f"humans[{i}].waypoints"
+            pauses = np.full(len(wp), h.pause)
+        else:
+            fname = f"humans[{i}].route"
+            wp = self.world.plan_route(list(h.route or []), fname)
+            doors = np.array([d.center for d in self.world.doors]).reshape(-1, 2)
+            at_door = (np.linalg.norm(wp[:, None] - doors[None], axis=2) <= DOOR_APPROACH + 1e-6).any(axis=1) \
+                if len(doors) else np.zeros(len(wp), dtype=bool)
+            pauses = np.where(at_door, 0.0, h.pause)
+        self.world.check_path(wp, fname)
+        return Human(wp, h.speed, h.radius, h.height, self.world.floor_z, pauses, h.start, h.loop)
 
     @property
     def num_robots(self) -> int:

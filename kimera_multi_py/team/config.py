@@ -77,7 +77,7 @@ if TYPE_CHECKING:
     SceneGraphSection = ParamGroup[SceneGraphParams]
     FaultsSection = ParamGroup[Faults]
 else:
-    AgentSection = param_group(AgentParams, "AgentSection", exclude=("mapping", "server"))
+    AgentSection = param_group(AgentParams, "AgentSection", exclude=("mapping", "server", "people"))
     PgoSection = param_group(PgoParams, "PgoSection", defaults=team_params())
     NodeSection = param_group(NodeParams, "NodeSection", exclude=("server",))
     ScheduleSection = param_group(ScheduleParams, "ScheduleSection")

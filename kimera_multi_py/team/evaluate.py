@@ -10,13 +10,21 @@ import numpy as np
 
 from kimera_multi_py.agent.outputs import read_outcome
 from kimera_multi_py.core.errors import DatasetError, MapError
+from kimera_multi_py.eval.people import people_results
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import map_quality
-from kimera_multi_py.eval.team import excluded_robots, scene_graph_results, team_results, trajectory_results
+from kimera_multi_py.eval.team import (
+    excluded_robots,
+    scene_graph_results,
+    team_frame_robots,
+    team_results,
+    trajectory_results,
+)
 from kimera_multi_py.io.tum import write_tum
 from kimera_multi_py.mapping.octree_io import load_octree
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.mapshare.fusion import octree_cells
+from kimera_multi_py.scene_graph.graph import SceneGraph
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import Simulation
 from kimera_multi_py.team.build import agent_params
@@ -107,8 +115,13 @@ def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str,
         extra["map_consensus"] = team_map_figures(sim.world, team_maps, T)
     if lingered := linger_reports(run_dir, [o.robot for o in outcomes]):
         extra["linger"] = lingered
+    graphs: dict[str, object] = {}
     extra["scene_graph"] = scene_graph_results(sim.world, outcomes, T, run_dir, team_maps or None,
-                                               params=config.to_scene_graph_params())
+                                               params=config.to_scene_graph_params(), graphs=graphs)
+    team_graph, room_match = graphs.get("team"), graphs.get("room_match")
+    extra["people"] = people_results(sim, truth, outcomes, T, team_frame_robots(outcomes),
+                                     team_graph if isinstance(team_graph, SceneGraph) else None,
+                                     room_match if isinstance(room_match, dict) else None)
     for r, plan in enumerate(sim.plans):
         write_tum(run_dir / f"robot{r}_gt.tum", np.asarray(plan.stamps), plan.poses)
     return Results(scenario=cfg.name, mode=mode, seed=sim.seed, robots=robots, team=team,

@@ -17,6 +17,7 @@ _ROBOT_COLORS = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 3
 Closures = list[tuple[np.ndarray, np.ndarray, bool]]  # (end a, end b, accepted)
 Voxels = list[tuple[np.ndarray, np.ndarray]]  # per robot: (centres, class ids)
 Boxes = tuple[np.ndarray, np.ndarray, np.ndarray]  # centres, sizes, class ids
+People = list[tuple[int, np.ndarray]]  # (person id, track positions (n, 3) in time order)
 
 
 class Viz(Protocol):
@@ -25,6 +26,7 @@ class Viz(Protocol):
                      points_sensor: np.ndarray, labels: np.ndarray) -> None: ...
     def log_team(self, stamp: float, trajectories: list[np.ndarray], closures: Closures, voxels: Voxels,
                  objects: Boxes) -> None: ...
+    def log_people(self, stamp: float, people: People) -> None: ...
     def log_scalar(self, path: str, stamp: float, value: float) -> None: ...
     def log_voxels(self, path: str, stamp: float, centers: np.ndarray, labels: np.ndarray) -> None: ...
     def close(self) -> None: ...
@@ -42,6 +44,9 @@ class NullViz:
 
     def log_team(self, stamp: float, trajectories: list[np.ndarray], closures: Closures, voxels: Voxels,
                  objects: Boxes) -> None:
+        pass
+
+    def log_people(self, stamp: float, people: People) -> None:
         pass
 
     def log_scalar(self, path: str, stamp: float, value: float) -> None:
@@ -111,6 +116,18 @@ class RerunViz:
         if len(c):
             self.rec.log("team/objects", rr.Boxes3D(centers=c, sizes=size, colors=CLASS_COLORS[lab],
                                                     labels=[CLASS_NAMES[i] for i in lab]))
+
+    def log_people(self, stamp: float, people: People) -> None:
+        """Each tracked person (world frame, docs/algorithms/people.md): their track so far as a line and
+        where they were last seen as a point labelled with their id."""
+        rr = self.rr
+        self.rec.set_time("sim", duration=float(stamp))
+        for pid, xyz in people:
+            if len(xyz):
+                color = CLASS_COLORS[CLASS_NAMES.index("human")]
+                self.rec.log(f"team/people/P{pid}/track", rr.LineStrips3D([xyz], colors=[color], radii=0.02))
+                self.rec.log(f"team/people/P{pid}/now", rr.Points3D(xyz[-1:], colors=[color], radii=0.15,
+                                                                   labels=[f"P({pid})"]))
 
     def log_scalar(self, path: str, stamp: float, value: float) -> None:
         """One point of a time series (a plot in the viewer), e.g. the team maps' disagreement φ."""

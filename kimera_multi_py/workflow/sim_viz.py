@@ -1,4 +1,4 @@
-"""What the simulation shows of the team in Rerun: its estimate, closures, maps and objects."""
+"""What the simulation shows of the team in Rerun: its estimate, closures, maps, objects and people."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import numpy as np
 
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.core.geometry import transform_points
+from kimera_multi_py.mapping.object_fusion import team_id
 from kimera_multi_py.viz.rerun_viz import Viz
 
 
@@ -32,3 +33,6 @@ def log_team(viz: Viz, agents: Sequence[Agent], T: np.ndarray, stamp: float) -> 
     objects = (transform_points(T, np.array([lm.position for lm in lms]).reshape(-1, 3)),
                np.array([lm.box()[1] for lm in lms]).reshape(-1, 3), np.array([lm.label for lm in lms], dtype=int))
     viz.log_team(stamp, trajs, closures, voxels, objects)
+    # every robot's confirmed people tracks, with their team ids (docs/algorithms/people.md)
+    viz.log_people(stamp, [(team_id(a.robot, t.id), transform_points(T, a.people.positions(t)))
+                           for a in agents for t in a.people.confirmed()])

@@ -53,6 +53,7 @@ from kimera_multi_py.core.geometry import transform_points
 from kimera_multi_py.core.ids import SERVER_ID
 from kimera_multi_py.eval.accuracy import ScanRecord, accuracy_results
 from kimera_multi_py.eval.map_metrics import TeamMapReport, phi, team_map_report
+from kimera_multi_py.eval.people import people_results
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import map_quality
 from kimera_multi_py.eval.team import (
@@ -452,8 +453,13 @@ class SimRunner:
             if self.map_report is not None:
                 extra["map_consensus"], team_maps = self._map_results(T_world_team)
             if self.quality:
+                graphs: dict[str, Any] = {}
                 extra["scene_graph"] = scene_graph_results(self.sim.world, self.outcomes, T_world_team, self.out_dir,
-                                                           team_maps, self._reference_map(), self.scene_graph_params)
+                                                           team_maps, self._reference_map(), self.scene_graph_params,
+                                                           graphs)
+                extra["people"] = people_results(self.sim, truth, self.outcomes, T_world_team,
+                                                 team_frame_robots(self.outcomes), graphs.get("team"),
+                                                 graphs.get("room_match"))
         return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
 

@@ -7,7 +7,7 @@
 - :mod:`.closures` — loop closures (``KeyframeDescriptor``, ``LoopClosureRequest``/``Reply``,
   ``LoopClosures``/``LoopClosuresAck``, ``KeyframeOdometry``);
 - :mod:`.maps` — map sharing (``MapDelta``, ``SubmapEvidence``, ``SubmapPoses``, ``MapVersions``,
-  ``MapState``, ``RoamMap``, ``ObjectUpdate``);
+  ``MapState``, ``RoamMap``, ``ObjectUpdate``, ``PeopleUpdate``);
 - :mod:`.team` — team membership and progress (``Heartbeat``, ``Ping``, ``PgoEpoch``, ``AgentState``).
 
 This module holds what the codec needs of all of them: :data:`MESSAGE_TYPES`, every type by
@@ -31,6 +31,7 @@ from kimera_multi_py.comms.messages.maps import (
     MapState,
     MapVersions,
     ObjectUpdate,
+    PeopleUpdate,
     RoamMap,
     SubmapEvidence,
     SubmapPoses,
@@ -57,7 +58,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         PublicPoses, FrameLandmarks, PgoStatus, PcgState, PgoCommand, GncWeights,
         KeyframeDescriptor, LoopClosureRequest, LoopClosureReply, LoopClosures, LoopClosuresAck,
         MapDelta, SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap, ObjectUpdate,
-        Heartbeat, Ping, KeyframeOdometry, PgoEpoch, AgentState, PoseDeltas,
+        Heartbeat, Ping, KeyframeOdometry, PgoEpoch, AgentState, PoseDeltas, PeopleUpdate,
     )
 }
 if set(MESSAGE_TYPES.values()) != set(Message.__subclasses__()):  # a type defined but not listed

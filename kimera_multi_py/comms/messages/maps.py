@@ -1,6 +1,6 @@
 """The map-sharing protocol (docs/algorithms/mapping.md): octree deltas, the exact map consensus
 (submap evidence, submap poses, version summaries), the laplacian and roam baselines, and the
-team's object landmarks.
+team's object landmarks and people tracks.
 """
 
 from __future__ import annotations
@@ -153,3 +153,22 @@ class ObjectUpdate(Message):
     centroids: np.ndarray = arr("float64", "n", 3)
     extents: np.ndarray = arr("float64", "n", 3, lo=0.0)
     sightings: np.ndarray = arr("int32", "n", lo=0)
+
+
+@message("PeopleUpdate", keys.PEOPLE)
+class PeopleUpdate(Message):
+    """People sharing: version ``version`` of ``source``'s confirmed people tracks, one row per
+    sample: the track's id (the source's), the sample's stamp, the submap it was seen from and its
+    position in that submap's reference frame (``T_ref`` of the source's :class:`SubmapPoses`), so
+    a PGO correction moves it as it moves objects. ``frame`` is the sender's frame when sent.
+    Relayed unchanged except for ``robot``.
+    """
+
+    robot: int = robot_id()
+    source: int = robot_id()
+    version: int = count()
+    frame: int = robot_id()
+    tracks: np.ndarray = arr("int64", "n", lo=0)
+    stamps: np.ndarray = arr("float64", "n", lo=0.0)
+    submaps: np.ndarray = arr("int64", "n", lo=0)
+    positions: np.ndarray = arr("float64", "n", 3)

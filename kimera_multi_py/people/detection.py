@@ -1,0 +1,100 @@
+"""Person detections: the points of one keyframe labelled with a dynamic class, clustered
+(docs/algorithms/people.md).
+
+Points are linked within ``radius`` through core points (:func:`~kimera_multi_py.mapping.detection`'s
+DBSCAN rule on a KD-tree radius graph, scipy), so scattered label noise cannot chain into a
+person. A cluster is a person when it has at least ``min_points`` points, a horizontal extent of
+at most ``max_width``, a vertical extent between ``min_height`` and ``max_height``, and holds at
+least ``min_purity`` of all the points (any class) in the voxels (edge ``radius / 2``) it covers:
+label noise on a wall seen from close by is dense enough to cluster, but it is a small minority
+where it lies. The others are dropped and counted by reason. A camera sees only the near side of
+a person, so the centroid is pushed away from the sensor by ``depth_offset`` (for an upright
+cylinder of radius r seen from the side, the visible points' mean lies ``pi r / 4`` in front of its axis).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kimera_multi_py.mapping import morton
+from kimera_multi_py.mapping.detection import _core_clusters
+
+
+@dataclass
+class PersonDetections:
+    """A keyframe's person detections (world frame of the robot's estimate)."""
+
+    centroids: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (n, 3)
+    extents: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (n, 3) box sizes
+    counts: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (n,) points
+
+    def __len__(self) -> int:
+        return len(self.centroids)
+
+    def valid(self) -> np.ndarray:
+        """Rows with a finite centroid and extent and at least one point."""
+        return (np.all(np.isfinite(self.centroids), axis=1) & np.all(np.isfinite(self.extents), axis=1)
+                & (self.counts > 0))
+
+    def take(self, mask: np.ndarray) -> PersonDetections:
+        return PersonDetections(self.centroids[mask], self.extents[mask], self.counts[mask])
+
+
+def detect_people(points: np.ndarray, labels: np.ndarray, dynamic_classes: Iterable[int],
+                  sensor: np.ndarray | None = None, *, radius: float = 0.3, min_core: int = 3,
+                  min_points: int = 10, max_width: float = 1.2, min_height: float = 0.25,
+                  max_height: float = 2.4, depth_offset: float = 0.2, min_purity: float = 0.5,
+                  dropped: Counter[str] | None = None) -> PersonDetections:
+    """Person detections among ``points`` (n, 3, world frame) whose ``labels`` are in
+    ``dynamic_classes``; ``sensor`` is the sensor's position (for the depth offset; none: no
+    offset). Clusters that fail a gate are counted in ``dropped`` (``too_small``, ``too_wide``,
+    ``too_flat``, ``too_tall``, ``impure``); so are non-finite points (``non_finite_points``)."""
+    dropped = Counter() if dropped is None else dropped
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    lab = np.asarray(labels).reshape(-1)
+    if len(pts) != len(lab):
+        raise ValueError(f"{len(pts)} points but {len(lab)} labels")
+    sel = np.isin(lab, np.array(sorted({int(c) for c in dynamic_classes}), dtype=np.int64))
+    finite = np.all(np.isfinite(pts), axis=1)
+    if (bad := int((sel & ~finite).sum())):
+        dropped["non_finite_points"] += bad
+    P = pts[sel & finite]
+    if len(P) < min_points:
+        return PersonDetections()
+    comp = _core_clusters(P, radius, min_core)
+    keep = comp >= 0
+    P, comp = P[keep], comp[keep]
+    if len(P) == 0:
+        return PersonDetections()
+    order = np.argsort(comp, kind="stable")
+    P, comp = P[order], comp[order]
+    sizes = np.bincount(comp)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    lo, hi = np.minimum.reduceat(P, starts, axis=0), np.maximum.reduceat(P, starts, axis=0)
+    centroid = np.add.reduceat(P, starts, axis=0) / sizes[:, None]
+    ext = hi - lo
+    width = np.hypot(ext[:, 0], ext[:, 1])
+    small, wide = sizes < min_points, width > max_width
+    flat, tall = ext[:, 2] < min_height, ext[:, 2] > max_height
+    for name, m in (("too_small", small), ("too_wide", wide & ~small), ("too_flat", flat & ~small & ~wide),
+                    ("too_tall", tall & ~small & ~wide & ~flat)):
+        if (n := int(m.sum())):
+            dropped[name] += n
+    voxel = radius / 2
+    vox, vox_count = np.unique(morton.points_to_codes(pts[finite], voxel), return_counts=True)
+    cells = np.unique(np.stack([comp, morton.points_to_codes(P, voxel)], axis=1), axis=0)
+    total = np.bincount(cells[:, 0], weights=vox_count[np.searchsorted(vox, cells[:, 1])], minlength=len(sizes))
+    impure = (sizes < min_purity * total) & ~(small | wide | flat | tall)
+    if (n := int(impure.sum())):
+        dropped["impure"] += n
+    good = ~(small | wide | flat | tall | impure)
+    centroid, ext, sizes = centroid[good], ext[good], sizes[good]
+    if sensor is not None and depth_offset > 0 and len(centroid):
+        ray = centroid[:, :2] - np.asarray(sensor, dtype=np.float64).reshape(3)[None, :2]
+        norm = np.linalg.norm(ray, axis=1, keepdims=True)
+        centroid[:, :2] += depth_offset * ray / np.maximum(norm, 1e-9)
+    return PersonDetections(centroid, ext, sizes.astype(np.int64))

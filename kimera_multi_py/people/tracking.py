@@ -1,0 +1,295 @@
+"""One robot's people tracks (docs/algorithms/people.md).
+
+Each track is a constant-velocity Kalman filter on the floor plane (state ``x, y, vx, vy``; the
+height is a running mean). At a keyframe every track is predicted to the keyframe's stamp, a
+detection gates with a track when its Mahalanobis distance under the innovation covariance is
+within ``gate_chi2`` and its distance within ``max_gate``, and detections are assigned to tracks
+by ``scipy.optimize.linear_sum_assignment`` on the Mahalanobis cost. A detection left over may
+re-acquire a track lost for a while that could have walked to it (a second assignment on the
+distance, :meth:`PeopleTracker._reacquire`); any other starts a tentative track. A track is
+confirmed (born) once ``confirm_hits`` keyframes saw it, and dies when it went unseen for
+``max_unseen`` seconds (``tentative_unseen`` before it is confirmed).
+``association = "nearest"`` replaces the motion model by nearest-neighbour association on the
+last positions (the baseline that swaps the ids of people who cross).
+
+Frames. Detections come in the robot's current estimate; every track sample is kept in the
+reference frame of the submap it was seen from (the submap's pose when the tracker first met
+it), and a track's filter state is anchored in the submap of its last update. When PGO moves a
+submap (:meth:`PeopleTracker.set_submap_pose`, as :class:`~kimera_multi_py.mapping.objects.ObjectMap`
+does) every sample and state anchored there moves with it exactly.
+
+Bad detections (a non-finite centroid or extent, an empty cluster) are dropped and counted in
+:attr:`PeopleTracker.dropped`.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from kimera_multi_py.core.geometry import inverse, transform_points
+from kimera_multi_py.people.detection import PersonDetections, detect_people
+
+_INFEASIBLE = 1e9
+_H = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+
+
+@dataclass
+class PeopleParams:
+    """Person detection and tracking knobs (primitives; see the module docstrings)."""
+
+    enabled: bool = True
+    radius: float = 0.3
+    """Cluster linking radius (m)."""
+    min_core: int = 3
+    min_points: int = 10
+    max_width: float = 1.2
+    min_height: float = 0.25
+    max_height: float = 2.4
+    min_purity: float = 0.5
+    """Share of the points in a detection's voxels that must be its own."""
+    depth_offset: float = 0.2
+    """How far behind the visible points a person's axis lies (m), along the view ray."""
+    meas_sigma: float = 0.15
+    """Detection position noise, per axis (m)."""
+    accel_sigma: float = 1.0
+    """Process noise: white acceleration (m/s^2)."""
+    init_speed_sigma: float = 1.0
+    """Prior speed uncertainty of a new track, per axis (m/s)."""
+    gate_chi2: float = 9.21
+    """Mahalanobis gate (chi-square, 2 dof, 99 %)."""
+    max_gate: float = 1.5
+    """Largest distance (m) between a track's prediction and its detection."""
+    confirm_hits: int = 2
+    """Keyframes that must see a track before it is confirmed."""
+    tentative_unseen: float = 2.0
+    """Seconds a tentative track survives unseen."""
+    max_unseen: float = 15.0
+    """Seconds a confirmed track survives unseen."""
+    association: Literal["kalman", "nearest"] = "kalman"
+    reacquire_speed: float = 1.0
+    """Re-acquisition of lost tracks: the speed (m/s) a person may have walked unseen; 0: off."""
+    reacquire_after: float = 1.5
+    """Seconds unseen before a track counts as lost (for re-acquisition)."""
+
+
+@dataclass
+class Track:
+    """One person as one robot follows them; samples are ``(stamp, submap, position in the
+    submap's reference frame)`` at every keyframe that saw them."""
+
+    id: int
+    x: np.ndarray  # (4,) x, y, vx, vy in the current estimate (at ``last_seen``)
+    P: np.ndarray  # (4, 4)
+    z: float
+    submap: int  # where the filter state is anchored
+    last_seen: float
+    hits: int = 1
+    confirmed: bool = False
+    stamps: list[float] = field(default_factory=list)
+    submaps: list[int] = field(default_factory=list)
+    refs: list[np.ndarray] = field(default_factory=list)
+
+
+@dataclass
+class KeyframePeople:
+    """What one keyframe gave the tracker, for evaluation: the detections (positions in the
+    reference frame of ``submap``) and the track each one went to (-1: none)."""
+
+    index: int
+    stamp: float
+    submap: int
+    refs: np.ndarray  # (n, 3)
+    tracks: np.ndarray  # (n,)
+
+
+class PeopleTracker:
+    """One robot's people (see the module docstring)."""
+
+    def __init__(self, dynamic_classes: tuple[int, ...], params: PeopleParams | None = None) -> None:
+        self.dynamic_classes = tuple(int(c) for c in dynamic_classes)
+        self.params = params or PeopleParams()
+        self.tracks: dict[int, Track] = {}  # alive
+        self.ended: list[Track] = []  # confirmed tracks that died
+        self.dropped: Counter[str] = Counter()
+        self.log: list[KeyframePeople] = []
+        self._next_id = 0
+        self._ref: dict[int, np.ndarray] = {}
+        self._pose: dict[int, np.ndarray] = {}
+
+    # ---- frames -------------------------------------------------------------------------------
+    def set_submap_pose(self, submap: int, pose: np.ndarray) -> None:
+        """Record a submap's pose; a later call moves the tracks anchored in it."""
+        pose = np.asarray(pose, dtype=np.float64).copy()
+        if submap not in self._ref:
+            self._ref[submap] = pose.copy()
+            self._pose[submap] = pose
+            return
+        D = pose @ inverse(self._pose[submap])  # how the submap moved
+        self._pose[submap] = pose
+        R2 = D[:2, :2]
+        for t in self.tracks.values():
+            if t.submap == submap:
+                t.x[:2] = R2 @ t.x[:2] + D[:2, 3]
+                t.x[2:] = R2 @ t.x[2:]
+                t.z += float(D[2, 3])
+                B = np.zeros((4, 4))
+                B[:2, :2] = B[2:, 2:] = R2
+                t.P = B @ t.P @ B.T
+
+    def correction(self, submap: int) -> np.ndarray:
+        """Current pose of a submap's reference frame in the estimate."""
+        if submap not in self._ref:
+            return np.eye(4)
+        return self._pose[submap] @ inverse(self._ref[submap])
+
+    # ---- keyframes ----------------------------------------------------------------------------
+    def update(self, index: int, stamp: float, submap: int, points: np.ndarray, labels: np.ndarray,
+               sensor: np.ndarray | None = None) -> PersonDetections:
+        """Detect people among a keyframe's end points (estimate frame) and track them."""
+        p = self.params
+        dets = detect_people(points, labels, self.dynamic_classes, sensor, radius=p.radius, min_core=p.min_core,
+                             min_points=p.min_points, max_width=p.max_width, min_height=p.min_height,
+                             max_height=p.max_height, depth_offset=p.depth_offset, min_purity=p.min_purity,
+                             dropped=self.dropped)
+        self.step(index, stamp, submap, dets)
+        return dets
+
+    def _predict(self, t: Track, stamp: float) -> tuple[np.ndarray, np.ndarray]:
+        dt = max(stamp - t.last_seen, 0.0)
+        F = np.eye(4)
+        F[0, 2] = F[1, 3] = dt
+        q = self.params.accel_sigma ** 2
+        Q1 = q * np.array([[dt ** 3 / 3, dt ** 2 / 2], [dt ** 2 / 2, dt]])
+        Q = np.zeros((4, 4))
+        Q[np.ix_([0, 2], [0, 2])] = Q1
+        Q[np.ix_([1, 3], [1, 3])] = Q1
+        return F @ t.x, F @ t.P @ F.T + Q
+
+    def _cost(self, tracks: list[Track], xy: np.ndarray, stamp: float) -> tuple[np.ndarray, list[tuple]]:
+        """Cost (tracks x detections) with infeasible pairs at ``_INFEASIBLE``; the predictions."""
+        p = self.params
+        R = p.meas_sigma ** 2 * np.eye(2)
+        cost = np.full((len(tracks), len(xy)), _INFEASIBLE)
+        preds = []
+        for i, t in enumerate(tracks):
+            if p.association == "nearest":
+                d = np.linalg.norm(xy - t.x[:2], axis=1)
+                cost[i] = np.where(d <= p.max_gate, d, _INFEASIBLE)
+                preds.append((t.x.copy(), t.P.copy()))
+                continue
+            x, P = self._predict(t, stamp)
+            S = _H @ P @ _H.T + R
+            y = xy - x[:2]
+            d2 = np.einsum("ni,ij,nj->n", y, np.linalg.inv(S), y)
+            ok = (d2 <= p.gate_chi2) & (np.linalg.norm(y, axis=1) <= p.max_gate)
+            cost[i] = np.where(ok, d2, _INFEASIBLE)
+            preds.append((x, P))
+        return cost, preds
+
+    def step(self, index: int, stamp: float, submap: int, dets: PersonDetections) -> list[int]:
+        """Associate one keyframe's detections (estimate frame) with the tracks; return the track id
+        of each valid detection (-1 for none). Bad detections are dropped and counted."""
+        p = self.params
+        ok = dets.valid()
+        if (bad := int((~ok).sum())):
+            self.dropped["bad_detections"] += bad
+            dets = dets.take(ok)
+        stamp = float(stamp)
+        tracks = sorted(self.tracks.values(), key=lambda t: t.id)
+        xy = dets.centroids[:, :2]
+        cost, preds = self._cost(tracks, xy, stamp)
+        rows, cols = linear_sum_assignment(cost) if cost.size else (np.zeros(0, int), np.zeros(0, int))
+        owner = np.full(len(dets), -1, dtype=np.int64)
+        C_inv = inverse(self.correction(submap))
+        for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
+            if cost[r, c] >= _INFEASIBLE:
+                continue
+            t = tracks[r]
+            x, P = preds[r]
+            if p.association == "nearest":
+                t.x = np.array([xy[c, 0], xy[c, 1], 0.0, 0.0])
+            else:
+                S = _H @ P @ _H.T + p.meas_sigma ** 2 * np.eye(2)
+                K = P @ _H.T @ np.linalg.inv(S)
+                t.x = x + K @ (xy[c] - x[:2])
+                t.P = (np.eye(4) - K @ _H) @ P
+            t.z = 0.8 * t.z + 0.2 * float(dets.centroids[c, 2])
+            t.hits += 1
+            t.confirmed |= t.hits >= p.confirm_hits
+            self._sample(t, stamp, submap, C_inv)
+            owner[c] = t.id
+        self._reacquire(tracks, xy, dets, owner, stamp, submap, C_inv)
+        for c in np.flatnonzero(owner < 0).tolist():
+            P0 = np.diag([p.meas_sigma ** 2] * 2 + [p.init_speed_sigma ** 2] * 2)
+            t = Track(self._next_id, np.array([xy[c, 0], xy[c, 1], 0.0, 0.0]), P0, float(dets.centroids[c, 2]),
+                      submap, stamp, confirmed=p.confirm_hits <= 1)
+            self._next_id += 1
+            self._sample(t, stamp, submap, C_inv)
+            self.tracks[t.id] = t
+            owner[c] = t.id
+        for t in list(self.tracks.values()):
+            if stamp - t.last_seen > (p.max_unseen if t.confirmed else p.tentative_unseen):
+                del self.tracks[t.id]
+                if t.confirmed:
+                    self.ended.append(t)
+        self.log.append(KeyframePeople(int(index), stamp, int(submap),
+                                       transform_points(C_inv, dets.centroids).reshape(-1, 3), owner.copy()))
+        return owner.tolist()
+
+    def _reacquire(self, tracks: list[Track], xy: np.ndarray, dets: PersonDetections, owner: np.ndarray,
+                   stamp: float, submap: int, C_inv: np.ndarray) -> None:
+        """Second stage: a detection left over goes to a track lost for at least ``reacquire_after`` s
+        that could have walked to it (within ``reacquire_speed`` x the time unseen + ``max_gate``
+        of where it was last seen), by Hungarian assignment on that distance; the track restarts
+        from the detection with an unknown velocity."""
+        p = self.params
+        free = np.flatnonzero(owner < 0)
+        taken = set(owner[owner >= 0].tolist())
+        lost = [t for t in tracks if t.id not in taken and stamp - t.last_seen >= p.reacquire_after]
+        if p.reacquire_speed <= 0 or not len(free) or not lost:
+            return
+        last = np.array([t.x[:2] for t in lost])
+        reach = np.array([p.reacquire_speed * (stamp - t.last_seen) + p.max_gate for t in lost])
+        d = np.linalg.norm(xy[free][None] - last[:, None], axis=2)
+        cost = np.where(d <= reach[:, None], d, _INFEASIBLE)
+        for r, c in zip(*linear_sum_assignment(cost), strict=True):
+            if cost[r, c] >= _INFEASIBLE:
+                continue
+            t, k = lost[int(r)], int(free[int(c)])
+            t.x = np.array([xy[k, 0], xy[k, 1], 0.0, 0.0])
+            t.P = np.diag([p.meas_sigma ** 2] * 2 + [p.init_speed_sigma ** 2] * 2)
+            t.z = float(dets.centroids[k, 2])
+            t.hits += 1
+            t.confirmed |= t.hits >= p.confirm_hits
+            self._sample(t, stamp, submap, C_inv)
+            owner[k] = t.id
+
+    def _sample(self, t: Track, stamp: float, submap: int, C_inv: np.ndarray) -> None:
+        t.last_seen, t.submap = stamp, submap
+        t.stamps.append(stamp)
+        t.submaps.append(submap)
+        t.refs.append(transform_points(C_inv, np.array([[t.x[0], t.x[1], t.z]]))[0])
+
+    # ---- outputs ------------------------------------------------------------------------------
+    def confirmed(self) -> list[Track]:
+        """Every confirmed track, alive or ended, by id."""
+        return sorted([t for t in self.tracks.values() if t.confirmed] + self.ended, key=lambda t: t.id)
+
+    def positions(self, t: Track) -> np.ndarray:
+        """A track's samples in the current estimate (n, 3)."""
+        out = np.zeros((len(t.refs), 3))
+        subs = np.asarray(t.submaps)
+        for s in np.unique(subs).tolist():
+            m = subs == s
+            out[m] = transform_points(self.correction(s), np.asarray(t.refs)[m])
+        return out
+
+    def people(self) -> list[dict[str, object]]:
+        """The confirmed tracks as plain data: ``id``, ``stamps``, ``positions`` (estimate)."""
+        return [{"id": t.id, "stamps": [float(s) for s in t.stamps], "positions": self.positions(t).tolist()}
+                for t in self.confirmed()]
