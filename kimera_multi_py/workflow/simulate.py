@@ -457,9 +457,10 @@ class SimRunner:
                 extra["scene_graph"] = scene_graph_results(self.sim.world, self.outcomes, T_world_team, self.out_dir,
                                                            team_maps, self._reference_map(), self.scene_graph_params,
                                                            graphs)
-                extra["people"] = people_results(self.sim, truth, self.outcomes, T_world_team,
-                                                 team_frame_robots(self.outcomes), graphs.get("team"),
-                                                 graphs.get("room_match"))
+                if getattr(self.sim, "humans", None) is not None:  # recorded data holds no people's truth
+                    extra["people"] = people_results(self.sim, truth, self.outcomes, T_world_team,
+                                                     team_frame_robots(self.outcomes), graphs.get("team"),
+                                                     graphs.get("room_match"))
         return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
 
