@@ -14,7 +14,7 @@ DATASETS ?= $(or $(KMP_DATASETS),$(abspath ../shared/datasets))
 unexport KMP_DATASETS
 PYTEST := $(BIN)/python -m pytest -q -n auto --dist loadfile -rfEs --durations=15
 
-.PHONY: demo test test-all venv bench lint clean
+.PHONY: demo test test-all test-long venv bench lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -35,7 +35,12 @@ test: lint
 	KMP_DATASETS=$(DATASETS) $(PYTEST) -m "not slow"
 
 test-all: lint
-	KMP_DATASETS=$(DATASETS) $(PYTEST)
+	KMP_DATASETS=$(DATASETS) $(PYTEST) -m "not long"
+
+# the robustness benchmark's quick sweep (2 generated buildings, team map on) and the soak's short
+# variant: each many minutes, so CI (test-all) leaves them out
+test-long: $(STAMP)
+	KMP_DATASETS=$(DATASETS) $(PYTEST) -m long
 
 # The benchmarks, each within about 15 minutes on two cores (map_consensus.py the longest);
 # pgo.py needs the large pose graphs and says so when they are missing. Left out: team_scaling.py

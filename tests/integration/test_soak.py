@@ -16,6 +16,7 @@ pytestmark = pytest.mark.integration
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_the_short_soak_loses_nothing(tmp_path: Path) -> None:
     res = subprocess.run([sys.executable, str(REPO / "benchmarks" / "soak.py"), "--json", "--short",
                           "--out", str(tmp_path / "soak")], capture_output=True, text=True, timeout=3600, cwd=REPO)

@@ -14,6 +14,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_quick_robustness_sweep() -> None:
     out = subprocess.run([sys.executable, str(REPO / "benchmarks" / "team_robustness.py"), "--quick", "--json"],
                          capture_output=True, text=True, check=True, timeout=3600)
