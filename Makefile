@@ -45,8 +45,8 @@ test-long: $(STAMP)
 # The benchmarks, each within about 15 minutes on two cores (map_consensus.py the longest);
 # pgo.py needs the large pose graphs and says so when they are missing. Left out: team_scaling.py
 # (2, 4 and 8 robots on the office: its 8-robot run alone takes longer and over 8 GB of memory)
-# and the full team_robustness.py sweep (hours; its --quick subset runs here and in test-all),
-# and benchmarks/soak.py (20 minutes of stream in processes; its --short variant is a slow test).
+# and the full team_robustness.py sweep (hours; its --quick subset runs here and in test-long),
+# and benchmarks/soak.py (20 minutes of stream in processes; its --short variant is a long test: make test-long).
 bench: $(STAMP)
 	$(BIN)/python benchmarks/sim_raycast.py --json
 	$(BIN)/python benchmarks/octree_insert.py --json
