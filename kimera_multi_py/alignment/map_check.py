@@ -72,6 +72,12 @@ class MapAgreement:
         return out
 
 
+def frame_key(T: np.ndarray) -> tuple[int, ...]:
+    """A cache key of frame ``T``: frames within 10 cm and about 1 degree are one (their map
+    agreement is the same after refinement)."""
+    return (*np.round(T[:3, 3] / 0.1).astype(int).tolist(), *np.round(so3_log(T[:3, :3]) / 0.02).astype(int).tolist())
+
+
 @dataclass(frozen=True)
 class CellStates:
     """A map's known cells: centres (n, 3) in the map's frame and their state (+1 occupied, -1 free)."""

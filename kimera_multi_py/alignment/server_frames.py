@@ -43,7 +43,7 @@ from kimera_multi_py.alignment.frames import (
     near_identity,
     settled_decision,
 )
-from kimera_multi_py.alignment.map_check import CellStates, MapAgreement, refined_agreement, team_agreement
+from kimera_multi_py.alignment.map_check import CellStates, MapAgreement, frame_key, refined_agreement, team_agreement
 from kimera_multi_py.core.posegraph import PoseGraph
 
 KEEP_M = 1.0  # an inter-robot group is kept when it moves its closure poses by less than this
@@ -108,7 +108,7 @@ class _Screen:
         rule, mine = self.maps, self.cells(robot)
         if rule is None or mine is None:
             return None, []
-        key = (*np.round(T[:3, 3] / 0.1).astype(int).tolist(), *np.round(T[:3, :3].ravel() / 0.02).astype(int).tolist())
+        key = frame_key(T)
         per = {}
         for a in sorted(aligned):
             if (c := self.cells(a)) is not None:

@@ -53,8 +53,8 @@ from kimera_multi_py.alignment.frames import (
     supported_edges,
 )
 from kimera_multi_py.alignment.landmark_check import LandmarkScore, landmark_lead, landmark_scores
-from kimera_multi_py.alignment.map_check import MapAgreement
-from kimera_multi_py.core.geometry import inverse, so3_log
+from kimera_multi_py.alignment.map_check import MapAgreement, frame_key
+from kimera_multi_py.core.geometry import inverse
 from kimera_multi_py.pgo.local_graph import LocalGraph
 from kimera_multi_py.pgo.params import PgoParams
 from kimera_multi_py.pgo.state import SolveState
@@ -189,8 +189,7 @@ class FrameDecision:
         """The occupancy agreement of frame ``T`` (cached: hypotheses a few cm apart are one)."""
         if self.map_view is None:
             return None
-        key = (*np.round(T[:3, 3] / 0.1).astype(int).tolist(),
-               *np.round(so3_log(T[:3, :3]) / 0.02).astype(int).tolist())
+        key = frame_key(T)
         if key not in self._map_scores:
             self._map_scores[key] = self.map_view(T)
         return self._map_scores[key]
