@@ -92,7 +92,7 @@ class Agent:
         self.map = get_submap_map(p.mapping)
         self.objects = get_object_map(p.mapping)
         # people: tracked from the dynamic points the map masks out, anchored in submaps like objects
-        self.people = PeopleTracker(self.map.octree.dynamic_classes, p.people)
+        self.people = PeopleTracker(self.map.template.dynamic_classes, p.people)
         self.stamps: list[float] = []
         self.odometry: list[np.ndarray] = []
         self.steps: list[np.ndarray] = []  # the chained step: odometry fused with scan registration
@@ -143,7 +143,7 @@ class Agent:
         if not np.all(np.isfinite(odom)):
             raise ValueError(f"robot {self.robot}: non-finite odometry at keyframe {kf.index}")
         hits = np.asarray(kf.hit, dtype=bool)
-        static = hits & ~np.isin(kf.labels, self.map.octree.dynamic_classes)
+        static = hits & ~np.isin(kf.labels, self.map.template.dynamic_classes)
         so = self.scan_odometry
         floor = kf.points[hits & (kf.labels == _FLOOR)] if so is not None and so.floor is not None else None
         walls = kf.points[hits & (kf.labels == _WALL)] if so is not None and so.heading is not None else None

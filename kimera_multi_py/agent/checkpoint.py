@@ -66,8 +66,8 @@ from kimera_multi_py.io.outdir import reason
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
-FORMAT_VERSION = 7
-READABLE_VERSIONS = (6, 7)  # 6: before people were tracked (loads with an empty tracker)
+FORMAT_VERSION = 8
+READABLE_VERSIONS = (6, 7, 8)  # 6: before people were tracked (loads with an empty tracker); 7: map tree kept current
 ADDED_FIELDS: dict[str, tuple[str, ...]] = {"kimera_multi_py.agent.params.AgentParams": ("people",)}
 _HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
@@ -124,6 +124,10 @@ RENAMED_CLASSES: dict[str, str] = {
     "kimera_multi_py.mapping.objects.Landmark": "kimera_multi_py.mapping.landmark.Landmark",
     "kimera_multi_py.mapping.semantic_octree.ObservationModel": "kimera_multi_py.mapping.observation.ObservationModel",
     "kimera_multi_py.mapping.semantic_octree._Block": "kimera_multi_py.mapping.octree_block.OctreeBlock",
+}
+# Attributes renamed since version 6 (per class): files written before still load.
+RENAMED_ATTRIBUTES: dict[str, dict[str, str]] = {
+    "kimera_multi_py.mapping.submaps.SubmapMap": {"octree": "_tree"},  # version 8: the tree became a lazy view
 }
 _ARRAY_KINDS = "biuf"  # bool, signed, unsigned, float: nothing that could hold a Python object
 
@@ -316,8 +320,9 @@ class _Decoder:
                 raise StateError(f"{path}: attributes of {name} are not a map of names")
             obj = cls.__new__(cls)
             self._register(ref, obj, path)
+            moved = RENAMED_ATTRIBUTES.get(_qualname(cls), {})
             for k, v in fields.items():
-                object.__setattr__(obj, k, self.decode(v, f"{path}.{k}"))
+                object.__setattr__(obj, moved.get(k, k), self.decode(v, f"{path}.{k}"))
             if dataclasses.is_dataclass(cls):
                 added = ADDED_FIELDS.get(name if name in ALLOWED_CLASSES else RENAMED_CLASSES.get(name, name), ())
                 for f in dataclasses.fields(cls):  # fields added since version 6 take their defaults
@@ -521,6 +526,8 @@ def parse_checkpoint(data: bytes, name: str = "<bytes>") -> tuple[Any, dict[str,
         raise CheckpointError(name, "checkpoint does not hold an Agent and a dict")
     if version < 7:
         _add_people(agent)
+    if version < 8:  # the tree was kept current: nothing pending
+        agent.map._pending = []
     return agent, extra
 
 
@@ -529,6 +536,6 @@ def _add_people(agent: Any) -> None:
     submaps."""
     from kimera_multi_py.people.tracking import PeopleTracker
 
-    agent.people = PeopleTracker(agent.map.octree.dynamic_classes, agent.params.people)
+    agent.people = PeopleTracker(agent.map.template.dynamic_classes, agent.params.people)
     for sid in agent.map.submap_ids():
         agent.people.set_submap_pose(sid, agent.map.submaps[sid].T)

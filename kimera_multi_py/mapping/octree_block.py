@@ -47,6 +47,37 @@ def _span(levels: np.ndarray) -> np.ndarray:
     return np.left_shift(np.int64(1), 3 * levels.astype(np.int64))
 
 
+def pruned(codes: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The canonical pruned leaves of finest-level cells (sorted unique ``codes``, int16 rows):
+    every 8 sibling leaves of one level with identical rows become their parent, bottom-up to
+    ``PRUNE_MAX_LEVEL``. The same leaves as inserting the cells one update at a time, in one
+    pass per level over all blocks at once. Returns codes, levels and values."""
+    codes = np.asarray(codes, dtype=np.int64)
+    levels = np.zeros(len(codes), dtype=np.int8)
+    for lev in range(1, PRUNE_MAX_LEVEL + 1):
+        n = len(codes)
+        if n < 8:
+            break
+        child = np.int64(1) << (3 * (lev - 1))
+        first = np.flatnonzero((levels[: n - 7] == lev - 1) & ((codes[: n - 7] & ((child << 3) - 1)) == 0))
+        # eight non-overlapping leaves of the child level from the first child to the last are
+        # exactly the eight children
+        first = first[codes[first + 7] == codes[first] + 7 * child]
+        idx = first[:, None] + _ARANGE8
+        ok = np.all(levels[idx] == lev - 1, axis=1)
+        idx = idx[ok]
+        rv = values.take(idx.ravel(), axis=0).reshape(idx.shape + values.shape[1:])
+        idx = idx[np.all(rv == rv[:, :1], axis=(1, 2))]
+        if len(idx) == 0:
+            continue
+        keep = np.ones(n, dtype=np.bool_)
+        keep[idx[:, 1:].ravel()] = False
+        levels[idx[:, 0]] = lev
+        kept = np.flatnonzero(keep)
+        codes, levels, values = codes[kept], levels[kept], values.take(kept, axis=0)
+    return codes, levels, values
+
+
 class OctreeBlock:
     """The linear octree of one block: sorted leaf codes, levels and fixed-point rows."""
 

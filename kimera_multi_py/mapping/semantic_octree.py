@@ -24,7 +24,7 @@ import numpy as np
 
 from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.observation import SCALE, ObservationModel, occupied_mask, quantise
-from kimera_multi_py.mapping.octree_block import BLOCK_SHIFT, OctreeBlock, unique_sorted
+from kimera_multi_py.mapping.octree_block import BLOCK_SHIFT, OctreeBlock, pruned, unique_sorted
 from kimera_multi_py.mapping.raycast import ScanCells, scan_cells
 
 
@@ -323,6 +323,12 @@ class SemanticOctree:
             return
         rows = self.model.clamp(np.asarray(rows, dtype=np.int16).copy())
         rows[:, 0] = 0
+        if not self._blocks:  # an empty tree: the pruned leaves in one pass
+            codes = np.asarray(codes, dtype=np.int64).reshape(-1)
+            if codes[0] < 0 or np.any(codes[1:] <= codes[:-1]):
+                raise ValueError("codes must be non-negative, sorted and unique")
+            self._set_arrays(*pruned(codes, self._compress(rows)))
+            return
         current, known = self.cell_values(codes)
         current[~known] = self.model.prior_row
         self.add(codes, rows - current)

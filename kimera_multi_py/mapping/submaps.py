@@ -27,6 +27,8 @@ from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 
 log = logging.getLogger(__name__)
 
+_PENDING_MERGE = 64  # changed-cell arrays kept before they are merged into one
+
 
 @dataclass
 class Submap:
@@ -93,16 +95,33 @@ class SubmapMap:
         move_threshold: float | None = None,
         **octree_kwargs: object,
     ) -> None:
-        self.octree = SemanticOctree(resolution, num_classes, **octree_kwargs)  # type: ignore[arg-type]
-        self.resolution = self.octree.resolution
-        self.num_classes = self.octree.num_classes
+        self._tree = SemanticOctree(resolution, num_classes, **octree_kwargs)  # type: ignore[arg-type]
+        self._pending: list[np.ndarray] = []  # cells changed since the tree was last brought up to date
+        self.resolution = self._tree.resolution
+        self.num_classes = self._tree.num_classes
         self.move_threshold = (
             0.5 * self.resolution if move_threshold is None else float(move_threshold)
         )
         self.submaps: dict[int, Submap] = {}
         self._fused = _CellStore(self.num_classes + 1)  # sum of the submaps' world contributions
-        m = self.octree.model
+        m = self._tree.model
         self._span = m.hi - m.lo  # a submap's evidence per cell stays within +-span
+
+    @property
+    def octree(self) -> SemanticOctree:
+        """The map as an octree, ``clamp(prior + evidence)`` (do not change it).
+
+        The evidence is what every scan and move updates; the tree is brought up to date only
+        when asked for, with every cell changed since in one update (docs/algorithms/mapping.md).
+        """
+        self._flush()
+        return self._tree
+
+    @property
+    def template(self) -> SemanticOctree:
+        """The octree whose resolution, observation model and options the map uses: read its
+        parameters or ``empty_like()`` it, not its cells (they may lag the evidence)."""
+        return self._tree
 
     # ---- submaps ---------------------------------------------------------------------------
     def new_submap(self, submap_id: int, pose: np.ndarray) -> Submap:
@@ -133,8 +152,8 @@ class SubmapMap:
         s = self.submaps[submap_id]
         T_ref_sensor = s.T_ref @ np.asarray(T_submap_sensor, dtype=np.float64)
         pts = transform_points(T_ref_sensor, np.asarray(points_sensor, dtype=np.float64))
-        cells = self.octree.scan_cells(T_ref_sensor[:3, 3], pts, labels, max_range)
-        codes, deltas = self.octree.model.deltas(cells)
+        cells = self._tree.scan_cells(T_ref_sensor[:3, 3], pts, labels, max_range)
+        codes, deltas = self._tree.model.deltas(cells)
         if len(codes) == 0:
             return 0
         # merge into the submap's evidence (sequentially clamped)
@@ -228,14 +247,25 @@ class SubmapMap:
             uniq, summed, sup = uniq[changed], summed[changed], sup[changed]
             if len(uniq) == 0:
                 return
-        live, live_rows, dead = self._fused.add(uniq, summed, sup)
-        self.octree.remove_cells(dead)
-        if len(live):
-            m = self.octree.model
-            vals = live_rows + m.prior_row.astype(np.int32)
+        self._fused.add(uniq, summed, sup)
+        self._pending.append(uniq)
+        if len(self._pending) >= _PENDING_MERGE:  # bound the list: one sorted array of distinct cells
+            self._pending = [np.unique(np.concatenate(self._pending))]
+
+    def _flush(self) -> None:
+        """Bring the tree up to date: every cell changed since, at its value now or unknown."""
+        if not self._pending:
+            return
+        codes = np.unique(np.concatenate(self._pending))
+        self._pending = []
+        rows, alive = self._fused.lookup(codes)
+        self._tree.remove_cells(codes[~alive])
+        if alive.any():
+            m = self._tree.model
+            vals = rows[alive] + m.prior_row.astype(np.int32)
             np.clip(vals, m.lo, m.hi, out=vals)
             vals[:, 0] = 0
-            self.octree.set_cells(live, vals.astype(np.int16))
+            self._tree.set_cells(codes[alive], vals.astype(np.int16))
 
     def evidence(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The fused evidence: sorted world codes, int32 rows and support counts."""
@@ -297,6 +327,25 @@ class _CellStore:
             cat(live_rows) if live_rows else np.zeros((0, self.k1), np.int32),
             cat(dead) if dead else empty,
         )
+
+    def lookup(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows at sorted unique codes and whether each cell is held (support above 0)."""
+        rows = np.zeros((len(codes), self.k1), dtype=np.int32)
+        alive = np.zeros(len(codes), dtype=np.bool_)
+        if len(codes) == 0:
+            return rows, alive
+        bids = codes >> BLOCK_SHIFT
+        cuts = np.flatnonzero(bids[1:] != bids[:-1]) + 1
+        for s, e in zip([0, *cuts.tolist()], [*cuts.tolist(), len(codes)], strict=True):
+            blk = self.blocks.get(int(bids[s]))
+            if blk is None:
+                continue
+            c, r, n = blk
+            pos = np.searchsorted(c, codes[s:e]).clip(max=len(c) - 1)
+            hit = (c[pos] == codes[s:e]) & (n[pos] > 0)
+            rows[s:e][hit] = r[pos[hit]]
+            alive[s:e] = hit
+        return rows, alive
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         keys = sorted(self.blocks)

@@ -32,7 +32,7 @@ MapView = Callable[[np.ndarray], MapAgreement | None]
 
 def _own_states(own: SubmapMap, occupancy: float) -> CellStates | None:
     codes, rows, _ = own.evidence()
-    return cell_states(codes, view_rows(own.octree, rows), own.resolution, occupancy) if len(codes) else None
+    return cell_states(codes, view_rows(own.template, rows), own.resolution, occupancy) if len(codes) else None
 
 
 def _peer_states(maps: MapConsensus, frame: int, resolution: float, occupancy: float) -> dict[int, CellStates]:

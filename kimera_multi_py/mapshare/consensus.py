@@ -119,7 +119,7 @@ class MapConsensus:
         self._next = -np.inf
         self._next_roam = -np.inf
         # exact
-        self.team = EvidenceMap(local.octree)
+        self.team = EvidenceMap(local.template)
         self.held: dict[Key, _Held] = {}
         self.poses: dict[int, tuple[SubmapPoses, float]] = {}  # source -> (latest table, got)
         self._own_table: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -130,7 +130,7 @@ class MapConsensus:
         self._sent_poses: dict[int, tuple[int, float]] = {}
         self._summary: tuple[bytes, int] | None = None  # last content, periods since sent
         # roam / laplacian
-        self.roam = RoamFusion(local.octree, self.params.roam_weight, self.params.roam_top_k,
+        self.roam = RoamFusion(local.template, self.params.roam_weight, self.params.roam_top_k,
                                self.params.roam_clamp) if self.mode == "roam" else None
         self._roam_fused_this_period = False
         self.lap = LaplacianState(self.k + 1, self.params.epsilon,
@@ -437,7 +437,7 @@ class MapConsensus:
             return self.roam.tree
         if self._team_cache is None:
             codes, rows = self.team_cells()
-            tree = self.local.octree.empty_like()
+            tree = self.local.template.empty_like()
             tree.set_cells(codes, rows)
             self._team_cache = tree
         return self._team_cache
@@ -468,7 +468,7 @@ class MapConsensus:
             return octree_cells(self.roam.tree)
         assert self.lap is not None
         codes, rows, _ = self.lap.team_rows(self.team_size)
-        return codes, _compressed(self.local.octree, view_rows(self.local.octree, rows))
+        return codes, _compressed(self.local.template, view_rows(self.local.template, rows))
 
 
 def _compressed(tree: SemanticOctree, rows: np.ndarray) -> np.ndarray:

@@ -113,7 +113,7 @@ def centralised_team_map(
     ids = sorted(maps) if robots is None else sorted(set(robots))
     if not ids:
         raise ValueError("centralised_team_map needs at least one robot")
-    template = maps[ids[0]].octree
+    template = maps[ids[0]].template
     return fuse_records((r for i in ids for r in records_of(i, maps[i])), template)
 
 

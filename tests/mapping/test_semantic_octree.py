@@ -214,3 +214,36 @@ def test_observation_model():
         SemanticOctree(0.0, K)
     with pytest.raises(ValueError):
         SemanticOctree(RES, K, dynamic_classes=[K + 1])
+
+
+@pytest.mark.parametrize("top_k", [None, 3])
+def test_filling_an_empty_tree_in_one_batch_equals_filling_it_update_by_update(top_k):
+    """``set_cells`` on an empty tree prunes the whole batch at once: the same leaves as the
+    same cells written into a tree that already holds something (the incremental path)."""
+    from kimera_multi_py.mapping.octree_block import BLOCK_SHIFT
+
+    rng = np.random.default_rng(7)
+    tree = SemanticOctree(0.1, 6, top_k=top_k)
+    # whole blocks, whole level-2 nodes and scattered voxels, with few distinct rows so that
+    # many sibling groups are identical
+    base = np.int64(5) << BLOCK_SHIFT
+    codes = np.unique(np.concatenate([base + np.arange(1 << BLOCK_SHIFT), (base << 1) + np.arange(4096),
+                                      rng.integers(0, 1 << 40, 20000)]))
+    palette = rng.integers(-3000, 3000, (3, 7)).astype(np.int16)
+    palette[:, 0] = 0
+    rows = palette[rng.integers(1, 3, len(codes))]  # scattered voxels: two values
+    rows[codes >> BLOCK_SHIFT == 5] = palette[0]  # one whole block of one value
+    pick = (codes >> 6) % 3  # level-2 nodes of one value each, some equal to their neighbours
+    second = codes >> BLOCK_SHIFT == 10
+    rows[second] = palette[pick[second]]
+    batch = tree.empty_like()
+    batch.set_cells(codes, rows)
+    far = np.array([np.int64(1) << 50])
+    one_by_one = tree.empty_like()
+    one_by_one.set_cells(far, rows[:1])
+    for part in np.array_split(np.arange(len(codes)), 7):
+        one_by_one.set_cells(codes[part], rows[part])
+    one_by_one.remove_cells(far)
+    assert np.any(batch.levels == 5) and np.any(batch.levels == 2)
+    for name in ("codes", "levels", "values"):
+        assert np.array_equal(getattr(batch, name), getattr(one_by_one, name)), name

@@ -131,3 +131,44 @@ def test_submap_ids_are_checked():
     with pytest.raises(KeyError):
         m.integrate(4, np.eye(4), np.ones((1, 3)), np.array([1]))
     assert m.integrate(3, np.eye(4), np.zeros((0, 3)), np.zeros(0, int)) == 0
+
+
+def _rebuilt(m: SubmapMap):
+    """The map's tree built anew from its evidence, in one batch."""
+    codes, rows, _ = m.evidence()
+    tree = m.template.empty_like()
+    vals = rows + tree.model.prior_row.astype(np.int32)
+    np.clip(vals, tree.model.lo, tree.model.hi, out=vals)
+    vals[:, 0] = 0
+    tree.set_cells(codes, vals.astype(np.int16))
+    return tree
+
+
+def test_the_tree_read_between_updates_equals_the_tree_rebuilt_from_the_evidence():
+    """The tree is brought up to date only when read: read after every update, after some, or
+    only at the end, it holds the same leaves as a tree built from the evidence at that moment."""
+    every, rarely = build(), build()
+    assert same(snapshot(every.octree), snapshot(rarely.octree))
+    rng = np.random.default_rng(3)
+    for step in range(12):
+        sid = int(rng.choice(every.submap_ids()))
+        pose = make_pose(so3_exp(rng.normal(0, 0.05, 3)), rng.normal(0, 0.3, 3)) @ submap_poses()[sid]
+        for m in (every, rarely):
+            m.move_submap(sid, pose)
+        if step == 7:
+            for m in (every, rarely):
+                m.remove_submap(2)
+        assert same(snapshot(every.octree), snapshot(_rebuilt(every)))
+    assert same(snapshot(rarely.octree), snapshot(every.octree))
+    assert len(rarely.octree) > 0 and not rarely._pending
+
+
+def test_the_changed_cells_kept_for_the_tree_stay_bounded():
+    m = build()
+    m.octree  # noqa: B018  (brings the tree up to date)
+    T = m.submaps[0].T.copy()
+    for i in range(300):  # re-anchor the same submap back and forth without reading the tree
+        m.move_submap(0, make_pose(None, [0.3 * (i % 2), 0.0, 0.0]) @ T)
+    kept = sum(len(p) for p in m._pending)
+    assert len(m._pending) < 65 and kept <= 64 * 2 * len(m.submaps[0].codes)
+    assert same(snapshot(m.octree), snapshot(_rebuilt(m)))
