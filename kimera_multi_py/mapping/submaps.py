@@ -271,6 +271,12 @@ class SubmapMap:
         """The fused evidence: sorted world codes, int32 rows and support counts."""
         return self._fused.arrays()
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes held: the submaps' evidence, the fused evidence and the tree's leaves."""
+        subs = sum(s.codes.nbytes + s.rows.nbytes + s.world_codes.nbytes for s in self.submaps.values())
+        return int(subs + self._fused.nbytes + self._tree.nbytes)
+
 
 class _CellStore:
     """Sparse int32 rows with support counts per finest-level code, kept per octree block.
@@ -355,6 +361,10 @@ class _CellStore:
 
     def __len__(self) -> int:
         return sum(len(b[0]) for b in self.blocks.values())
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(c.nbytes + r.nbytes + n.nbytes for c, r, n in self.blocks.values()))
 
 
 def _empty(k1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -429,6 +429,13 @@ class MapConsensus:
 
     # ---- results ---------------------------------------------------------------------------
     @property
+    def nbytes(self) -> int:
+        """Bytes the map consensus holds beyond the robot's own map: the evidence held per
+        submap and the team's evidence store (docs/performance.md)."""
+        held = sum(h.codes.nbytes + h.rows.nbytes + h.marks.nbytes for h in self.held.values())
+        return int(held + self.team.nbytes) if self.mode == "exact" else int(held)
+
+    @property
     def team_map(self) -> SemanticOctree:
         """The robot's team map (an octree; do not change it)."""
         if self.mode == "exact":

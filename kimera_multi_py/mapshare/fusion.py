@@ -252,6 +252,14 @@ class EvidenceMap:
         """The fused evidence: sorted world codes, int32 rows and support counts."""
         return self._fused.arrays()
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes held: every record's cells, rows and world codes, the fused evidence and the
+        octree view while one is built."""
+        rec = sum(e.codes.nbytes + e.rows.nbytes + (e.world.nbytes if e.world is not None else 0)
+                  for e in self.entries.values())
+        return int(rec + self._fused.nbytes + (self._tree.nbytes if self._tree is not None else 0))
+
     def fused(self, keys: Iterable[Key], at: dict[Key, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The evidence of just these records (placed at their poses, or at ``at[key]`` where
         given; active or not): sorted world codes and int32 rows. Records without a pose are left out."""

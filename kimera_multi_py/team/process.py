@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import resource
 import logging
 import math
 import time
@@ -44,6 +45,7 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_NAME = "checkpoint.kmc"
 LINGER_NAME = "linger.json"
+RESOURCES_NAME = "resources.json"  # the agent process's CPU time and peak memory
 LINGER_MAX = 60.0  # s: the longest an agent waits, after its final epoch, for the team to be whole
 
 
@@ -133,6 +135,7 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
         save_checkpoint(ckpt, agent, _node_state(node, source))
         d = write_outcome(job.out_dir, outcome_of(node), own_graph(agent))
         (d / LINGER_NAME).write_text(json.dumps(whole, indent=1))
+        (d / RESOURCES_NAME).write_text(json.dumps(_resources(agent, node), indent=1))
         if node.maps is not None:
             export_team_map(node.maps.team_map, d)
     finally:
@@ -140,6 +143,20 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
         await bus.close()
     return {"robot": job.robot, "keyframes": agent.num_keyframes, "resumed_at": start if job.resume else None,
             "epochs": node.pgo.stats.epochs if node.pgo is not None else 0, "wall_s": time.monotonic() - t0}
+
+
+def _resources(agent: Agent, node: AgentNode) -> dict[str, Any]:
+    """This process's CPU seconds and peak RSS, per second of the robot's stream, and the bytes
+    its map stores hold (docs/performance.md)."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = ru.ru_utime + ru.ru_stime
+    stream = agent.stamps[-1] - agent.stamps[0] if len(agent.stamps) > 1 else 0.0
+    out: dict[str, Any] = {"cpu_s": round(cpu, 2), "stream_s": round(stream, 2),
+                           "cpu_s_per_stream_s": round(cpu / stream, 4) if stream > 0 else None,
+                           "peak_rss_mb": round(ru.ru_maxrss / 1024, 1), "own_map_bytes": agent.map.nbytes}
+    if node.maps is not None:
+        out["map_store_bytes"] = node.maps.nbytes
+    return out
 
 
 async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: float = 0.05) -> dict[str, Any]:
