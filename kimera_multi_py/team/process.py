@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import asyncio
 import json
-import resource
 import logging
 import math
+import resource
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
