@@ -27,7 +27,7 @@ Everything is vectorised: sort, unique and ``searchsorted`` on packed integer ke
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -80,13 +80,33 @@ def frame_key(T: np.ndarray) -> tuple[int, ...]:
 
 @dataclass(frozen=True)
 class CellStates:
-    """A map's known cells: centres (n, 3) in the map's frame and their state (+1 occupied, -1 free)."""
+    """A map's known cells: centres (n, 3) in the map's frame and their state (+1 occupied, -1 free).
+
+    What every comparison against this map computes of it alone (its coarse cells, the
+    neighbourhood of its occupied ones, its occupied cells prepared for registration) is kept
+    with it: a map is compared with several frame hypotheses of another in turn."""
 
     centres: np.ndarray
     state: np.ndarray
+    _derived: dict[object, object] = field(default_factory=dict, compare=False, repr=False)
 
     def __len__(self) -> int:
         return len(self.state)
+
+    def coarse(self, coarse: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Coarse keys and states in the map's own frame (:func:`_coarse`), and the dilated
+        coarse keys of its occupied cells."""
+        key = ("coarse", coarse)
+        if key not in self._derived:
+            k, st = _coarse(self, coarse, None)
+            self._derived[key] = (k, st, _dilate(k[st == OCCUPIED]))
+        return self._derived[key]  # type: ignore[return-value]
+
+    def registration_target(self) -> tuple[object, object]:
+        """The occupied cells prepared as a registration target (:data:`_REGISTRATION`)."""
+        if "target" not in self._derived:
+            self._derived["target"] = _REGISTRATION.prepare(self.centres[self.state == OCCUPIED])
+        return self._derived["target"]  # type: ignore[return-value]
 
 
 def occupancy_logodds(values: np.ndarray) -> np.ndarray:
@@ -142,13 +162,17 @@ def _member(sorted_keys: np.ndarray, query: np.ndarray) -> np.ndarray:
 
 def map_agreement(a: CellStates, b: CellStates, T_b_a: np.ndarray | None = None, coarse: float = 0.3) -> MapAgreement:
     """Agreement of map ``a`` moved into ``b``'s frame by ``T_b_a`` (identity: same frame) with ``b``."""
-    ka, sa = _coarse(a, coarse, T_b_a)
-    kb, sb = _coarse(b, coarse, None)
+    if T_b_a is None:
+        ka, sa, dilated_a = a.coarse(coarse)
+    else:
+        ka, sa = _coarse(a, coarse, T_b_a)
+        dilated_a = None
+    kb, sb, dilated_b = b.coarse(coarse)
     common, ia, ib = np.intersect1d(ka, kb, assume_unique=True, return_indices=True)
     if len(common) == 0:
         return MapAgreement(0, 0)
-    near_a = _member(_dilate(ka[sa == OCCUPIED]), common)
-    near_b = _member(_dilate(kb[sb == OCCUPIED]), common)
+    near_a = _member(_dilate(ka[sa == OCCUPIED]) if dilated_a is None else dilated_a, common)
+    near_b = _member(dilated_b, common)
     a_in_b_free = (sa[ia] == OCCUPIED) & (sb[ib] == FREE) & ~near_b
     b_in_a_free = (sb[ib] == OCCUPIED) & (sa[ia] == FREE) & ~near_a
     conflict = common[a_in_b_free | b_in_a_free]
@@ -171,7 +195,7 @@ def refined_agreement(a: CellStates, b: CellStates, T_b_a: np.ndarray, coarse: f
     if plain.conflicts == 0:
         return plain
     src, tgt = a.centres[a.state == OCCUPIED], b.centres[b.state == OCCUPIED]
-    reg = _REGISTRATION.register(tgt, src, T) if len(src) and len(tgt) else None
+    reg = _REGISTRATION.register(b.registration_target(), src, T) if len(src) and len(tgt) else None
     if reg is None or not reg.converged:
         return plain
     step = inverse(T) @ reg.T

@@ -86,8 +86,15 @@ class ScanRegistration:
         return small_gicp.preprocess_points(pts, downsampling_resolution=self.voxel,
                                             num_neighbors=self.num_neighbors, num_threads=1)
 
-    def register(self, target: np.ndarray, source: np.ndarray, T_init: np.ndarray) -> Registration | None:
-        """Align ``source`` ``(n, 3)`` to ``target`` ``(m, 3)`` from ``T_init`` (T_target_source).
+    def prepare(self, target: np.ndarray) -> tuple[object, object]:
+        """``target`` downsampled, with its covariances and search tree: pass it to
+        :meth:`register` in place of the points to align several sources to one target."""
+        return self._cloud(target)
+
+    def register(self, target: np.ndarray | tuple[object, object], source: np.ndarray,
+                 T_init: np.ndarray) -> Registration | None:
+        """Align ``source`` ``(n, 3)`` to ``target`` ``(m, 3)`` (or a :meth:`prepare`-d target)
+        from ``T_init`` (T_target_source).
 
         Returns None when either cloud has fewer than ``min_points`` points after downsampling.
         """
@@ -96,7 +103,7 @@ class ScanRegistration:
         T0 = np.asarray(T_init, dtype=np.float64)
         if T0.shape != (4, 4) or not np.all(np.isfinite(T0)):
             raise ValueError(f"registration: the initial guess must be a finite 4x4 pose, not {T0.shape}")
-        tgt, tree = self._cloud(target)
+        tgt, tree = target if isinstance(target, tuple) else self._cloud(target)
         src, _ = self._cloud(source)
         if tgt.size() < self.min_points or src.size() < self.min_points:  # type: ignore[attr-defined]
             return None
