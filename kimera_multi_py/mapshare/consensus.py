@@ -90,11 +90,10 @@ class MapConsensusParams:
 
 @dataclass
 class _Held:
-    """A submap's evidence as held: reference-grid cells, rows and the version each last changed."""
+    """A submap's versions as held: its version and the version each cell last changed in, aligned
+    with the cells of its record in the team's evidence store (which holds the cells and rows)."""
 
     version: int
-    codes: np.ndarray
-    rows: np.ndarray  # (n, K+1) int32
     marks: np.ndarray  # (n,) int64
     got: float  # local time the current version arrived
 
@@ -206,11 +205,9 @@ class MapConsensus:
         rows = np.zeros((len(codes), self.k + 1), np.int32)
         rows[:, 1:] = values
         if h is None:
-            h = self.held[key] = _Held(0, np.zeros(0, np.int64), np.zeros((0, self.k + 1), np.int32),
-                                       np.zeros(0, np.int64), self._now)
-        self._merge(h, codes, rows, msg.version)
+            h = self.held[key] = _Held(0, np.zeros(0, np.int64), self._now)
+        self._merge(key, h, codes, rows, msg.version)
         h.version, h.got = msg.version, self._now
-        self.team.set_cells(key, codes, rows)
 
     def _on_poses(self, msg: SubmapPoses) -> None:
         if msg.source == self.robot:
@@ -280,19 +277,17 @@ class MapConsensus:
             key = (self.robot, sid)
             h = self.held.get(key)
             if h is None:
-                h = self.held[key] = _Held(0, np.zeros(0, np.int64), np.zeros((0, self.k + 1), np.int32),
-                                           np.zeros(0, np.int64), self._now)
+                h = self.held[key] = _Held(0, np.zeros(0, np.int64), self._now)
             if s.num_scans > h.version:
-                pos = np.searchsorted(h.codes, s.codes).clip(max=max(len(h.codes) - 1, 0))
+                h_codes, h_rows = self.team.record(key)
+                pos = np.searchsorted(h_codes, s.codes).clip(max=max(len(h_codes) - 1, 0))
                 old = np.zeros(len(s.codes), np.bool_)
-                if len(h.codes):
-                    old = h.codes[pos] == s.codes
+                if len(h_codes):
+                    old = h_codes[pos] == s.codes
                 changed = ~old
-                changed[old] = np.any(h.rows[pos[old]] != s.rows[old], axis=1)
-                codes, rows = s.codes[changed], s.rows[changed]
-                self._merge(h, codes, rows, s.num_scans)
+                changed[old] = np.any(h_rows[pos[old]] != s.rows[old], axis=1)
+                self._merge(key, h, s.codes[changed], s.rows[changed], s.num_scans)
                 h.version, h.got = s.num_scans, self._now
-                self.team.set_cells(key, codes, rows)
             self.team.set_pose(key, s.T_ref, s.T)
             self.team.set_active(key, True)
         sids = np.array(sorted(self.local.submaps), dtype=np.int64)
@@ -307,20 +302,19 @@ class MapConsensus:
                               submaps=sids, T_ref=T_ref, T=T)
             self.poses[self.robot] = (msg, self._now)
 
-    @staticmethod
-    def _merge(h: _Held, codes: np.ndarray, rows: np.ndarray, version: int) -> None:
+    def _merge(self, key: Key, h: _Held, codes: np.ndarray, rows: np.ndarray, version: int) -> None:
+        """Set cells of a held submap (sorted unique ``codes``): rows into the team's record,
+        ``version`` into the marks of the cells it changes."""
         if len(codes) == 0:
             return
-        pos = np.searchsorted(h.codes, codes)
-        known = pos < len(h.codes)
-        known[known] = h.codes[pos[known]] == codes[known]
-        h.rows[pos[known]] = rows[known]
+        held = self.team.record(key)[0]
+        pos = np.searchsorted(held, codes)
+        known = pos < len(held)
+        known[known] = held[pos[known]] == codes[known]
         h.marks[pos[known]] = version
-        new = ~known
-        if new.any():
-            h.codes = np.insert(h.codes, pos[new], codes[new])
-            h.rows = np.insert(h.rows, pos[new], rows[new], axis=0)
-            h.marks = np.insert(h.marks, pos[new], version)
+        if not known.all():
+            h.marks = np.insert(h.marks, pos[~known], version)
+        self.team.set_cells(key, codes, rows)
 
     @staticmethod
     def _belief(reported: int, summary_time: float, sent: tuple[int, float] | None) -> int:
@@ -370,9 +364,10 @@ class MapConsensus:
             if bases:
                 base = min(bases)
                 sel = h.marks > base
+                codes, rows = self.team.record(key)
                 out.append(SubmapEvidence(robot=self.robot, source=key[0], submap=key[1], base=base,
                                           version=h.version, cells=int(sel.sum()), classes=self.k,
-                                          payload=pack_cells(h.codes[sel], h.rows[sel, 1:].astype(np.int16))))
+                                          payload=pack_cells(codes[sel], rows[sel, 1:].astype(np.int16))))
                 self._sent[key] = (h.version, self._now)
         summary = self._versions()
         content = summary.sources.tobytes() + summary.submaps.tobytes() + summary.versions.tobytes() + \
@@ -432,7 +427,7 @@ class MapConsensus:
     def nbytes(self) -> int:
         """Bytes the map consensus holds beyond the robot's own map: the evidence held per
         submap and the team's evidence store (docs/performance.md)."""
-        held = sum(h.codes.nbytes + h.rows.nbytes + h.marks.nbytes for h in self.held.values())
+        held = sum(h.marks.nbytes for h in self.held.values())
         return int(held + self.team.nbytes) if self.mode == "exact" else int(held)
 
     @property

@@ -244,8 +244,10 @@ class EvidenceMap:
             self._withdraw(e)
 
     def record(self, key: Key) -> tuple[np.ndarray, np.ndarray]:
-        """Reference-grid codes and rows held for a record."""
-        e = self.entries[key]
+        """Reference-grid codes and rows held for a record (none for a key not held)."""
+        e = self.entries.get(key)
+        if e is None:
+            return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int32)
         return e.codes, e.rows
 
     def evidence(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
