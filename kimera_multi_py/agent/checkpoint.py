@@ -526,8 +526,10 @@ def parse_checkpoint(data: bytes, name: str = "<bytes>") -> tuple[Any, dict[str,
         raise CheckpointError(name, "checkpoint does not hold an Agent and a dict")
     if version < 7:
         _add_people(agent)
-    if version < 8:  # the tree was kept current: nothing pending
+    if version < 8:  # the tree was kept current (nothing pending), and submap rows were int32
         agent.map._pending = []
+        for s in agent.map.submaps.values():
+            s.rows = s.rows.astype(np.int16)
     return agent, extra
 
 

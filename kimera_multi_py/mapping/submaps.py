@@ -22,6 +22,7 @@ import numpy as np
 
 from kimera_multi_py.core.geometry import inverse, transform_points
 from kimera_multi_py.mapping import morton
+from kimera_multi_py.mapping.observation import SCALE
 from kimera_multi_py.mapping.octree_block import BLOCK_SHIFT
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 
@@ -38,7 +39,7 @@ class Submap:
     T_ref: np.ndarray  # world pose of the submap frame when it was created
     T: np.ndarray  # world pose at which its contribution is currently in the map
     codes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 1), dtype=np.int32))
+    rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 1), dtype=np.int16))  # within +-(h_max - h_min)
     world_codes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     num_scans: int = 0
 
@@ -106,6 +107,8 @@ class SubmapMap:
         self._fused = _CellStore(self.num_classes + 1)  # sum of the submaps' world contributions
         m = self._tree.model
         self._span = m.hi - m.lo  # a submap's evidence per cell stays within +-span
+        if self._span > np.iinfo(np.int16).max:  # submap evidence is kept (and sent) as int16
+            raise ValueError(f"h_max - h_min must stay below {np.iinfo(np.int16).max / SCALE:.1f} for submaps")
 
     @property
     def octree(self) -> SemanticOctree:
@@ -130,7 +133,7 @@ class SubmapMap:
             raise KeyError(f"submap {submap_id} already exists")
         T = np.asarray(pose, dtype=np.float64).copy()
         s = Submap(
-            int(submap_id), T.copy(), T, rows=np.zeros((0, self.num_classes + 1), dtype=np.int32)
+            int(submap_id), T.copy(), T, rows=np.zeros((0, self.num_classes + 1), dtype=np.int16)
         )
         self.submaps[s.id] = s
         return s

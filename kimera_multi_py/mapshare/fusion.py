@@ -136,7 +136,7 @@ class _Entry:
         self.T_ref: np.ndarray | None = None
         self.T: np.ndarray | None = None
         self.codes = np.zeros(0, np.int64)
-        self.rows = np.zeros((0, k1), np.int32)
+        self.rows = np.zeros((0, k1), np.int16)  # a submap's evidence stays within +-(h_max - h_min)
         self.world: np.ndarray | None = None  # world codes while the entry is in the map
         self.active = False
 
@@ -247,7 +247,7 @@ class EvidenceMap:
         """Reference-grid codes and rows held for a record (none for a key not held)."""
         e = self.entries.get(key)
         if e is None:
-            return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int32)
+            return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int16)
         return e.codes, e.rows
 
     def evidence(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -279,7 +279,7 @@ class EvidenceMap:
             rows.append(e.rows)
         if not codes:
             return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int32)
-        uniq, summed, _ = _group_sum(np.concatenate(codes), np.concatenate(rows))
+        uniq, summed, _ = _group_sum(np.concatenate(codes), np.concatenate(rows).astype(np.int32))
         return uniq, summed
 
     # ---- internals -------------------------------------------------------------------------
