@@ -480,11 +480,9 @@ class Agent:
                 tail.append(tail[-1] @ step)
             poses = np.concatenate([poses, np.array(tail[1:])])
         self.poses = list(poses)
-        moved = 0
         per = self.params.mapping.keyframes_per_submap
-        for sid in self.map.submap_ids():
-            new = poses[sid * per]
-            moved += bool(self.map.move_submap(sid, new))
+        anchors = {sid: poses[sid * per] for sid in self.map.submap_ids()}
+        for sid, new in anchors.items():
             self.objects.set_submap_pose(sid, new)
             self.people.set_submap_pose(sid, new)
-        return moved
+        return self.map.move_submaps(anchors)

@@ -16,6 +16,7 @@ and the octree view ``clamp(prior + A)`` (canonically pruned), bit for bit.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +30,7 @@ from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 log = logging.getLogger(__name__)
 
 _PENDING_MERGE = 64  # changed-cell arrays kept before they are merged into one
+_BATCH_CELLS = 1 << 20  # cells gathered before a batch of moves is applied (bounds its memory)
 
 
 @dataclass
@@ -189,20 +191,32 @@ class SubmapMap:
         ``move_threshold`` from where the map currently has it, or ``force`` is set; small
         corrections accumulate until they cross the threshold.
         """
-        s = self.submaps[submap_id]
-        new_pose = np.asarray(new_pose, dtype=np.float64)
-        moved = self._max_cell_motion(s, new_pose)
-        if not force and moved <= self.move_threshold:
-            return False
-        s.T = new_pose.copy()
-        new_world = self._map_codes(s.codes, s.correction)
-        if len(s.codes):  # old contribution out and new one in, in one pass over the octree
-            ones = np.ones(len(s.codes), dtype=np.int32)
-            self._apply(np.concatenate([s.world_codes, new_world]), np.concatenate([-s.rows, s.rows]),
-                        np.concatenate([-ones, ones]))
-        s.world_codes = new_world
-        log.debug("re-anchored submap %d (max cell motion %.3f m)", submap_id, moved)
-        return True
+        return bool(self.move_submaps({submap_id: new_pose}, force))
+
+    def move_submaps(self, poses: Mapping[int, np.ndarray], force: bool = False) -> int:
+        """:meth:`move_submap` for several submaps (id -> new pose), their changes applied
+        together; returns how many moved. The sums are integers: the same map as one by one."""
+        batch = _Batch()
+        moved = 0
+        for submap_id, pose in poses.items():
+            s = self.submaps[submap_id]
+            new_pose = np.asarray(pose, dtype=np.float64)
+            motion = self._max_cell_motion(s, new_pose)
+            if not force and motion <= self.move_threshold:
+                continue
+            s.T = new_pose.copy()
+            new_world = self._map_codes(s.codes, s.correction)
+            if len(s.codes):  # old contribution out and new one in
+                batch.add(s.world_codes, s.rows, -1)
+                batch.add(new_world, s.rows, 1)
+                if batch.size >= _BATCH_CELLS:
+                    self._apply(*batch.take())
+            s.world_codes = new_world
+            moved += 1
+            log.debug("re-anchored submap %d (max cell motion %.3f m)", submap_id, motion)
+        if batch.size:
+            self._apply(*batch.take())
+        return moved
 
     def remove_submap(self, submap_id: int) -> None:
         """Drop a submap and subtract its contribution."""
@@ -279,6 +293,32 @@ class SubmapMap:
         """Bytes held: the submaps' evidence, the fused evidence and the tree's leaves."""
         subs = sum(s.codes.nbytes + s.rows.nbytes + s.world_codes.nbytes for s in self.submaps.values())
         return int(subs + self._fused.nbytes + self._tree.nbytes)
+
+
+class _Batch:
+    """Contributions gathered to be applied together: world codes, rows and support signs."""
+
+    def __init__(self) -> None:
+        self._clear()
+
+    def _clear(self) -> None:
+        self.codes: list[np.ndarray] = []
+        self.rows: list[np.ndarray] = []
+        self.support: list[np.ndarray] = []
+        self.size = 0
+
+    def add(self, codes: np.ndarray, rows: np.ndarray, sign: int) -> None:
+        self.codes.append(codes)
+        self.rows.append(rows if sign > 0 else -rows.astype(np.int32))
+        self.support.append(np.full(len(codes), sign, dtype=np.int32))
+        self.size += len(codes)
+
+    def take(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Everything gathered (and the batch emptied)."""
+        cat = np.concatenate
+        out = cat(self.codes), cat([r.astype(np.int32, copy=False) for r in self.rows]), cat(self.support)
+        self._clear()
+        return out
 
 
 class _CellStore:

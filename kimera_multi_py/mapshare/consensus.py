@@ -217,12 +217,11 @@ class MapConsensus:
             self.ignored["poses_duplicate"] += 1
             return
         self.poses[msg.source] = (msg, self._now)
-        active = msg.frame == self.frame
-        for sid, T_ref, T in zip(msg.submaps.tolist(), msg.T_ref, msg.T, strict=True):
-            key = (msg.source, sid)
-            if not active:
+        keys = [(msg.source, sid) for sid in msg.submaps.tolist()]
+        if msg.frame != self.frame:
+            for key in keys:
                 self.team.set_active(key, False)
-            self.team.set_pose(key, T_ref, T)
+        self.team.set_poses(zip(keys, msg.T_ref, msg.T, strict=True))
         self._activate(msg.source)
 
     def _activate(self, src: int) -> None:

@@ -22,7 +22,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
-from kimera_multi_py.mapping.submaps import SubmapMap, _CellStore, _group_sum, correction, map_codes
+from kimera_multi_py.mapping.submaps import (
+    _BATCH_CELLS,
+    SubmapMap,
+    _Batch,
+    _CellStore,
+    _group_sum,
+    correction,
+    map_codes,
+)
 
 Key = tuple[int, int]  # (robot, submap)
 
@@ -210,24 +218,33 @@ class EvidenceMap:
 
     def set_pose(self, key: Key, T_ref: np.ndarray, T: np.ndarray) -> None:
         """Place a record at pose ``T`` (reference ``T_ref``); moves its contribution exactly."""
-        e = self._entry(key)
-        T_ref = np.asarray(T_ref, dtype=np.float64)
-        T = np.asarray(T, dtype=np.float64)
-        if e.T is not None and e.T_ref is not None and np.array_equal(e.T, T) and np.array_equal(e.T_ref, T_ref):
-            return
-        old = e.world
-        e.T_ref, e.T = T_ref.copy(), T.copy()
-        if old is None:
-            if e.active:
-                self._deposit(e)
-            return
-        # only the cells that change world cell move: a small correction moves few of them
-        e.world = map_codes(e.codes, correction(T, T_ref), self.resolution)
-        moved = np.flatnonzero(old != e.world)
-        if len(moved):
-            ones = np.ones(len(moved), np.int32)
-            self._apply(np.concatenate([old[moved], e.world[moved]]),
-                        np.concatenate([-e.rows[moved], e.rows[moved]]), np.concatenate([-ones, ones]))
+        self.set_poses([(key, T_ref, T)])
+
+    def set_poses(self, poses: Iterable[tuple[Key, np.ndarray, np.ndarray]]) -> None:
+        """:meth:`set_pose` for several records (key, ``T_ref``, ``T``), their moves applied together."""
+        batch = _Batch()
+        for key, T_ref, T in poses:
+            e = self._entry(key)
+            T_ref = np.asarray(T_ref, dtype=np.float64)
+            T = np.asarray(T, dtype=np.float64)
+            if e.T is not None and e.T_ref is not None and np.array_equal(e.T, T) and np.array_equal(e.T_ref, T_ref):
+                continue
+            old = e.world
+            e.T_ref, e.T = T_ref.copy(), T.copy()
+            if old is None:
+                if e.active:
+                    self._deposit(e)
+                continue
+            # only the cells that change world cell move: a small correction moves few of them
+            e.world = map_codes(e.codes, correction(T, T_ref), self.resolution)
+            moved = np.flatnonzero(old != e.world)
+            if len(moved):
+                batch.add(old[moved], e.rows[moved], -1)
+                batch.add(e.world[moved], e.rows[moved], 1)
+                if batch.size >= _BATCH_CELLS:
+                    self._apply(*batch.take())
+        if batch.size:
+            self._apply(*batch.take())
 
     def set_active(self, key: Key, active: bool) -> None:
         """Let a record contribute (its robot is in the team frame) or withdraw it."""
