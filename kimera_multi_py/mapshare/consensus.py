@@ -287,7 +287,9 @@ class MapConsensus:
                 changed[old] = np.any(h_rows[pos[old]] != s.rows[old], axis=1)
                 self._merge(key, h, s.codes[changed], s.rows[changed], s.num_scans)
                 h.version, h.got = s.num_scans, self._now
-            self.team.set_pose(key, s.T_ref, s.T)
+        own = [((self.robot, sid), s.T_ref, s.T) for sid, s in sorted(self.local.submaps.items())]
+        self.team.set_poses(own)
+        for key, _, _ in own:
             self.team.set_active(key, True)
         sids = np.array(sorted(self.local.submaps), dtype=np.int64)
         T_ref = np.array([self.local.submaps[i].T_ref for i in sids.tolist()]).reshape(-1, 4, 4)
