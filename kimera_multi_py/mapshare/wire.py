@@ -2,8 +2,11 @@
 
 Sorted codes travel as differences (small numbers: Morton order keeps neighbours close),
 rows column by column; both are byte-shuffled (all low bytes, then all high bytes, as Blosc
-does) and deflated with zlib. Unpacking checks every size before trusting the payload, so a
-corrupt or hostile payload raises :class:`MessageError` instead of allocating without bound.
+does) and compressed (:mod:`kimera_multi_py.comms.compression`: zstd where it is installed,
+zlib otherwise; the payload's first byte names which). On map cells zstd at level 3 is about
+30 times faster than zlib at level 6 and its payload 3 to 4 times smaller (docs/performance.md).
+Unpacking checks every size before trusting the payload, so a corrupt or hostile payload raises
+:class:`MessageError` instead of allocating without bound.
 """
 
 from __future__ import annotations
@@ -12,9 +15,10 @@ import zlib
 
 import numpy as np
 
+from kimera_multi_py.comms.compression import DEFAULT, compress, decompress
 from kimera_multi_py.core.errors import MessageError
 
-LEVEL = 6
+LEVEL = 6  # zlib's, for the leaf levels of a whole tree
 _MAX_CODE = 1 << 48  # three 16-bit keys
 
 
@@ -37,19 +41,21 @@ def pack_cells(codes: np.ndarray, values: np.ndarray) -> np.ndarray:
         raise ValueError("codes must be sorted and unique")
     steps = np.diff(codes, prepend=np.int64(0))
     raw = _shuffle(steps) + _shuffle(np.ascontiguousarray(values.T).reshape(-1))
-    return np.frombuffer(zlib.compress(raw, LEVEL), np.uint8).copy()
+    return np.frombuffer(bytes([DEFAULT]) + compress(raw, DEFAULT), np.uint8).copy()
 
 
 def unpack_cells(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.ndarray, np.ndarray]:
     """Codes ``(n,)`` and rows ``(n, c)`` of a payload made by :func:`pack_cells`."""
     expected = n * (8 + 2 * c)
-    d = zlib.decompressobj()
+    data = np.ascontiguousarray(payload, dtype=np.uint8).tobytes()
+    if not data:
+        raise MessageError(f"{where}: empty payload")
     try:
-        raw = d.decompress(np.ascontiguousarray(payload, dtype=np.uint8).tobytes(), expected + 1)
-    except zlib.error as exc:
-        raise MessageError(f"{where}: corrupt payload ({exc})") from None
-    if len(raw) != expected or not d.eof or d.unconsumed_tail:
-        raise MessageError(f"{where}: payload does not hold {n} cells of {c} classes")
+        raw = decompress(data[1:], data[0], expected, where)
+    except MessageError as exc:
+        detail = str(exc).removeprefix(f"{where}: ")
+        raise MessageError(f"{where}: payload does not hold {n} cells of {c} classes "
+                           f"(corrupt or cut: {detail})") from None
     steps = _unshuffle(raw[: 8 * n], "<i8", n)
     if n and (steps[0] < 0 or np.any(steps[1:] <= 0) or np.any(steps >= _MAX_CODE)
               or int(steps.sum(dtype=np.float64)) >= _MAX_CODE):
