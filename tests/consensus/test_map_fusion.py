@@ -140,3 +140,39 @@ def test_laplacian_states_split_into_messages_rebuild_the_same_copy() -> None:
     for x in reversed(msgs):  # any order within the round
         b.handle(x)
     assert np.array_equal(b.copies[1].codes, a.codes) and np.array_equal(b.copies[1].values, a.values)
+
+
+def test_the_evidence_store_does_not_grow_with_re_anchorings() -> None:
+    """Moving the same submaps again and again (a whole pose table at a time, as a peer's tables
+    arrive) leaves the store's bytes where one placement puts them, and its map the fusion."""
+    maps = {r: robot_map(r) for r in range(3)}
+    records = [rec for r in maps for rec in records_of(r, maps[r])]
+    em = EvidenceMap(maps[0].octree)
+    for rec in records:
+        em.set_cells(rec.key, rec.codes, rec.rows)
+        em.set_pose(rec.key, rec.T_ref, rec.T)
+        em.set_active(rec.key, True)
+    em.octree  # noqa: B018  (the view is part of what is held while it is built)
+    placed = em.nbytes
+    rng = np.random.default_rng(4)
+    for _ in range(60):
+        shift = make_pose(so3_exp(rng.normal(0, 0.02, 3)), rng.normal(0, 0.2, 3))
+        em.set_poses([(rec.key, rec.T_ref, shift @ rec.T) for rec in records])
+        em.octree  # noqa: B018
+    em.set_poses([(rec.key, rec.T_ref, rec.T) for rec in records])
+    em.octree  # noqa: B018
+    assert em.nbytes == placed
+    assert same(snapshot(em.octree), snapshot(centralised_team_map(maps)))
+
+
+def test_a_robots_map_consensus_holds_each_submap_once() -> None:
+    """The evidence a robot holds of a submap lives in one place (the team store); what the map
+    consensus adds beyond it is a version mark per cell."""
+    local = robot_map(0)
+    mc = MapConsensus(0, local)
+    mc.step(0.0)
+    cells = sum(len(s.codes) for s in local.submaps.values())
+    store = sum(e.codes.nbytes + e.rows.nbytes + e.world.nbytes for e in mc.team.entries.values()
+                if e.world is not None)
+    assert cells > 0 and mc.nbytes - mc.team.nbytes == 8 * cells
+    assert store == cells * (8 + 2 * (K + 1) + 8)  # codes, int16 rows, world codes
