@@ -46,6 +46,8 @@ test-long: $(STAMP)
 # pgo.py needs the large pose graphs and says so when they are missing. Left out: team_scaling.py
 # (2, 4 and 8 robots on the office: its 8-robot run alone takes longer and over 8 GB of memory)
 # and the full team_robustness.py sweep (hours; its --quick subset runs here and in test-long),
+# speed.py runs the office with 3 robots (team map on and off) here; its 8-robot and launch cases
+# (--cases office8 launch3) take longer,
 # and benchmarks/soak.py (20 minutes of stream in processes; its --short variant is a long test: make test-long).
 bench: $(STAMP)
 	$(BIN)/python benchmarks/sim_raycast.py --json
@@ -58,6 +60,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/registration.py --json
 	$(BIN)/python benchmarks/scene_graph.py --json
 	$(BIN)/python benchmarks/faults.py --json
+	$(BIN)/python benchmarks/wire_cells.py --json
+	$(BIN)/python benchmarks/speed.py --json
 	$(BIN)/python benchmarks/pcm_clique.py --json
 	$(BIN)/python benchmarks/map_consensus.py --json
 	$(BIN)/python benchmarks/team_robustness.py --quick --json
