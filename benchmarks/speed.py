@@ -92,7 +92,7 @@ print(json.dumps({{
     "peak_rss_mb": round(ru.ru_maxrss / 1024), "peak_rss_mb_per_robot": round(ru.ru_maxrss / 1024 / n),
     "team_ate_m": res["team"]["ate_rmse_m"], "true_inter": lc.get("true_accepted_inter"),
     "false_inter": lc.get("false_accepted_inter"), "phi_records_s": res.get("phi_records_s"),
-    "map_store_bytes": res.get("map_consensus", {{}}).get("store_bytes"),
+    "bytes_sent": res["bytes_sent"]["total"], "memory": res.get("memory"),
     "stages_cprofile_s": stages,
 }}))
 """
