@@ -111,3 +111,30 @@ def test_an_unanswered_query_is_asked_again_while_unanswered_and_when_its_target
         await node.close()
 
     asyncio.run(main())
+
+
+def test_a_robot_that_was_the_root_of_its_own_frame_is_not_taken_for_in_the_team_frame():
+    """Robot 1 ran an epoch alone (the root of its own frame, its pairs unknown to the leader).
+    When an epoch joins it to robot 0 its poses are not in robot 0's frame: its frame is decided
+    afresh, not kept against a tie; an epoch rooted alike keeps it."""
+    sim = Simulation(load_scenario(TINY), seed=0)
+    agent = Agent(1, None, agent_params(sim.cfg))
+    for kf, _ in zip(sim.keyframes(1), range(6), strict=False):
+        agent.process_keyframe(keyframe_input(kf))
+    pgo = TeamPgo(1, PgoParams(max_rounds=20), ScheduleParams(round_timeout=None),
+                  agent.local_graph, agent.apply_poses, lambda: agent.robot_graph, lambda: 0)
+
+    def epoch(e: int, members: list[int], pairs: list[tuple[int, int]]) -> bool:
+        pgo.handle(PgoEpoch(robot=min(members), epoch=e, members=np.array(members, np.int64),
+                            pairs=np.array(pairs, np.int64).reshape(-1, 2), final=False), set(members) - {1})
+        assert pgo.session is not None
+        kept = pgo.session.pgo.frame.in_team_frame
+        for t in range(100):
+            pgo.tick(10.0, float(t), set(members) - {1}, finished=False, force=True)
+        assert pgo.session is None and pgo.completed == e
+        return kept
+
+    assert not epoch(1, [1], [])  # nothing before it
+    assert epoch(2, [1], [])  # alone again: its own frame, which it is in
+    assert pgo.last_pgo is not None and pgo.last_pgo.root
+    assert not epoch(3, [0, 1], [(0, 1)])  # another root: decided afresh
