@@ -8,9 +8,8 @@ import numpy as np
 
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode, NodeParams
-from kimera_multi_py.comms import LoopbackNetwork
+from kimera_multi_py.comms import LoopbackNetwork, codec
 from kimera_multi_py.comms.bus import PresenceEvent
-from kimera_multi_py.comms import codec
 from kimera_multi_py.comms.messages.closures import LoopClosureRequest
 from kimera_multi_py.comms.messages.team import AgentState, PgoEpoch
 from kimera_multi_py.pgo.params import PgoParams
