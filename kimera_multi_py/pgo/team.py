@@ -6,8 +6,10 @@ messages to publish. The node (:mod:`kimera_multi_py.agent.node`) moves them.
 * **Epochs.** PGO runs in epochs. The *leader* — the lowest robot id alive — opens epoch ``e``
   with a :class:`PgoEpoch` naming its members (the robots alive now) and its robot graph, when
   ``period`` seconds of team time passed since the last epoch, when new inter-robot closures
-  were accepted (at most every ``closure_interval`` s), and once more (``final``) when every
-  robot it knows has ended its stream (again if closures were accepted after that epoch opened:
+  were accepted or its robot graph joined robots it did not know were joined (members' states
+  carry their robot graphs: the closure messages may have been lost on the way to the leader),
+  at most every ``closure_interval`` s, and once more (``final``) when every robot it knows has
+  ended its stream (again if closures were accepted, or robots joined, after that epoch opened:
   they would never be optimised otherwise). Every member then builds a fresh :class:`PgoAgent` from
   its robot's current graph (warm-started from the current estimate, which is in the team frame
   once aligned) and runs rounds until the leader's ``stop``; the result is applied to the
