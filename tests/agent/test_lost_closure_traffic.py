@@ -26,6 +26,16 @@ def _state(robot: int, pairs: list[tuple[int, int]]) -> AgentState:
                       closures=len(pairs), rounds=0, bytes_sent=0, pairs=np.array(pairs, np.int64).reshape(-1, 2))
 
 
+def _robot(robot: int, accepted: int = 0) -> tuple[Agent, TeamPgo]:
+    """An agent of ``sims/tiny.toml`` with 6 keyframes, and its TeamPgo (rounds end when forced)."""
+    sim = Simulation(load_scenario(TINY), seed=0)
+    agent = Agent(robot, None, agent_params(sim.cfg))
+    for kf, _ in zip(sim.keyframes(robot), range(6), strict=False):
+        agent.process_keyframe(keyframe_input(kf))
+    return agent, TeamPgo(robot, PgoParams(max_rounds=50), ScheduleParams(round_timeout=None), agent.local_graph,
+                          agent.apply_poses, lambda: agent.robot_graph, lambda: accepted)
+
+
 def test_agent_state_carries_the_robot_graph_over_the_wire():
     def wire(msg: AgentState) -> AgentState:
         back = codec.decode(codec.encode(msg, team="t0", src=1, seq=0, stamp=1.0), team="t0").msg
@@ -42,14 +52,9 @@ def test_a_pair_the_leader_learns_after_the_final_epoch_gets_another_final_epoch
     """The leader lost every closure message between robots 1 and 2 (its own count of accepted
     closures never moves), so its final epoch left robot 1 the root of a frame of its own. A member's
     state names the pair: the leader joins them and runs the final epoch again, once."""
-    sim = Simulation(load_scenario(TINY), seed=0)
-    agent = Agent(0, None, agent_params(sim.cfg))
-    for kf, _ in zip(sim.keyframes(0), range(6), strict=False):
-        agent.process_keyframe(keyframe_input(kf))
+    agent, pgo = _robot(0, accepted=5)
     agent.robot_graph.add((0, 2))
     opened: list[PgoEpoch] = []
-    pgo = TeamPgo(0, PgoParams(max_rounds=50), ScheduleParams(round_timeout=None),
-                  agent.local_graph, agent.apply_poses, lambda: agent.robot_graph, lambda: 5)
     alive = {1, 2}
 
     def run(start: int) -> list[bool]:
@@ -116,12 +121,7 @@ def test_a_robot_that_was_the_root_of_its_own_frame_is_not_taken_for_in_the_team
     """Robot 1 ran an epoch alone (the root of its own frame, its pairs unknown to the leader).
     When an epoch joins it to robot 0 its poses are not in robot 0's frame: its frame is decided
     afresh, not kept against a tie; an epoch rooted alike keeps it."""
-    sim = Simulation(load_scenario(TINY), seed=0)
-    agent = Agent(1, None, agent_params(sim.cfg))
-    for kf, _ in zip(sim.keyframes(1), range(6), strict=False):
-        agent.process_keyframe(keyframe_input(kf))
-    pgo = TeamPgo(1, PgoParams(max_rounds=20), ScheduleParams(round_timeout=None),
-                  agent.local_graph, agent.apply_poses, lambda: agent.robot_graph, lambda: 0)
+    _, pgo = _robot(1)
 
     def epoch(e: int, members: list[int], pairs: list[tuple[int, int]]) -> bool:
         pgo.handle(PgoEpoch(robot=min(members), epoch=e, members=np.array(members, np.int64),
