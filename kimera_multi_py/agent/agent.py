@@ -48,6 +48,7 @@ from kimera_multi_py.comms.messages.closures import (
     LoopClosuresAck,
 )
 from kimera_multi_py.comms.messages.pgo import PublicPoses
+from kimera_multi_py.comms.messages.team import AgentState
 from kimera_multi_py.core.geometry import inverse, so3_log, transform_points
 from kimera_multi_py.core.ids import MAX_AGENT_ID
 from kimera_multi_py.core.keyframe import KeyframeInput
@@ -294,6 +295,13 @@ class Agent:
                                           keyframe=peer_kf, query_keyframe=k))
         return out
 
+    def unanswered(self, peer: int) -> list[LoopClosureRequest]:
+        """Our queries to ``peer`` that no reply answered (lost, or asked while it was out of
+        reach), to ask again: a reply to any copy answers the request once."""
+        return [LoopClosureRequest(robot=self.robot, target=peer, request_id=rid, keyframe=peer_kf,
+                                   query_keyframe=own_kf)
+                for rid, (p, peer_kf, own_kf) in sorted(self._pending.items()) if p == peer]
+
     def serve_keyframe(self, keyframe: int, request_id: int = 0, compact: bool = True) -> LoopClosureReply:
         """The constellation of one of our keyframes, for a peer's verification. ``compact``: the
         cloud as the closure registration sees it (one mean per registration voxel, packed
@@ -432,6 +440,11 @@ class Agent:
                 return []
             return self._add_closure(peer, Closure(own_kf, peer, peer_kf, res[0], res[1],
                                                    self.dead_reckoning[own_kf], np.array(msg.pose)))
+        if isinstance(msg, AgentState):
+            # the sender's robot graph: a pair whose closures we never heard of (lost on the way to
+            # us, or accepted while we were cut off) still joins the robots' frames
+            self.robot_graph.update((int(a), int(b)) for a, b in msg.pairs.tolist() if a != b)
+            return []
         if isinstance(msg, LoopClosures):
             pair = (min(msg.robot, msg.peer), max(msg.robot, msg.peer))
             if len(msg.keys_a) and msg.robot != msg.peer:

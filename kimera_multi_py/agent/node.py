@@ -4,9 +4,11 @@ The node binds a pure :class:`Agent` and a :class:`TeamPgo` to a Bus and runs ev
 robot does, with no orchestrator:
 
 * keyframes in (:meth:`process_keyframe`, from a source);
-* the loop-closure protocol: descriptors out, constellation queries to peers, verified closures
-  out (re-sent until acknowledged, and again to a robot that (re)appears, together with our
-  descriptors, so late joiners and restarted robots catch up);
+* the loop-closure protocol: descriptors out, constellation queries to peers (asked again while
+  unanswered, and whenever their target (re)appears), verified closures out (re-sent until
+  acknowledged, and again to a robot that (re)appears, together with our descriptors, so late
+  joiners and restarted robots catch up), and the robot graph in every state (so the leader
+  joins robots whose closure messages it lost);
 * distributed PGO that the team starts and stops itself (:mod:`kimera_multi_py.pgo.team`),
   or in centralised mode the server's corrected poses;
 * its progress as :class:`AgentState` on a period (the leader's view of who has finished).
@@ -31,6 +33,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import networkx as nx
+import numpy as np
 
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.comms import keys
@@ -81,6 +84,9 @@ class NodeParams:
     """Lossy links: every descriptor goes out again with the next this many times (duplicates are ignored)."""
     query_retries: int = 2
     """Lossy links: a constellation query that gets no reply is asked again this many times."""
+    query_reasks: int = 3
+    """A query still unanswered after its retries is asked again, up to this many times, every
+    ``resend_period`` while its target is present; and whenever the target (re)appears."""
     compact_wire: bool = True
     """Compact encodings: verification clouds at the closure registration's resolution, packed
     small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`).
@@ -148,6 +154,8 @@ class AgentNode:
         self._closure_counts: dict[tuple[int, int], int] = {}
         self._recent_descriptors: list[KeyframeDescriptor] = []  # the last ones sent (repeated)
         self.queries_retried = 0
+        self._reasked: Counter[int] = Counter()  # request id -> times asked again after its retries
+        self._reask_at = -math.inf
 
     @property
     def robot(self) -> int:
@@ -305,6 +313,16 @@ class AgentNode:
             self._sent_at.pop(event.robot, None)
             await self._publish(latest)
         await self._publish_state()
+        await self._reask(event.robot, appeared=True)
+
+    async def _reask(self, peer: int, appeared: bool = False) -> None:
+        """Ask ``peer`` again for what our unanswered queries wanted (a query lost on the way, or
+        asked while it was out of reach); a robot that (re)appears is asked regardless of the cap."""
+        for req in self.agent.unanswered(peer):
+            if not appeared and self._reasked[req.request_id] >= self.params.query_reasks:
+                continue
+            self._reasked[req.request_id] += 1
+            await self._query(req)
 
     async def drain(self) -> int:
         """Handle every message and presence event queued now; return how many."""
@@ -334,6 +352,10 @@ class AgentNode:
             if wall - self._sent_at.setdefault(peer, wall) >= self.params.resend_period:
                 self._sent_at[peer] = wall
                 out.append(msg)
+        if wall - self._reask_at >= self.params.resend_period:
+            self._reask_at = wall
+            for peer in sorted(self.alive() - {self.robot}):
+                await self._reask(peer)
         if self.pgo is not None:
             before = self.pgo.completed
             try:
@@ -450,7 +472,8 @@ class AgentNode:
         return AgentState(robot=self.robot, keyframes=self.agent.num_keyframes, stamp=stamp,
                           finished=self.finished, epoch=completed, complete=self.complete,
                           closures=len(self.agent.inter_edges), rounds=rounds,
-                          bytes_sent=self.bus.counters.total("sent").bytes)
+                          bytes_sent=self.bus.counters.total("sent").bytes,
+                          pairs=np.array(sorted(self.agent.robot_graph), dtype=np.int64).reshape(-1, 2))
 
     async def _publish_state(self) -> None:
         await self._publish(self._state())

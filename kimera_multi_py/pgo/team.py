@@ -6,8 +6,10 @@ messages to publish. The node (:mod:`kimera_multi_py.agent.node`) moves them.
 * **Epochs.** PGO runs in epochs. The *leader* — the lowest robot id alive — opens epoch ``e``
   with a :class:`PgoEpoch` naming its members (the robots alive now) and its robot graph, when
   ``period`` seconds of team time passed since the last epoch, when new inter-robot closures
-  were accepted (at most every ``closure_interval`` s), and once more (``final``) when every
-  robot it knows has ended its stream (again if closures were accepted after that epoch opened:
+  were accepted or its robot graph joined robots it did not know were joined (members' states
+  carry their robot graphs: the closure messages may have been lost on the way to the leader),
+  at most every ``closure_interval`` s, and once more (``final``) when every robot it knows has
+  ended its stream (again if closures were accepted, or robots joined, after that epoch opened:
   they would never be optimised otherwise). Every member then builds a fresh :class:`PgoAgent` from
   its robot's current graph (warm-started from the current estimate, which is in the team frame
   once aligned) and runs rounds until the leader's ``stop``; the result is applied to the
@@ -142,6 +144,7 @@ class TeamPgo:
         self._future: list[Message] = []  # PGO messages (all carry a round) of an epoch not opened yet
         self._opened_at = 0.0  # team time of the last epoch's opening
         self._closures_at_open = 0
+        self._pairs_at_open: frozenset[tuple[int, int]] = frozenset()  # the last epoch's robot graph
         self._finished_since: float | None = None
         self._absent_since: dict[int, float] = {}
         self._final_members: frozenset[int] = frozenset()
@@ -209,15 +212,16 @@ class TeamPgo:
         keyframes = len(local.keys)
         local, seeded = self._restrict(local, members, pairs)
         last = self.last_pgo
+        root = component_root(self.robot, members, local.robot_graph)
         # a frame an earlier epoch settled is kept against a tie or an early lead; an unsettled
-        # one (adopted on one place) is decided afresh
-        kept = last is not None and (last.root or (last.frame.aligned and not last.frame.excluded
-                                                   and last.frame.settled))
+        # one (adopted on one place) is decided afresh, and so is a frame with another root (the
+        # robot was the root of its own, or of a team it is no longer joined to through the root)
+        kept = last is not None and last.root_robot == root and (
+            last.root or (last.frame.aligned and not last.frame.excluded and last.frame.settled))
         pgo = PgoAgent(local, self.params, neighbour_poses=seeded, peer_settled=self.last_settled,
                        in_team_frame=kept)
         if self._landmarks is not None:
             self._share_landmarks(pgo, last, members, local.robot_graph)
-        root = component_root(self.robot, members, local.robot_graph)
         if self._map_view is not None and root != self.robot:
             pgo.frame.set_map_view(self._map_view(root))
         leader = min(members)
@@ -228,6 +232,7 @@ class TeamPgo:
         self.session = Session(msg.epoch, members, bool(msg.final), pgo, depends, keyframes, began=self._now)
         if msg.final:  # a member that leads later re-runs the final epoch only for closures newer than this
             self._closures_at_open = max(self._closures_at_open, self._accepted())
+        self._pairs_at_open = frozenset(pairs)
         future, self._future = self._future, []
         for m in future:
             epoch, rnd = divmod(m.round, EPOCH_ROUNDS)  # type: ignore[attr-defined]
@@ -342,18 +347,23 @@ class TeamPgo:
         members = sorted(alive | {self.robot})
         final = self._all_finished(wall, alive, finished)
         closures = self._accepted()
+        ms = set(members)
+        pairs = sorted((a, b) for a, b in self._robot_graph() if a in ms and b in ms)
+        # robots joined since the last epoch opened: closures we lost, or heard of only through a
+        # member's state, count as new closures
+        joined = not set(pairs) <= self._pairs_at_open
         due = now - self._opened_at >= self.schedule.period
-        fresh = closures > self._closures_at_open and now - self._opened_at >= self.schedule.closure_interval
+        fresh = (closures > self._closures_at_open or joined) and \
+            now - self._opened_at >= self.schedule.closure_interval
         if final:
             # closures accepted since the last final epoch opened (verified during it, or answered
-            # late) would never be optimised: the team runs one more final epoch with them
-            if self.final_done and closures <= self._closures_at_open:
+            # late), or robots it did not know were joined, would never be optimised: the team
+            # runs one more final epoch with them
+            if self.final_done and closures <= self._closures_at_open and not joined:
                 return []
         elif not (due or fresh) or self.final_done:
             return []
         self._opened_at, self._closures_at_open = now, closures
-        ms = set(members)
-        pairs = sorted((a, b) for a, b in self._robot_graph() if a in ms and b in ms)
         msg = PgoEpoch(robot=self.robot, epoch=self.epoch + 1, members=np.array(members, dtype=np.int64),
                        pairs=np.array(pairs, dtype=np.int64).reshape(-1, 2), final=final)
         self.stats.opened += 1

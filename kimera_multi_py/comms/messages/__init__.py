@@ -48,7 +48,7 @@ from kimera_multi_py.comms.messages.pgo import (
 from kimera_multi_py.comms.messages.team import AgentState, Heartbeat, PgoEpoch, Ping
 from kimera_multi_py.core.errors import MessageError
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 # every message type by its wire name, in the order they were first defined (samples and
 # tests iterate it)

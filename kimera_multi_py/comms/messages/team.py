@@ -79,3 +79,7 @@ class AgentState(Message):
     closures: int = count()  # inter-robot closures this robot holds
     rounds: int = count()  # PGO rounds it ran
     bytes_sent: int = count()
+    # its robot graph (robot pairs joined by accepted inter-robot closures), repeated with every
+    # state so that the leader learns pairs whose closure messages it lost
+    pairs: np.ndarray = spec_field(Array("int64", ("p", 2), lo=0, hi=MAX_ROBOT_ID),
+                                   factory=lambda: np.zeros((0, 2), np.int64))
