@@ -72,14 +72,29 @@ def map_codes(ref_codes: np.ndarray, C: np.ndarray, resolution: float) -> np.nda
 
 def _group_sum(codes: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unique sorted codes, summed rows and multiplicities."""
-    uniq, inv, cnt = np.unique(codes, return_inverse=True, return_counts=True)
-    if len(uniq) == len(codes):
-        out = np.empty_like(rows)
-        out[inv] = rows
-        return uniq, out, cnt.astype(np.int32)
-    out = np.zeros((len(uniq), rows.shape[1]), dtype=rows.dtype)
-    np.add.at(out, inv, rows)
-    return uniq, out, cnt.astype(np.int32)
+    uniq, (summed, count) = group_sums(codes, rows, np.ones(len(codes), np.int32))
+    return uniq, summed, count
+
+
+def group_sums(codes: np.ndarray, *columns: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Unique sorted codes and, per column array (one row or value per code), its sums over
+    equal codes, in the column's dtype. One sort and one ``reduceat`` each (integer sums: the
+    order of the terms does not matter)."""
+    codes = np.asarray(codes, dtype=np.int64)
+    if len(codes) == 0:
+        return codes.copy(), [np.asarray(c)[:0].copy() for c in columns]
+    order = np.argsort(codes)
+    ordered = codes[order]
+    first = np.empty(len(ordered), dtype=np.bool_)
+    first[0] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
+    starts = np.flatnonzero(first)
+    sums = []
+    for c in columns:
+        c = np.asarray(c)
+        taken = c.take(order, axis=0)
+        sums.append(taken if len(starts) == len(codes) else np.add.reduceat(taken, starts, axis=0, dtype=c.dtype))
+    return ordered[starts], sums
 
 
 class SubmapMap:
@@ -256,9 +271,7 @@ class SubmapMap:
         """Add rows and support counts at (possibly repeated) world codes; refresh the view."""
         if len(codes) == 0:
             return
-        uniq, summed, _ = _group_sum(codes, rows.astype(np.int32))
-        sup = np.zeros(len(uniq), dtype=np.int32)
-        np.add.at(sup, np.searchsorted(uniq, codes), support)
+        uniq, (summed, sup) = group_sums(codes, rows.astype(np.int32), support.astype(np.int32))
         changed = (sup != 0) | summed.any(axis=1)  # cells a move leaves as they were are not touched
         if not changed.all():
             uniq, summed, sup = uniq[changed], summed[changed], sup[changed]

@@ -29,6 +29,7 @@ from kimera_multi_py.mapping.submaps import (
     _CellStore,
     _group_sum,
     correction,
+    group_sums,
     map_codes,
 )
 
@@ -313,8 +314,6 @@ class EvidenceMap:
     def _apply(self, codes: np.ndarray, rows: np.ndarray, support: np.ndarray) -> None:
         if len(codes) == 0:
             return
-        uniq, summed, _ = _group_sum(codes, rows.astype(np.int32))
-        sup = np.zeros(len(uniq), dtype=np.int32)
-        np.add.at(sup, np.searchsorted(uniq, codes), support)
+        uniq, (summed, sup) = group_sums(codes, rows.astype(np.int32), support.astype(np.int32))
         self._fused.add(uniq, summed, sup)
         self._tree = None
