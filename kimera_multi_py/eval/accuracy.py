@@ -11,8 +11,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Collection, Sequence
+import os
+from collections.abc import Collection, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing import get_context
 from typing import Any
 
 import numpy as np
@@ -26,6 +29,7 @@ from kimera_multi_py.mapping.config import MappingConfig, get_octree
 
 _SCAN_COUNTS = ("registered", "degenerate", "gated", "failed")
 _FLOOR_COUNTS = ("corrected", "missing", "gated")  # of the floor and of the heading reference
+PARALLEL_MIN_RAYS = 500_000  # rays per team map below which worker processes cost more than they save
 
 
 @dataclass
@@ -50,6 +54,28 @@ def team_map_quality(mapping: MappingConfig, scans: Sequence[Sequence[ScanRecord
             octree.insert_scan(T[:3, 3], transform_points(T, s.points), s.labels, s.max_range)
     pred = octree.class_at(centers)
     return {"occupancy_f1": occupancy_f1(pred, gt_labels), "semantic_miou": semantic_miou(pred, gt_labels)}
+
+
+def team_map_qualities(mapping: MappingConfig, scans: Sequence[Sequence[ScanRecord]],
+                       poses: Mapping[str, Sequence[np.ndarray]], centers: np.ndarray, gt_labels: np.ndarray,
+                       workers: int | None = None) -> dict[str, dict[str, float]]:
+    """:func:`team_map_quality` of each named set of world ``poses``, the same figures. The maps are
+    independent, so with more than one core (``workers``: default, the cores this process may use)
+    and maps big enough to pay for starting processes, they are built in parallel worker processes."""
+    if workers is None:
+        rays = sum(len(s.points) for robot in scans for s in robot)
+        workers = len(os.sched_getaffinity(0)) if rays >= PARALLEL_MIN_RAYS else 1
+    workers = max(1, min(workers, len(poses)))
+    names = list(poses)
+    if workers == 1:
+        return {name: team_map_quality(mapping, scans, poses[name], centers, gt_labels) for name in names}
+    # this process builds every ``workers``-th map, ``workers - 1`` processes the others
+    with ProcessPoolExecutor(workers - 1, mp_context=get_context("spawn")) as pool:
+        jobs = {name: pool.submit(team_map_quality, mapping, scans, poses[name], centers, gt_labels)
+                for k, name in enumerate(names) if k % workers}
+        here = {name: team_map_quality(mapping, scans, poses[name], centers, gt_labels)
+                for name in names[::workers]}
+        return {name: here[name] if name in here else jobs[name].result() for name in names}
 
 
 def closure_errors(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome]) -> dict[str, dict[str, float]]:
@@ -109,10 +135,10 @@ def accuracy_results(world: Any, mapping: MappingConfig, truth: Sequence[np.ndar
     reg_world, reg_ate = _world(truth, reg, anchored=True)
     team = team_frame_estimates(truth, [o.poses for o in outcomes], own_frame)
     est_world, est_ate = _world(truth, [T_world_team @ p for p in team], anchored=False)
-    team_map: dict[str, Any] = dict(team_map_quality(mapping, scans, est_world, centers, gt))
-    team_map["true_poses"] = team_map_quality(mapping, scans, list(truth), centers, gt)
-    team_map["dead_reckoning"] = team_map_quality(mapping, scans, dr_world, centers, gt)
-    team_map["registration_odometry"] = team_map_quality(mapping, scans, reg_world, centers, gt)
+    maps = team_map_qualities(mapping, scans, {"full_system": est_world, "true_poses": list(truth),
+                                               "dead_reckoning": dr_world, "registration_odometry": reg_world},
+                              centers, gt)
+    team_map: dict[str, Any] = {**maps.pop("full_system"), **maps}
     stats = [a.scan_odometry.stats for a in agents if a.scan_odometry is not None]
     floors = [f for f in (a.scan_odometry.floor for a in agents if a.scan_odometry is not None) if f is not None]
     headings = [h for h in (a.scan_odometry.heading for a in agents if a.scan_odometry is not None) if h is not None]
