@@ -52,8 +52,9 @@ from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.geometry import transform_points
 from kimera_multi_py.core.ids import SERVER_ID
 from kimera_multi_py.eval.accuracy import ScanRecord, accuracy_results
-from kimera_multi_py.eval.map_metrics import TeamMapReport, phi, team_map_report
+from kimera_multi_py.eval.map_metrics import TeamMapReport, team_map_report
 from kimera_multi_py.eval.people import people_results
+from kimera_multi_py.eval.phi_records import PhiRecords, PhiValue
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import map_quality
 from kimera_multi_py.eval.team import (
@@ -167,6 +168,8 @@ class SimRunner:
         self.map_report: TeamMapReport | None = None
         self._next_phi = 0.0
         self._phi_s = 0.0  # wall time spent recording φ (evaluation, not part of wall_s)
+        self.phi_background = True  # φ of each record computed in a worker thread (False: at once)
+        self._phi: PhiRecords | None = None
         self._reference: Any = None
         # robot -> seconds after the others that it joins (its whole stream is shifted by that)
         self.join = {int(r): float(t) for r, t in (join or {}).items()}
@@ -251,6 +254,7 @@ class SimRunner:
                 for agent_node in self.nodes:
                     agent_node.map_neighbours = lambda r=agent_node.robot: self._in_range(r)
             self.map_report = TeamMapReport(self.map_mode, 0) if self.map_mode != "off" else None
+            self._phi = PhiRecords(self.phi_background) if self.map_report is not None else None
             nodes: list[AgentNode | ServerNode] = list(self.nodes)
             if central:
                 self.server = ServerNode(Server(SERVER_ID, None, self.params.closure_sigmas, self.params.odom_sigmas),
@@ -300,6 +304,7 @@ class SimRunner:
                 self._show_partitions(buses)
                 await self._settle(nodes, buses)
             self._record_phi(force=True)
+            self._finish_phi()
             self._log_team()
             weights = self.server.server.stats.weights if self.server is not None else None
             self.outcomes = [outcome_of(n, weights) for n in self.nodes]
@@ -363,19 +368,19 @@ class SimRunner:
         return neighbours_within(pos, self.comm_range)[robot]
 
     def _record_phi(self, force: bool = False) -> None:
-        """φ between neighbouring robots' team maps, every ``PHI_EVERY_S`` of sim time."""
-        if self.map_report is None or (not force and (self.clock.t < self._next_phi or not self.quality)):
+        """φ between neighbouring robots' team maps, every ``PHI_EVERY_S`` of sim time: a snapshot of
+        their cells here, φ computed off the robots' path (:class:`~kimera_multi_py.eval.phi_records.PhiRecords`)."""
+        if self.map_report is None or self._phi is None or (
+                not force and (self.clock.t < self._next_phi or not self.quality)):
             return  # (without quality scores only the end's φ)
         self._next_phi = self.clock.t + PHI_EVERY_S
         t0 = time.perf_counter()
         live = [n for n in self.nodes if n.maps is not None and n._sub is not None]
         cells = {n.robot: n.maps.team_cells() for n in live if n.maps is not None}
         pairs = [(a.robot, b.robot) for i, a in enumerate(live) for b in live[i + 1:]]
-        value = phi(cells, pairs, self.nodes[0].agent.map.octree.model.prior_row)
+        self._phi.record(self.clock.t, cells, pairs, self.nodes[0].agent.map.octree.model.prior_row)
         self._phi_s += time.perf_counter() - t0
-        self.map_report.record_phi(value)
-        self.map_report.rounds += 1
-        self.viz.log_scalar("map_consensus/phi", self.clock.t, value["phi"])
+        self._add_phi(self._phi.done())
         if force and not isinstance(self.viz, NullViz):  # the end: each team map, placed like the team
             T = self.tracks[0].true[0] if self.tracks[0].true else np.eye(4)
             for n in live:
@@ -384,6 +389,20 @@ class SimRunner:
                 lv, occ = tm.leaves(), tm.occupied_leaves()
                 self.viz.log_voxels(f"team_map/r{n.robot}", self.clock.t, transform_points(T, lv.centers[occ]),
                                     np.argmax(lv.logodds[occ], axis=1))
+
+    def _finish_phi(self) -> None:
+        """Every φ record into the report (waiting for those still being computed)."""
+        if self._phi is not None:
+            t0 = time.perf_counter()
+            self._add_phi(self._phi.finish())
+            self._phi_s += time.perf_counter() - t0
+
+    def _add_phi(self, values: list[tuple[float, PhiValue]]) -> None:
+        for t, value in values:
+            assert self.map_report is not None
+            self.map_report.record_phi(value)
+            self.map_report.rounds += 1
+            self.viz.log_scalar("map_consensus/phi", t, value["phi"])
 
     def _epochs(self) -> int:
         if self.server is not None:
