@@ -12,8 +12,8 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Collection, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Collection, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing import get_context
 from typing import Any
@@ -56,26 +56,69 @@ def team_map_quality(mapping: MappingConfig, scans: Sequence[Sequence[ScanRecord
     return {"occupancy_f1": occupancy_f1(pred, gt_labels), "semantic_miou": semantic_miou(pred, gt_labels)}
 
 
-def team_map_qualities(mapping: MappingConfig, scans: Sequence[Sequence[ScanRecord]],
-                       poses: Mapping[str, Sequence[np.ndarray]], centers: np.ndarray, gt_labels: np.ndarray,
-                       workers: int | None = None) -> dict[str, dict[str, float]]:
-    """:func:`team_map_quality` of each named set of world ``poses``, the same figures. The maps are
-    independent, so with more than one core (``workers``: default, the cores this process may use)
-    and maps big enough to pay for starting processes, they are built in parallel worker processes."""
-    if workers is None:
-        rays = sum(len(s.points) for robot in scans for s in robot)
-        workers = len(os.sched_getaffinity(0)) if rays >= PARALLEL_MIN_RAYS else 1
-    workers = max(1, min(workers, len(poses)))
-    names = list(poses)
-    if workers == 1:
-        return {name: team_map_quality(mapping, scans, poses[name], centers, gt_labels) for name in names}
-    # this process builds every ``workers``-th map, ``workers - 1`` processes the others
-    with ProcessPoolExecutor(workers - 1, mp_context=get_context("spawn")) as pool:
-        jobs = {name: pool.submit(team_map_quality, mapping, scans, poses[name], centers, gt_labels)
-                for k, name in enumerate(names) if k % workers}
-        here = {name: team_map_quality(mapping, scans, poses[name], centers, gt_labels)
-                for name in names[::workers]}
-        return {name: here[name] if name in here else jobs[name].result() for name in names}
+class TeamMaps:
+    """The team maps the accuracy figures score (:func:`team_map_quality`), each started as soon as
+    its poses are known. ``workers`` processes build them (default: one per core this process may
+    use beyond its own, when the maps are big enough to pay for starting processes; 0: none), so
+    they stay off the core of the caller; the others are built in :meth:`result`. The figures are
+    the same wherever a map is built."""
+
+    def __init__(self, mapping: MappingConfig, scans: Sequence[Sequence[ScanRecord]], centers: np.ndarray,
+                 gt_labels: np.ndarray, workers: int | None = None) -> None:
+        self.mapping, self.scans, self.centers, self.gt_labels = mapping, scans, centers, gt_labels
+        if workers is None:
+            rays = sum(len(s.points) for robot in scans for s in robot)
+            workers = len(os.sched_getaffinity(0)) - 1 if rays >= PARALLEL_MIN_RAYS else 0
+        self._pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn")) if workers > 0 else None
+        self._jobs: dict[str, Future[dict[str, float]] | list[np.ndarray]] = {}
+
+    def start(self, name: str, poses: Sequence[np.ndarray], here: bool = False) -> None:
+        """The map of all scans at world ``poses`` (per robot ``(n, 4, 4)``): in a worker if there is
+        one and not ``here``, else in :meth:`result`."""
+        poses = [np.array(p) for p in poses]
+        self._jobs[name] = poses if self._pool is None or here else self._pool.submit(
+            team_map_quality, self.mapping, self.scans, poses, self.centers, self.gt_labels)
+
+    def result(self) -> dict[str, dict[str, float]]:
+        """Every started map's figures, by name in the order started (waits for the workers)."""
+        out = {name: team_map_quality(self.mapping, self.scans, job, self.centers, self.gt_labels)
+               for name, job in self._jobs.items() if not isinstance(job, Future)}
+        out.update({name: job.result() for name, job in self._jobs.items() if isinstance(job, Future)})
+        self.close()
+        return {name: out[name] for name in self._jobs}
+
+    def close(self) -> None:
+        """Stop the workers (a map not finished yet is dropped)."""
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
+
+
+def truth_grid(world: Any, mapping: MappingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The world's ground-truth voxel grid at the agents' resolution: cell centres and labels."""
+    grid = world.gt_voxel_grid(mapping.octree.resolution)
+    return grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
+
+
+def odometry_estimates(agents: Sequence[Agent]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each robot's dead reckoning and registration-refined odometry (dead reckoning without it)."""
+    dr = [np.array(a.dead_reckoning) for a in agents]
+    reg = [np.array(a.scan_odometry.poses) if a.scan_odometry is not None else np.array(a.dead_reckoning)
+           for a in agents]
+    return dr, reg
+
+
+def start_team_maps(world: Any, mapping: MappingConfig, truth: Sequence[np.ndarray],
+                    scans: Sequence[Sequence[ScanRecord]], agents: Sequence[Agent],
+                    workers: int | None = None) -> TeamMaps:
+    """The team maps whose poses are known once the keyframes are in (true poses, dead reckoning,
+    registration odometry), started (:class:`TeamMaps`); :func:`accuracy_results` adds the estimate's."""
+    maps = TeamMaps(mapping, scans, *truth_grid(world, mapping), workers=workers)
+    dr, reg = odometry_estimates(agents)
+    maps.start("true_poses", list(truth))
+    maps.start("dead_reckoning", _world(truth, dr, anchored=True)[0])
+    maps.start("registration_odometry", _world(truth, reg, anchored=True)[0])
+    return maps
 
 
 def closure_errors(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome]) -> dict[str, dict[str, float]]:
@@ -122,23 +165,21 @@ def _drift(truth: Sequence[np.ndarray], est: Sequence[np.ndarray]) -> float:
 def accuracy_results(world: Any, mapping: MappingConfig, truth: Sequence[np.ndarray],
                      scans: Sequence[Sequence[ScanRecord]], agents: Sequence[Agent],
                      outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray,
-                     own_frame: Collection[int] = ()) -> dict[str, Any]:
+                     own_frame: Collection[int] = (), maps: TeamMaps | None = None) -> dict[str, Any]:
     """``team_map``, ``ate_rmse_m`` per estimate, ``drift``, ``closure_error``, ``scan_odometry``
     and ``front_end_ms_per_keyframe`` (a machine timing) of a team run. Robots in ``own_frame``
-    (kept out of the team frame) are placed like dead reckoning (:func:`.team.team_frame_estimates`)."""
-    grid = world.gt_voxel_grid(mapping.octree.resolution)
-    centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
-    dr = [np.array(a.dead_reckoning) for a in agents]
-    reg = [np.array(a.scan_odometry.poses) if a.scan_odometry is not None else np.array(a.dead_reckoning)
-           for a in agents]
-    dr_world, dr_ate = _world(truth, dr, anchored=True)
-    reg_world, reg_ate = _world(truth, reg, anchored=True)
+    (kept out of the team frame) are placed like dead reckoning (:func:`.team.team_frame_estimates`).
+    ``maps``: the team maps :func:`start_team_maps` started for this run (default: started now)."""
+    dr, reg = odometry_estimates(agents)
+    _, dr_ate = _world(truth, dr, anchored=True)
+    _, reg_ate = _world(truth, reg, anchored=True)
     team = team_frame_estimates(truth, [o.poses for o in outcomes], own_frame)
     est_world, est_ate = _world(truth, [T_world_team @ p for p in team], anchored=False)
-    maps = team_map_qualities(mapping, scans, {"full_system": est_world, "true_poses": list(truth),
-                                               "dead_reckoning": dr_world, "registration_odometry": reg_world},
-                              centers, gt)
-    team_map: dict[str, Any] = {**maps.pop("full_system"), **maps}
+    if maps is None:
+        maps = start_team_maps(world, mapping, truth, scans, agents)
+    maps.start("full_system", est_world, here=True)
+    quality = maps.result()
+    team_map: dict[str, Any] = {**quality.pop("full_system"), **quality}
     stats = [a.scan_odometry.stats for a in agents if a.scan_odometry is not None]
     floors = [f for f in (a.scan_odometry.floor for a in agents if a.scan_odometry is not None) if f is not None]
     headings = [h for h in (a.scan_odometry.heading for a in agents if a.scan_odometry is not None) if h is not None]

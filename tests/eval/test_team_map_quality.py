@@ -1,11 +1,11 @@
-"""team_map_qualities: the figures of team_map_quality per set of poses, whether built here or in workers."""
+"""TeamMaps: the figures of team_map_quality per set of poses, whether built here or in worker processes."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from kimera_multi_py.core.geometry import transform_points
-from kimera_multi_py.eval.accuracy import ScanRecord, team_map_qualities, team_map_quality
+from kimera_multi_py.eval.accuracy import ScanRecord, TeamMaps, team_map_quality
 from kimera_multi_py.mapping.config import MappingConfig, get_octree
 
 
@@ -40,7 +40,15 @@ def _grid(mapping: MappingConfig, scans: list[list[ScanRecord]], poses: list[np.
     return centers, tree.class_at(centers)
 
 
-def test_team_map_qualities_equal_team_map_quality_in_process_and_in_workers() -> None:
+def _built(mapping: MappingConfig, scans: list[list[ScanRecord]], poses: dict[str, list[np.ndarray]],
+           centers: np.ndarray, gt: np.ndarray, workers: int, here: set[str]) -> dict[str, dict[str, float]]:
+    maps = TeamMaps(mapping, scans, centers, gt, workers=workers)
+    for name, p in poses.items():
+        maps.start(name, p, here=name in here)
+    return maps.result()
+
+
+def test_team_maps_equal_team_map_quality_in_process_and_in_workers() -> None:
     rng = np.random.default_rng(3)
     mapping = MappingConfig()
     scans, truth = _team(rng)
@@ -53,8 +61,8 @@ def test_team_map_qualities_equal_team_map_quality_in_process_and_in_workers() -
     want = {name: team_map_quality(mapping, scans, p, centers, gt) for name, p in poses.items()}
     assert want["true_poses"] == {"occupancy_f1": 1.0, "semantic_miou": 1.0}
     assert want["noisy"]["semantic_miou"] < 1.0  # the cases do differ
-    here = team_map_qualities(mapping, scans, poses, centers, gt, workers=1)
-    workers = team_map_qualities(mapping, scans, poses, centers, gt, workers=2)
-    assert here == want
-    assert workers == want
-    assert list(workers) == list(poses)
+    assert _built(mapping, scans, poses, centers, gt, workers=0, here=set()) == want
+    for workers, here in ((1, {"drift"}), (2, set())):
+        got = _built(mapping, scans, poses, centers, gt, workers=workers, here=here)
+        assert got == want
+        assert list(got) == list(poses)

@@ -42,11 +42,14 @@ def test_records_keep_their_order_and_the_values_of_their_snapshots(background: 
 
 
 @pytest.mark.slow
-def test_a_run_gives_the_same_results_with_phi_in_the_background_or_at_once() -> None:
+def test_a_run_gives_the_same_results_with_its_evaluation_in_the_background_or_at_once() -> None:
+    """φ in a worker thread and the accuracy team maps in a worker process from the stream's end,
+    or both at once in the run's own thread."""
     results = []
     for background in (True, False):
         runner = SimRunner(load_scenario(TINY), seed=0, mode="distributed")
         runner.phi_background = background
+        runner.eval_workers = 1 if background else 0
         results.append(runner.run().metrics())
     assert len(results[0]["map_consensus"]["phi"]) >= 3
     assert json.dumps(results[0], sort_keys=True) == json.dumps(results[1], sort_keys=True)  # NaN-safe
