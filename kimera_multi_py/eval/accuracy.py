@@ -30,6 +30,7 @@ from kimera_multi_py.mapping.config import MappingConfig, get_octree
 _SCAN_COUNTS = ("registered", "degenerate", "gated", "failed")
 _FLOOR_COUNTS = ("corrected", "missing", "gated")  # of the floor and of the heading reference
 PARALLEL_MIN_RAYS = 500_000  # rays per team map below which worker processes cost more than they save
+WORKER_NICENESS = 5  # added to the run's niceness for the processes that build the team maps
 
 
 @dataclass
@@ -69,7 +70,9 @@ class TeamMaps:
         if workers is None:
             rays = sum(len(s.points) for robot in scans for s in robot)
             workers = len(os.sched_getaffinity(0)) - 1 if rays >= PARALLEL_MIN_RAYS else 0
-        self._pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn")) if workers > 0 else None
+        # the workers yield to the robots (a lower priority), whatever else the machine runs
+        self._pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=os.nice,
+                                         initargs=(WORKER_NICENESS,)) if workers > 0 else None
         self._jobs: dict[str, Future[dict[str, float]] | list[np.ndarray]] = {}
 
     def start(self, name: str, poses: Sequence[np.ndarray], here: bool = False) -> None:
