@@ -66,7 +66,8 @@ class TeamMaps:
 
     def __init__(self, mapping: MappingConfig, scans: Sequence[Sequence[ScanRecord]], centers: np.ndarray,
                  gt_labels: np.ndarray, workers: int | None = None) -> None:
-        self.mapping, self.scans, self.centers, self.gt_labels = mapping, scans, centers, gt_labels
+        self.mapping, self.centers, self.gt_labels = mapping, centers, gt_labels
+        self.scans = [list(s) for s in scans]  # a worker reads them later: the caller's lists may grow
         if workers is None:
             rays = sum(len(s.points) for robot in scans for s in robot)
             workers = len(os.sched_getaffinity(0)) - 1 if rays >= PARALLEL_MIN_RAYS else 0
