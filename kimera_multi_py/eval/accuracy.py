@@ -11,8 +11,11 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Collection, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing import get_context
 from typing import Any
 
 import numpy as np
@@ -26,6 +29,8 @@ from kimera_multi_py.mapping.config import MappingConfig, get_octree
 
 _SCAN_COUNTS = ("registered", "degenerate", "gated", "failed")
 _FLOOR_COUNTS = ("corrected", "missing", "gated")  # of the floor and of the heading reference
+PARALLEL_MIN_RAYS = 500_000  # rays per team map below which worker processes cost more than they save
+WORKER_NICENESS = 5  # added to the run's niceness for the processes that build the team maps
 
 
 @dataclass
@@ -50,6 +55,74 @@ def team_map_quality(mapping: MappingConfig, scans: Sequence[Sequence[ScanRecord
             octree.insert_scan(T[:3, 3], transform_points(T, s.points), s.labels, s.max_range)
     pred = octree.class_at(centers)
     return {"occupancy_f1": occupancy_f1(pred, gt_labels), "semantic_miou": semantic_miou(pred, gt_labels)}
+
+
+class TeamMaps:
+    """The team maps the accuracy figures score (:func:`team_map_quality`), each started as soon as
+    its poses are known. ``workers`` processes build them (default: one per core this process may
+    use beyond its own, when the maps are big enough to pay for starting processes; 0: none), so
+    they stay off the core of the caller; the others are built in :meth:`result`. The figures are
+    the same wherever a map is built."""
+
+    def __init__(self, mapping: MappingConfig, scans: Sequence[Sequence[ScanRecord]], centers: np.ndarray,
+                 gt_labels: np.ndarray, workers: int | None = None) -> None:
+        self.mapping, self.centers, self.gt_labels = mapping, centers, gt_labels
+        self.scans = [list(s) for s in scans]  # a worker reads them later: the caller's lists may grow
+        if workers is None:
+            rays = sum(len(s.points) for robot in scans for s in robot)
+            workers = len(os.sched_getaffinity(0)) - 1 if rays >= PARALLEL_MIN_RAYS else 0
+        # the workers yield to the robots (a lower priority), whatever else the machine runs
+        self._pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=os.nice,
+                                         initargs=(WORKER_NICENESS,)) if workers > 0 else None
+        self._jobs: dict[str, Future[dict[str, float]] | list[np.ndarray]] = {}
+
+    def start(self, name: str, poses: Sequence[np.ndarray], here: bool = False) -> None:
+        """The map of all scans at world ``poses`` (per robot ``(n, 4, 4)``): in a worker if there is
+        one and not ``here``, else in :meth:`result`."""
+        poses = [np.array(p) for p in poses]
+        self._jobs[name] = poses if self._pool is None or here else self._pool.submit(
+            team_map_quality, self.mapping, self.scans, poses, self.centers, self.gt_labels)
+
+    def result(self) -> dict[str, dict[str, float]]:
+        """Every started map's figures, by name in the order started (waits for the workers)."""
+        out = {name: team_map_quality(self.mapping, self.scans, job, self.centers, self.gt_labels)
+               for name, job in self._jobs.items() if not isinstance(job, Future)}
+        out.update({name: job.result() for name, job in self._jobs.items() if isinstance(job, Future)})
+        self.close()
+        return {name: out[name] for name in self._jobs}
+
+    def close(self) -> None:
+        """Stop the workers (a map not finished yet is dropped)."""
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+            self._pool = None
+
+
+def truth_grid(world: Any, mapping: MappingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The world's ground-truth voxel grid at the agents' resolution: cell centres and labels."""
+    grid = world.gt_voxel_grid(mapping.octree.resolution)
+    return grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
+
+
+def odometry_estimates(agents: Sequence[Agent]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each robot's dead reckoning and registration-refined odometry (dead reckoning without it)."""
+    dr = [np.array(a.dead_reckoning) for a in agents]
+    reg = [np.array(a.scan_odometry.poses) if a.scan_odometry is not None else np.array(a.dead_reckoning)
+           for a in agents]
+    return dr, reg
+
+
+def start_team_maps(world: Any, mapping: MappingConfig, truth: Sequence[np.ndarray],
+                    scans: Sequence[Sequence[ScanRecord]], agents: Sequence[Agent],
+                    workers: int | None = None) -> TeamMaps:
+    """The team maps whose poses are known once the keyframes are in (true poses, dead reckoning,
+    registration odometry), started (:class:`TeamMaps`); :func:`accuracy_results` adds the estimate's."""
+    maps = TeamMaps(mapping, scans, *truth_grid(world, mapping), workers=workers)
+    dr, reg = odometry_estimates(agents)
+    maps.start("true_poses", list(truth))
+    maps.start("dead_reckoning", _world(truth, dr, anchored=True)[0])
+    maps.start("registration_odometry", _world(truth, reg, anchored=True)[0])
+    return maps
 
 
 def closure_errors(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome]) -> dict[str, dict[str, float]]:
@@ -96,23 +169,21 @@ def _drift(truth: Sequence[np.ndarray], est: Sequence[np.ndarray]) -> float:
 def accuracy_results(world: Any, mapping: MappingConfig, truth: Sequence[np.ndarray],
                      scans: Sequence[Sequence[ScanRecord]], agents: Sequence[Agent],
                      outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray,
-                     own_frame: Collection[int] = ()) -> dict[str, Any]:
+                     own_frame: Collection[int] = (), maps: TeamMaps | None = None) -> dict[str, Any]:
     """``team_map``, ``ate_rmse_m`` per estimate, ``drift``, ``closure_error``, ``scan_odometry``
     and ``front_end_ms_per_keyframe`` (a machine timing) of a team run. Robots in ``own_frame``
-    (kept out of the team frame) are placed like dead reckoning (:func:`.team.team_frame_estimates`)."""
-    grid = world.gt_voxel_grid(mapping.octree.resolution)
-    centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
-    dr = [np.array(a.dead_reckoning) for a in agents]
-    reg = [np.array(a.scan_odometry.poses) if a.scan_odometry is not None else np.array(a.dead_reckoning)
-           for a in agents]
-    dr_world, dr_ate = _world(truth, dr, anchored=True)
-    reg_world, reg_ate = _world(truth, reg, anchored=True)
+    (kept out of the team frame) are placed like dead reckoning (:func:`.team.team_frame_estimates`).
+    ``maps``: the team maps :func:`start_team_maps` started for this run (default: started now)."""
+    dr, reg = odometry_estimates(agents)
+    _, dr_ate = _world(truth, dr, anchored=True)
+    _, reg_ate = _world(truth, reg, anchored=True)
     team = team_frame_estimates(truth, [o.poses for o in outcomes], own_frame)
     est_world, est_ate = _world(truth, [T_world_team @ p for p in team], anchored=False)
-    team_map: dict[str, Any] = dict(team_map_quality(mapping, scans, est_world, centers, gt))
-    team_map["true_poses"] = team_map_quality(mapping, scans, list(truth), centers, gt)
-    team_map["dead_reckoning"] = team_map_quality(mapping, scans, dr_world, centers, gt)
-    team_map["registration_odometry"] = team_map_quality(mapping, scans, reg_world, centers, gt)
+    if maps is None:
+        maps = start_team_maps(world, mapping, truth, scans, agents)
+    maps.start("full_system", est_world, here=True)
+    quality = maps.result()
+    team_map: dict[str, Any] = {**quality.pop("full_system"), **quality}
     stats = [a.scan_odometry.stats for a in agents if a.scan_odometry is not None]
     floors = [f for f in (a.scan_odometry.floor for a in agents if a.scan_odometry is not None) if f is not None]
     headings = [h for h in (a.scan_odometry.heading for a in agents if a.scan_odometry is not None) if h is not None]

@@ -51,9 +51,10 @@ from kimera_multi_py.comms.team import TRANSPORTS, open_buses
 from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.geometry import transform_points
 from kimera_multi_py.core.ids import SERVER_ID
-from kimera_multi_py.eval.accuracy import ScanRecord, accuracy_results
-from kimera_multi_py.eval.map_metrics import TeamMapReport, phi, team_map_report
+from kimera_multi_py.eval.accuracy import ScanRecord, TeamMaps, accuracy_results, start_team_maps
+from kimera_multi_py.eval.map_metrics import TeamMapReport, team_map_report
 from kimera_multi_py.eval.people import people_results
+from kimera_multi_py.eval.phi_records import PhiRecords
 from kimera_multi_py.eval.results import Results
 from kimera_multi_py.eval.slam import map_quality
 from kimera_multi_py.eval.team import (
@@ -167,6 +168,11 @@ class SimRunner:
         self.map_report: TeamMapReport | None = None
         self._next_phi = 0.0
         self._phi_s = 0.0  # wall time spent recording φ (evaluation, not part of wall_s)
+        self.phi_background = True  # φ of each record computed in a worker thread (False: at once)
+        self._phi: PhiRecords | None = None
+        # worker processes for the accuracy figures' team maps (None: one per spare core for big maps)
+        self.eval_workers: int | None = None
+        self._team_maps: TeamMaps | None = None
         self._reference: Any = None
         # robot -> seconds after the others that it joins (its whole stream is shifted by that)
         self.join = {int(r): float(t) for r, t in (join or {}).items()}
@@ -251,6 +257,7 @@ class SimRunner:
                 for agent_node in self.nodes:
                     agent_node.map_neighbours = lambda r=agent_node.robot: self._in_range(r)
             self.map_report = TeamMapReport(self.map_mode, 0) if self.map_mode != "off" else None
+            self._phi = PhiRecords(self.phi_background) if self.map_report is not None else None
             nodes: list[AgentNode | ServerNode] = list(self.nodes)
             if central:
                 self.server = ServerNode(Server(SERVER_ID, None, self.params.closure_sigmas, self.params.odom_sigmas),
@@ -284,6 +291,7 @@ class SimRunner:
                 if self._epochs() > epochs:
                     epochs = self._epochs()
                     self._log_team(kf.stamp)
+            self._start_team_maps()
             for node in self.nodes:
                 if node in nodes:
                     await node.finish_stream()
@@ -300,6 +308,7 @@ class SimRunner:
                 self._show_partitions(buses)
                 await self._settle(nodes, buses)
             self._record_phi(force=True)
+            self._add_phi(finish=True)
             self._log_team()
             weights = self.server.server.stats.weights if self.server is not None else None
             self.outcomes = [outcome_of(n, weights) for n in self.nodes]
@@ -362,20 +371,28 @@ class SimRunner:
             return set()
         return neighbours_within(pos, self.comm_range)[robot]
 
+    def _start_team_maps(self) -> None:
+        """The keyframes are in: the team maps at the poses known now start building off the robots'
+        path (in worker processes where cores allow), for the accuracy figures."""
+        if self.quality:
+            self._team_maps = start_team_maps(self.sim.world, self.params.mapping,
+                                              [np.array(tr.true) for tr in self.tracks],
+                                              [tr.scans for tr in self.tracks], self.agents, self.eval_workers)
+
     def _record_phi(self, force: bool = False) -> None:
-        """φ between neighbouring robots' team maps, every ``PHI_EVERY_S`` of sim time."""
-        if self.map_report is None or (not force and (self.clock.t < self._next_phi or not self.quality)):
+        """φ between neighbouring robots' team maps, every ``PHI_EVERY_S`` of sim time: a snapshot of
+        their cells here, φ computed off the robots' path (:class:`~kimera_multi_py.eval.phi_records.PhiRecords`)."""
+        if self.map_report is None or self._phi is None or (
+                not force and (self.clock.t < self._next_phi or not self.quality)):
             return  # (without quality scores only the end's φ)
         self._next_phi = self.clock.t + PHI_EVERY_S
         t0 = time.perf_counter()
         live = [n for n in self.nodes if n.maps is not None and n._sub is not None]
         cells = {n.robot: n.maps.team_cells() for n in live if n.maps is not None}
         pairs = [(a.robot, b.robot) for i, a in enumerate(live) for b in live[i + 1:]]
-        value = phi(cells, pairs, self.nodes[0].agent.map.octree.model.prior_row)
+        self._phi.record(self.clock.t, cells, pairs, self.nodes[0].agent.map.octree.model.prior_row)
         self._phi_s += time.perf_counter() - t0
-        self.map_report.record_phi(value)
-        self.map_report.rounds += 1
-        self.viz.log_scalar("map_consensus/phi", self.clock.t, value["phi"])
+        self._add_phi()
         if force and not isinstance(self.viz, NullViz):  # the end: each team map, placed like the team
             T = self.tracks[0].true[0] if self.tracks[0].true else np.eye(4)
             for n in live:
@@ -384,6 +401,17 @@ class SimRunner:
                 lv, occ = tm.leaves(), tm.occupied_leaves()
                 self.viz.log_voxels(f"team_map/r{n.robot}", self.clock.t, transform_points(T, lv.centers[occ]),
                                     np.argmax(lv.logodds[occ], axis=1))
+
+    def _add_phi(self, finish: bool = False) -> None:
+        """The φ records computed so far into the report (``finish``: all, waiting for the rest)."""
+        if self._phi is None or self.map_report is None:
+            return
+        t0 = time.perf_counter()
+        for t, value in self._phi.finish() if finish else self._phi.done():
+            self.map_report.record_phi(value)
+            self.map_report.rounds += 1
+            self.viz.log_scalar("map_consensus/phi", t, value["phi"])
+        self._phi_s += time.perf_counter() - t0
 
     def _epochs(self) -> int:
         if self.server is not None:
@@ -447,7 +475,7 @@ class SimRunner:
             if self.quality:
                 extra.update(accuracy_results(self.sim.world, self.params.mapping, truth,
                                               [tr.scans for tr in self.tracks], self.agents, self.outcomes,
-                                              T_world_team, excluded_robots(self.outcomes)))
+                                              T_world_team, excluded_robots(self.outcomes), self._team_maps))
             extra["transport"] = self.transport
             team_maps = None
             if self.map_report is not None:
@@ -461,6 +489,8 @@ class SimRunner:
                     extra["people"] = people_results(self.sim, truth, self.outcomes, T_world_team,
                                                      team_frame_robots(self.outcomes), graphs.get("team"),
                                                      graphs.get("room_match"))
+        if self._team_maps is not None:
+            self._team_maps.close()
         return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
 
