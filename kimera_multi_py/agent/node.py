@@ -465,6 +465,14 @@ class AgentNode:
     def blocked(self) -> bool:
         return self.pgo is not None and self.pgo.blocked()
 
+    def memory(self) -> dict[str, int]:
+        """Bytes the robot's maps hold: its own map (submaps, fused evidence, octree) and, with
+        a team map, the map consensus's evidence store (docs/performance.md)."""
+        out = {"own_map_bytes": self.agent.map.nbytes}
+        if self.maps is not None:
+            out["map_store_bytes"] = self.maps.nbytes
+        return out
+
     def _state(self) -> AgentState:
         completed = self.pgo.completed if self.pgo is not None else 0
         stamp = self.agent.stamps[-1] if self.agent.stamps else 0.0

@@ -153,9 +153,7 @@ def _resources(agent: Agent, node: AgentNode) -> dict[str, Any]:
     stream = agent.stamps[-1] - agent.stamps[0] if len(agent.stamps) > 1 else 0.0
     out: dict[str, Any] = {"cpu_s": round(cpu, 2), "stream_s": round(stream, 2),
                            "cpu_s_per_stream_s": round(cpu / stream, 4) if stream > 0 else None,
-                           "peak_rss_mb": round(ru.ru_maxrss / 1024, 1), "own_map_bytes": agent.map.nbytes}
-    if node.maps is not None:
-        out["map_store_bytes"] = node.maps.nbytes
+                           "peak_rss_mb": round(ru.ru_maxrss / 1024, 1), **node.memory()}
     return out
 
 

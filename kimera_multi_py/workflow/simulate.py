@@ -469,6 +469,7 @@ class SimRunner:
             extra.update(team_results(self.sim.world, truth, self.outcomes, T_world_team,
                                       self.params.team_object_sightings))
             extra["pgo_runs"] = self._epochs()
+            extra["memory"] = {str(n.robot): n.memory() for n in self.nodes}
             if self.server is not None and self.server.server.frames is not None:
                 # the server's last frame screen: per robot, what its frame rests on and the evidence
                 extra["server_frames"] = {str(r): rep for r, rep in self.server.server.frames.report.items()}
