@@ -165,7 +165,7 @@ def register(app: typer.Typer) -> None:
         from kimera_multi_py.cli.common import agreement, results_table, robot_at, summary
         from kimera_multi_py.comms.faults import parse_partition
         from kimera_multi_py.team.config import load_config
-        from kimera_multi_py.team.launcher import launch, launch_job, parse_kill, parse_restart
+        from kimera_multi_py.team.launcher import launch, launch_job, parse_kill, parse_restart, recorded_team
 
         setup_logging(verbose)
         try:
@@ -185,6 +185,8 @@ def register(app: typer.Typer) -> None:
                              checkpoint_every=checkpoint_every, timeout=timeout, verbose=verbose, tls=tls,
                              router_restarts=[parse_restart(t) for t in restart_router or []], linger_max=linger_max,
                              **recorded)
+            if job.sources:
+                recorded_team(job)  # bad data: one line before the live table and any process
             with Live(_table({}), console=console, refresh_per_second=4, transient=False) as live:
                 results = launch(job, lambda views: live.update(_table(views)))
         except KimeraMultiError as exc:

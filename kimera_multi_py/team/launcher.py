@@ -78,6 +78,16 @@ def parse_kill(spec: str) -> Kill:
 
 
 @dataclass
+class RecordedTeam:
+    """A launch's recorded data, checked before any process starts."""
+
+    specs: list[str]  # each robot's --source
+    truth: list[Any]  # per robot its true poses at its keyframes, or None
+    keyframes: list[int]
+    name: str
+
+
+@dataclass
 class LaunchJob:
     scenario: Path
     robots: int
@@ -99,17 +109,8 @@ class LaunchJob:
     sources: list[str] = field(default_factory=list)  # recorded data (bag:PATH[:CONFIG], folders); none: sim
     truth: list[Path] = field(default_factory=list)  # a TUM file per robot (with sources)
     bag_config: Path | None = None  # the bags' config unless a spec names one
-    agent_sources: list[str] = field(default_factory=list)  # each agent's --source (resolved by launch)
-
-
-@dataclass
-class RecordedTeam:
-    """A launch's recorded data, checked before any process starts."""
-
-    specs: list[str]  # each robot's --source
-    truth: list[Any]  # per robot its true poses at its keyframes, or None
-    keyframes: list[int]
-    name: str
+    agent_sources: list[str] = field(default_factory=list)  # each agent's --source (set by recorded_team)
+    recorded: RecordedTeam | None = None  # the sources, checked (set by recorded_team)
 
 
 def launch_job(config: KimeraConfig, out_dir: Path, **options: Any) -> LaunchJob:
@@ -166,7 +167,7 @@ View = Callable[[dict[str, RobotView]], None]
 def recorded_team(job: LaunchJob) -> RecordedTeam:
     """Open the job's recorded sources (every error a user can fix is raised here: a missing bag,
     a missing topic, a robot without keyframes, more robots asked than the sources hold) and set
-    ``job.robots``, ``job.agent_sources`` and the configuration's team size from them."""
+    ``job.robots``, ``job.agent_sources``, ``job.recorded`` and the configuration's team size from them."""
     from kimera_multi_py.io.bag.reader import BagSource
     from kimera_multi_py.team.recorded import open_sources
 
@@ -206,12 +207,13 @@ def _recorded_team(job: LaunchJob, sources: list[Any]) -> RecordedTeam:
     job.robots, job.agent_sources = len(sources), specs
     job.config = job.config.updated({"run": {"robots": job.robots}})
     name = Path(job.sources[0].removeprefix("bag:")).name
-    return RecordedTeam(specs, truth, [s.num_keyframes for s in sources], name)
+    job.recorded = RecordedTeam(specs, truth, [s.num_keyframes for s in sources], name)
+    return job.recorded
 
 
 def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     """Run the team as processes and evaluate it (see the module docstring)."""
-    recorded = recorded_team(job) if job.sources else None  # fail here, not in N processes
+    recorded = job.recorded or (recorded_team(job) if job.sources else None)  # fail here, not in N processes
     if job.mode not in MODES:
         raise ConfigError("mode", f"unknown mode {job.mode!r} (available: {', '.join(MODES)})")
     if job.robots < 1 or job.robots > MAX_ROBOTS:
