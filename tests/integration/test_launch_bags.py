@@ -1,0 +1,77 @@
+"""``kimera-multi launch --source bag:...``: a team of agent processes over Zenoh on 127.0.0.1 on
+a recorded ROS 2 bag (docs/bags.md), scored against ground truth given as TUM files, and without it."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from kimera_multi_py.team.evaluate import evaluate_recorded_run
+from kimera_multi_py.workflow.replay import replay
+
+REPO = Path(__file__).resolve().parents[2]
+TINY = REPO / "sims" / "tiny.toml"
+pytestmark = pytest.mark.integration
+
+
+def cli(*args: str, timeout: float = 900) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "kimera_multi_py.cli.main", *args], capture_output=True, text=True,
+                          timeout=timeout, cwd=REPO)
+
+
+@pytest.mark.slow
+def test_launch_runs_agent_processes_on_a_recorded_bag(tmp_path):
+    bag = tmp_path / "tiny"
+    res = cli("record", str(TINY), "--format", "ros2", "--out", str(bag))
+    assert res.returncode == 0, res.stderr
+    # dead reckoning on the same bag, which also writes each robot's true poses as TUM files
+    ref = tmp_path / "odometry"
+    odometry = replay([f"bag:{bag}"], mode="odometry", out_dir=ref).to_dict()
+    keyframes = [r["keyframes"] for r in odometry["robots"]]
+    assert len(keyframes) == 2 and min(keyframes) > 50
+    # the bag's config without its ground-truth topic or scenario of origin: truth comes only from --truth
+    config = tmp_path / "no_truth.toml"
+    config.write_text('max_range = 8.0\nground_truth = "/none"\n[keyframes]\ndistance = 0.0\nangle_deg = 0.0\n')
+    out = tmp_path / "run"
+    res = cli("launch", "--source", f"bag:{bag}", "--bag-config", str(config), "--out", str(out),
+              "--truth", str(ref / "robot0_gt.tum"), "--truth", str(ref / "robot1_gt.tum"), "--pgo-period", "30")
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    got = json.loads((out / "results.json").read_text())
+    assert [r["keyframes"] for r in got["robots"]] == keyframes  # every keyframe, by each robot's process
+    assert got["transport"] == "zenoh-processes" and got["ground_truth"] is True
+    assert got["loop_closures"]["true_accepted_inter"] > 0 and got["loop_closures"]["false_accepted_inter"] == 0
+    assert got["team"]["ate_rmse_m"] < odometry["team"]["ate_rmse_m"]
+    assert got["map_consensus"]["agree"] is True
+    for r in range(2):  # the truth the run was scored with, next to each robot's estimate
+        assert len((out / f"robot{r}_gt.tum").read_text().splitlines()) == keyframes[r]
+    # the same run folder scored without ground truth: what it can, nothing failing
+    blind = evaluate_recorded_run(out, [None, None], keyframes, "tiny", "distributed", 0.0).to_dict()
+    assert blind["ground_truth"] is False and math.isnan(blind["team"]["ate_rmse_m"])
+    assert [r["keyframes"] for r in blind["robots"]] == keyframes
+    assert all(r["trajectory_length_m"] > 1.0 for r in blind["robots"])
+    assert blind["loop_closures"]["accepted_inter"] == got["loop_closures"]["accepted_inter"]
+    assert blind["map_consensus"]["agree"] is True
+
+
+def test_launch_refuses_bad_recorded_data_in_one_line(tmp_path):
+    """A missing bag, a bag without the topic, more robots than the bag holds: exit 1, one line,
+    before any process starts (no run folder)."""
+    bag = tmp_path / "tiny"
+    assert cli("record", str(TINY), "--format", "ros2", "--out", str(bag)).returncode == 0
+    lidar = tmp_path / "lidar.toml"
+    lidar.write_text('points = "/lidar"\n')
+    cases = {"no bag at": ["--source", f"bag:{tmp_path / 'missing'}"],
+             "/robot0/lidar: not in the bag": ["--source", f"bag:{bag}", "--bag-config", str(lidar)],
+             "3 robots asked, but": ["--source", f"bag:{bag}", "--robots", "3"],
+             "not both": ["--source", f"bag:{bag}", str(TINY)]}
+    for i, (expected, args) in enumerate(cases.items()):
+        out = tmp_path / f"run{i}"
+        res = cli("launch", *args, "--out", str(out))
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 1 and len(lines) == 1 and expected in lines[0], (expected, res.stderr)
+        assert not out.exists()
