@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from kimera_multi_py.io.tum import read_tum
 from kimera_multi_py.team.evaluate import evaluate_recorded_run
 from kimera_multi_py.workflow.replay import replay
 
@@ -48,7 +49,7 @@ def test_launch_runs_agent_processes_on_a_recorded_bag(tmp_path):
     assert got["team"]["ate_rmse_m"] < odometry["team"]["ate_rmse_m"]
     assert got["map_consensus"]["agree"] is True
     for r in range(2):  # the truth the run was scored with, next to each robot's estimate
-        assert len((out / f"robot{r}_gt.tum").read_text().splitlines()) == keyframes[r]
+        assert len(read_tum(out / f"robot{r}_gt.tum")[0]) == keyframes[r]
     # the same run folder scored without ground truth: what it can, nothing failing
     blind = evaluate_recorded_run(out, [None, None], keyframes, "tiny", "distributed", 0.0).to_dict()
     assert blind["ground_truth"] is False and math.isnan(blind["team"]["ate_rmse_m"])
