@@ -111,6 +111,20 @@ def _checked(run_dir: Path, outcomes: list[RobotOutcome], mode: str, keyframes: 
                                f"its source has {n}")
 
 
+def closure_counts(outcomes: Sequence[RobotOutcome]) -> dict[str, int]:
+    """Loop closures through the pipeline without truth: :func:`closure_stats`'s counts that need
+    no true poses (accepted: kept by PCM and weighted >= 0.5 by the back end's GNC)."""
+    rows = [(c.peer != o.robot, c.accepted, c.accepted and (c.weight or 0.0) >= 0.5)
+            for o in outcomes for c in o.closures]
+    inter, pcm_ok, final = np.array(rows, dtype=bool).reshape(-1, 3).T
+    fe = [o.front_end for o in outcomes]
+    return {"candidates": sum(s["candidates"] for s in fe), "verified": sum(s["verified"] for s in fe),
+            "rejected_verification": sum(s["rejected_verification"] for s in fe),
+            "rejected_pcm_inter": int((inter & ~pcm_ok).sum()),
+            "rejected_gnc_inter": int((inter & pcm_ok & ~final).sum()),
+            "accepted_inter": int((inter & final).sum()), "accepted_intra": int((~inter & final).sum())}
+
+
 def recorded_scores(truth: Sequence[np.ndarray] | None, est: Sequence[np.ndarray],
                     outcomes: Sequence[RobotOutcome]) -> tuple[list[RobotResult], dict[str, Any], np.ndarray,
                                                                dict[str, Any]]:
@@ -128,8 +142,7 @@ def recorded_scores(truth: Sequence[np.ndarray] | None, est: Sequence[np.ndarray
         T = np.eye(4)
     if outcomes:
         extra["loop_closures"] = (closure_stats(list(truth), list(outcomes)) if truth is not None
-                                  else {"accepted_inter": sum(c.accepted and c.peer != o.robot
-                                                              for o in outcomes for c in o.closures)})
+                                  else closure_counts(outcomes))
         extra.update(alignment=alignment_report(list(outcomes)), bytes_sent=traffic_totals(list(outcomes)))
     return robots, team, T, extra
 
