@@ -148,19 +148,25 @@ def recorded_scores(truth: Sequence[np.ndarray] | None, est: Sequence[np.ndarray
 
 
 def evaluate_recorded_run(run_dir: str | Path, truth: Sequence[np.ndarray | None], keyframes: Sequence[int],
-                          name: str, mode: str, wall_s: float) -> Results:
+                          name: str, mode: str, wall_s: float, world: Any = None,
+                          object_sightings: int = 1) -> Results:
     """The results of agent processes on recorded data: ``truth`` per robot (None: unknown; the
     run is scored against truth only when every robot has it), ``keyframes`` each robot's source
-    holds. Maps are compared between the robots (their team maps), not to a world."""
+    holds. The robots' team maps are compared with each other; with truth and the simulated
+    ``world`` the data came from, maps and objects (seen ``object_sightings`` times) are also
+    scored against it, as :func:`evaluate_run` scores them."""
     run_dir = Path(run_dir)
     outcomes = [read_outcome(run_dir, r) for r in range(len(keyframes))]
     _checked(run_dir, outcomes, mode, keyframes)
     known = None if any(t is None for t in truth) else [np.asarray(t) for t in truth]
     robots, team, T, extra = recorded_scores(known, [o.poses for o in outcomes], outcomes)
+    world = world if known is not None else None
+    if world is not None and known is not None:
+        extra.update(team_results(world, known, outcomes, T, object_sightings))
     extra["pgo_runs"] = max(o.pgo_epochs for o in outcomes)
     extra["transport"] = "zenoh-processes"
     if team_maps := _team_maps(run_dir, [o.robot for o in outcomes]):
-        extra["map_consensus"] = team_map_figures(None, team_maps, T)
+        extra["map_consensus"] = team_map_figures(world, team_maps, T)
     if lingered := linger_reports(run_dir, [o.robot for o in outcomes]):
         extra["linger"] = lingered
     for o, true in zip(outcomes, truth, strict=True):

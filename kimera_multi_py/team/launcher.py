@@ -85,6 +85,8 @@ class RecordedTeam:
     truth: list[Any]  # per robot its true poses at its keyframes, or None
     keyframes: list[int]
     name: str
+    world: Any = None  # the simulated world the data came from (a bag's [origin]), if any
+    object_sightings: int = 1
 
 
 @dataclass
@@ -182,8 +184,9 @@ def recorded_team(job: LaunchJob) -> RecordedTeam:
 
 def _recorded_team(job: LaunchJob, sources: list[Any]) -> RecordedTeam:
     from kimera_multi_py.io.bag.reader import BagSource
-    from kimera_multi_py.team.build import bag_spec
-    from kimera_multi_py.team.recorded import source_truth
+    from kimera_multi_py.sim.simulation import Simulation
+    from kimera_multi_py.team.build import agent_params, bag_spec
+    from kimera_multi_py.team.recorded import recorded_world, source_truth
 
     held = len(sources)
     if job.robots > held:
@@ -208,6 +211,10 @@ def _recorded_team(job: LaunchJob, sources: list[Any]) -> RecordedTeam:
     job.config = job.config.updated({"run": {"robots": job.robots}})
     name = Path(job.sources[0].removeprefix("bag:")).name
     job.recorded = RecordedTeam(specs, truth, [s.num_keyframes for s in sources], name)
+    scenario, seed = recorded_world(sources)
+    if scenario is not None and all(t is not None for t in truth):  # simulated data: score against its world
+        job.recorded.name, job.recorded.world = scenario.name, Simulation(scenario, seed).world
+        job.recorded.object_sightings = agent_params(scenario, job.config).team_object_sightings
     return job.recorded
 
 
@@ -238,7 +245,7 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
 
     if recorded is not None:
         results = evaluate_recorded_run(job.out_dir, recorded.truth, recorded.keyframes, recorded.name, job.mode,
-                                        time.monotonic() - t0)
+                                        time.monotonic() - t0, recorded.world, recorded.object_sightings)
     else:
         assert cfg is not None
         results = evaluate_run(job.out_dir, cfg, job.seed, job.mode, time.monotonic() - t0, job.config)
