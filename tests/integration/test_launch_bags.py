@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from kimera_multi_py.io.tum import read_tum
+from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.team.evaluate import evaluate_recorded_run
 from kimera_multi_py.workflow.replay import replay
 
@@ -57,7 +58,14 @@ def test_launch_runs_agent_processes_on_a_recorded_bag(tmp_path):
     assert all(r["trajectory_length_m"] > 1.0 for r in blind["robots"])
     for key in ("candidates", "verified", "accepted_inter", "accepted_intra"):  # the same closures, uncounted truth
         assert blind["loop_closures"][key] == got["loop_closures"][key], key
-    assert blind["map_consensus"]["agree"] is True
+    assert blind["map_consensus"]["agree"] is True and "team_map" not in blind["map_consensus"]
+    # with the world the bag was simulated in (what its own config's [origin] gives launch): maps and objects
+    truth = [read_tum(out / f"robot{r}_gt.tum")[1] for r in range(2)]
+    world = Simulation(load_scenario(TINY), 0).world
+    scored = evaluate_recorded_run(out, truth, keyframes, "tiny", "distributed", 0.0, world).to_dict()
+    assert scored["team"]["ate_rmse_m"] == pytest.approx(got["team"]["ate_rmse_m"], abs=1e-6)
+    assert scored["objects"]["precision"] > 0.5 and scored["objects"]["recall"] > 0.5
+    assert all(scored["map_consensus"]["team_map"][str(r)]["occupancy_f1"] > 0.5 for r in range(2))
 
 
 def test_launch_refuses_bad_recorded_data_in_one_line(tmp_path):
