@@ -78,7 +78,7 @@ def parse_kill(spec: str) -> Kill:
 
 
 @dataclass
-class RecordedTeam:
+class RecordedLaunch:
     """A launch's recorded data, checked before any process starts."""
 
     specs: list[str]  # each robot's --source
@@ -112,7 +112,7 @@ class LaunchJob:
     truth: list[Path] = field(default_factory=list)  # a TUM file per robot (with sources)
     bag_config: Path | None = None  # the bags' config unless a spec names one
     agent_sources: list[str] = field(default_factory=list)  # each agent's --source (set by recorded_team)
-    recorded: RecordedTeam | None = None  # the sources, checked (set by recorded_team)
+    recorded: RecordedLaunch | None = None  # the sources, checked (set by recorded_team)
 
 
 def launch_job(config: KimeraConfig, out_dir: Path, **options: Any) -> LaunchJob:
@@ -166,7 +166,7 @@ def parse_restart(spec: str) -> float:
 View = Callable[[dict[str, RobotView]], None]
 
 
-def recorded_team(job: LaunchJob) -> RecordedTeam:
+def recorded_team(job: LaunchJob) -> RecordedLaunch:
     """Open the job's recorded sources (every error a user can fix is raised here: a missing bag,
     a missing topic, a robot without keyframes, more robots asked than the sources hold) and set
     ``job.robots``, ``job.agent_sources``, ``job.recorded`` and the configuration's team size from them."""
@@ -182,7 +182,7 @@ def recorded_team(job: LaunchJob) -> RecordedTeam:
                 src.close()
 
 
-def _recorded_team(job: LaunchJob, sources: list[Any]) -> RecordedTeam:
+def _recorded_team(job: LaunchJob, sources: list[Any]) -> RecordedLaunch:
     from kimera_multi_py.io.bag.reader import BagSource
     from kimera_multi_py.sim.simulation import Simulation
     from kimera_multi_py.team.build import agent_params, bag_spec
@@ -210,7 +210,7 @@ def _recorded_team(job: LaunchJob, sources: list[Any]) -> RecordedTeam:
     job.robots, job.agent_sources = len(sources), specs
     job.config = job.config.updated({"run": {"robots": job.robots}})
     name = Path(job.sources[0].removeprefix("bag:")).name
-    job.recorded = RecordedTeam(specs, truth, [s.num_keyframes for s in sources], name)
+    job.recorded = RecordedLaunch(specs, truth, [s.num_keyframes for s in sources], name)
     scenario, seed = recorded_world(sources)
     if scenario is not None and all(t is not None for t in truth):  # simulated data: score against its world
         job.recorded.name, job.recorded.world = scenario.name, Simulation(scenario, seed).world
