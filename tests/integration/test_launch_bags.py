@@ -85,3 +85,29 @@ def test_launch_refuses_bad_recorded_data_in_one_line(tmp_path):
         lines = res.stderr.strip().splitlines()
         assert res.returncode == 1 and len(lines) == 1 and expected in lines[0], (expected, res.stderr)
         assert not out.exists()
+
+
+def test_launch_takes_its_team_from_the_sources(tmp_path):
+    """One bag holding the team, a bag per robot, or the first N robots: each agent's --source."""
+    from kimera_multi_py.team.config import KimeraConfig
+    from kimera_multi_py.team.launcher import launch_job, recorded_team
+
+    bag = tmp_path / "tiny"
+    assert cli("record", str(TINY), "--format", "ros2", "--out", str(bag)).returncode == 0
+    config = tmp_path / "cfg.toml"
+    config.write_text((tmp_path / "tiny.toml").read_text())
+
+    def team(*sources: str, robots: int | None = None, **options: object) -> tuple[list[str], object]:
+        settings = KimeraConfig.defaults().updated({"run": {"robots": robots}})
+        job = launch_job(settings, tmp_path / "run", sources=list(sources), **options)
+        recorded = recorded_team(job)
+        assert job.robots == len(job.agent_sources) == job.config.run.robots == len(recorded.keyframes)
+        return job.agent_sources, recorded
+
+    specs, recorded = team(f"bag:{bag}")
+    assert specs == [f"bag:{bag}"] * 2 and recorded.world is not None and recorded.name == "tiny"
+    assert all(t is not None for t in recorded.truth) and min(recorded.keyframes) > 50
+    specs, _ = team(f"bag:{bag}", f"bag:{bag}:{config}", bag_config=config)
+    assert specs == [f"bag:{bag}:{config}"] * 2  # --bag-config goes to the specs without their own
+    specs, recorded = team(f"bag:{bag}", robots=1)
+    assert specs == [f"bag:{bag}"] and len(recorded.truth) == 1
