@@ -9,6 +9,10 @@ announces itself, so it is not a team member) and scores the outputs afterwards.
 Its configuration (:func:`launch_job`) goes to ``OUT/config.yaml`` with the run resolved and only
 what was set explicitly active, and every process loads it (``--config``); each process writes
 the configuration it ran with to its own folder (docs/outputs.md).
+
+On recorded data (``sources``: bags or recorded folders, docs/bags.md) the team is what the
+sources hold, each agent reads its own robot's data (``--source bag:PATH[:CONFIG]``), and the
+run is scored against the ground truth there is (:func:`~kimera_multi_py.team.evaluate.evaluate_recorded_run`).
 """
 
 from __future__ import annotations
@@ -74,6 +78,18 @@ def parse_kill(spec: str) -> Kill:
 
 
 @dataclass
+class RecordedLaunch:
+    """A launch's recorded data, checked before any process starts."""
+
+    specs: list[str]  # each robot's --source
+    truth: list[Any]  # per robot its true poses at its keyframes, or None
+    keyframes: list[int]
+    name: str
+    world: Any = None  # the simulated world the data came from (a bag's [origin]), if any
+    object_sightings: int = 1
+
+
+@dataclass
 class LaunchJob:
     scenario: Path
     robots: int
@@ -92,6 +108,11 @@ class LaunchJob:
     partitions: list[Partition] = field(default_factory=list)  # windows in team stream time (see cut_off)
     config: KimeraConfig = field(default_factory=KimeraConfig.defaults)  # every process's parameters
     linger_max: float = LINGER_MAX  # each agent's wait, after its final epoch, for a whole team map
+    sources: list[str] = field(default_factory=list)  # recorded data (bag:PATH[:CONFIG], folders); none: sim
+    truth: list[Path] = field(default_factory=list)  # a TUM file per robot (with sources)
+    bag_config: Path | None = None  # the bags' config unless a spec names one
+    agent_sources: list[str] = field(default_factory=list)  # each agent's --source (set by recorded_team)
+    recorded: RecordedLaunch | None = None  # the sources, checked (set by recorded_team)
 
 
 def launch_job(config: KimeraConfig, out_dir: Path, **options: Any) -> LaunchJob:
@@ -103,6 +124,11 @@ def launch_job(config: KimeraConfig, out_dir: Path, **options: Any) -> LaunchJob
     if dataclasses.replace(faults, partitions=()) != Faults():
         raise ConfigError("run.faults", "launch cuts router links (partitions) only; drop, delay, jitter, "
                                         "duplicates and reordering need kimera-multi sim")
+    if options.get("sources"):  # recorded data: the team's size comes from the sources (launch resolves it)
+        mode = run.mode or MODES[0]
+        return LaunchJob(Path(), run.robots or 0, 0, mode, Path(out_dir), joins=dict(run.join),
+                         partitions=list(faults.partitions), config=config.updated({"run": {"mode": mode}}),
+                         **options)
     scenario, robots, mode = run.scenario or DEFAULT_SCENARIO, run.robots or LAUNCH_ROBOTS, run.mode or MODES[0]
     seed = LAUNCH_SEED if run.seed is None else run.seed
     config = config.updated({"run": {"scenario": scenario, "robots": robots, "seed": seed, "mode": mode}})
@@ -140,8 +166,61 @@ def parse_restart(spec: str) -> float:
 View = Callable[[dict[str, RobotView]], None]
 
 
+def recorded_team(job: LaunchJob) -> RecordedLaunch:
+    """Open the job's recorded sources (every error a user can fix is raised here: a missing bag,
+    a missing topic, a robot without keyframes, more robots asked than the sources hold) and set
+    ``job.robots``, ``job.agent_sources``, ``job.recorded`` and the configuration's team size from them."""
+    from kimera_multi_py.io.bag.reader import BagSource
+    from kimera_multi_py.team.recorded import open_sources
+
+    sources = open_sources(job.sources, job.bag_config)
+    try:
+        return _recorded_team(job, sources)
+    finally:
+        for src in sources:
+            if isinstance(src, BagSource):
+                src.close()
+
+
+def _recorded_team(job: LaunchJob, sources: list[Any]) -> RecordedLaunch:
+    from kimera_multi_py.io.bag.reader import BagSource
+    from kimera_multi_py.sim.simulation import Simulation
+    from kimera_multi_py.team.build import agent_params, bag_spec
+    from kimera_multi_py.team.recorded import recorded_world, source_truth
+
+    held = len(sources)
+    if job.robots > held:
+        raise ConfigError("robots", f"{job.robots} robots asked, but {' '.join(job.sources)} "
+                                    f"hold{'s' * (len(job.sources) == 1)} {held}")
+    sources = sources[:job.robots or held]
+    specs = []
+    for i, src in enumerate(sources):
+        spec = job.sources[min(i, len(job.sources) - 1)]
+        robot = getattr(src, "robot", i)
+        # agent i reads robot i of its source (a bag of one robot: that robot, whatever its namespace)
+        if robot != i and not (isinstance(src, BagSource) and held == 1):
+            raise ConfigError("--source", f"{spec}: robot {i} of the team would be robot {robot} of the data; "
+                                          f"launch needs robots 0..{len(sources) - 1}, or a source per robot")
+        if spec.startswith("bag:"):
+            path, config = bag_spec(spec)
+            config = config or job.bag_config
+            spec = f"bag:{path}" + (f":{config}" if config is not None else "")
+        specs.append(spec)
+    truth = source_truth(sources, job.truth)
+    job.robots, job.agent_sources = len(sources), specs
+    job.config = job.config.updated({"run": {"robots": job.robots}})
+    name = Path(job.sources[0].removeprefix("bag:")).name
+    job.recorded = RecordedLaunch(specs, truth, [s.num_keyframes for s in sources], name)
+    scenario, seed = recorded_world(sources)
+    if scenario is not None and all(t is not None for t in truth):  # simulated data: score against its world
+        job.recorded.name, job.recorded.world = scenario.name, Simulation(scenario, seed).world
+        job.recorded.object_sightings = agent_params(scenario, job.config).team_object_sightings
+    return job.recorded
+
+
 def launch(job: LaunchJob, on_update: View | None = None) -> Results:
     """Run the team as processes and evaluate it (see the module docstring)."""
+    recorded = job.recorded or (recorded_team(job) if job.sources else None)  # fail here, not in N processes
     if job.mode not in MODES:
         raise ConfigError("mode", f"unknown mode {job.mode!r} (available: {', '.join(MODES)})")
     if job.robots < 1 or job.robots > MAX_ROBOTS:
@@ -158,13 +237,18 @@ def launch(job: LaunchJob, on_update: View | None = None) -> Results:
             raise ConfigError("join", f"robot {r}: needs a robot of the team, and someone to join")
     from kimera_multi_py.sim.scenario import load_scenario
 
-    cfg = load_scenario(job.scenario, robots=job.robots)  # fail here, not in N processes
+    cfg = None if recorded else load_scenario(job.scenario, robots=job.robots)  # fail here, not in N processes
     job.config.write(job.out_dir, only_set=True)  # what every process loads
     t0 = time.monotonic()
     runtime.run(_launch(job, on_update))
-    from kimera_multi_py.team.evaluate import evaluate_run
+    from kimera_multi_py.team.evaluate import evaluate_recorded_run, evaluate_run
 
-    results = evaluate_run(job.out_dir, cfg, job.seed, job.mode, time.monotonic() - t0, job.config)
+    if recorded is not None:
+        results = evaluate_recorded_run(job.out_dir, recorded.truth, recorded.keyframes, recorded.name, job.mode,
+                                        time.monotonic() - t0, recorded.world, recorded.object_sightings)
+    else:
+        assert cfg is not None
+        results = evaluate_run(job.out_dir, cfg, job.seed, job.mode, time.monotonic() - t0, job.config)
     results.write_json(job.out_dir / "results.json")
     return results
 
@@ -232,7 +316,8 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
     config = ["--config", str(out / CONFIG_NAME)]
 
     def agent_args(r: int, resume: bool) -> list[str]:
-        args = ["agent", "--robot", str(r), "--source", f"sim:{job.scenario}:{job.seed}",
+        source = job.agent_sources[r] if job.agent_sources else f"sim:{job.scenario}:{job.seed}"
+        args = ["agent", "--robot", str(r), "--source", source,
                 "--out", str(out), "--rate", str(job.rate), "--checkpoint-every", str(job.checkpoint_every),
                 "--linger-max", str(job.linger_max),
                 "--centralized" if job.mode == "centralized" else "--distributed", *config, *conn(f"robot{r}", r)]

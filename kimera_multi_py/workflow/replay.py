@@ -11,7 +11,6 @@ is scored by the simulator's evaluator. When the data were simulated (a bag writ
 from __future__ import annotations
 
 import heapq
-import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,22 +18,19 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.core.errors import ConfigError, DatasetError
+from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.keyframe import KeyframeInput
-from kimera_multi_py.eval.results import Results, RobotResult
-from kimera_multi_py.eval.team import alignment_report, closure_stats, traffic_totals, trajectory_results
-from kimera_multi_py.io.bag.config import config_for
+from kimera_multi_py.eval.results import Results
 from kimera_multi_py.io.bag.outputs import RobotOutput, write_outputs_bag
-from kimera_multi_py.io.bag.reader import BagSource, bag_robots
-from kimera_multi_py.io.bag.tf import PoseSeries
-from kimera_multi_py.io.sources import KeyframeSource, RecordedSource, read_ground_truth, read_manifest
-from kimera_multi_py.io.tum import read_tum
-from kimera_multi_py.sim.scenario import ScenarioConfig, SpaceConfig, load_scenario
+from kimera_multi_py.io.bag.reader import BagSource
+from kimera_multi_py.io.sources import KeyframeSource
+from kimera_multi_py.sim.scenario import ScenarioConfig, SpaceConfig
 from kimera_multi_py.sim.sensors import Scan
 from kimera_multi_py.sim.simulation import Keyframe, Simulation
-from kimera_multi_py.sim.source import recorded_scenario
-from kimera_multi_py.team.build import bag_spec, params_for
+from kimera_multi_py.team.build import params_for
 from kimera_multi_py.team.config import KimeraConfig
+from kimera_multi_py.team.evaluate import recorded_scores
+from kimera_multi_py.team.recorded import open_sources, recorded_world, source_stamps, source_truth
 from kimera_multi_py.workflow.simulate import SimRunner
 
 MODES = ("distributed", "centralized", "odometry")
@@ -99,74 +95,6 @@ class RecordedTeam:
         return heapq.merge(*(self.keyframes(r) for r in range(self.num_robots)), key=lambda k: (k.stamp, k.robot))
 
 
-def open_sources(specs: Sequence[str], bag_config: str | Path | None = None) -> list[KeyframeSource]:
-    """One source per robot: each spec is a robot, unless a single spec names a team (a bag with
-    ``/robot{r}`` namespaces, or a recorded folder of several robots)."""
-    if not specs:
-        raise ConfigError("--source", "give at least one --source")
-    sources: list[KeyframeSource] = []
-    for spec in specs:
-        if spec.startswith("bag:"):
-            path, config = bag_spec(spec)
-            cfg, _ = config_for(path, config or bag_config)
-            robots = bag_robots(path) if len(specs) == 1 and cfg.namespace is None else [None]
-            for r in robots:
-                # robot r of a team's bag; else this spec's robot (its namespace found by BagSource)
-                sources.append(BagSource(path, len(sources) if r is None else r, config=cfg))
-        elif Path(spec).is_dir():
-            ids = [e["robot"] for e in read_manifest(spec)["robots"]]
-            for r in ids if len(specs) == 1 else ids[:1]:
-                sources.append(RecordedSource(spec, r))
-        else:
-            raise ConfigError("--source", f"{spec!r}: expected bag:PATH[:CONFIG] or a recorded folder")
-    for i, s in enumerate(sources):  # the team's ids are 0..n-1, in this order
-        if s.num_keyframes == 0:
-            raise DatasetError(f"{specs[min(i, len(specs) - 1)]}: robot {i} yields no keyframe")
-    return sources
-
-
-def _stamps(source: KeyframeSource) -> np.ndarray:
-    """A bag's keyframe stamps (ROS time; the team's first becomes 0 s); a recorded folder's start at 0 s."""
-    return source.stamps if isinstance(source, BagSource) else np.zeros(1)
-
-
-def _truth(sources: Sequence[KeyframeSource], truth_files: Sequence[str | Path]) -> list[np.ndarray | None]:
-    """Per robot: the TUM file given for it (interpolated at its keyframes), else what its source holds."""
-    if truth_files and len(truth_files) != len(sources):
-        raise ConfigError("--truth", f"give one TUM file per robot ({len(sources)}), got {len(truth_files)}")
-    out: list[np.ndarray | None] = []
-    for i, src in enumerate(sources):
-        if truth_files:
-            stamps, poses = read_tum(truth_files[i])
-            if not isinstance(src, BagSource):
-                raise ConfigError("--truth", "TUM ground truth goes with bag sources")
-            try:
-                out.append(PoseSeries(stamps, poses).at(src.stamps, src.cfg.sync_tolerance) @ src.T_base_keyframe)
-            except ValueError as exc:
-                raise DatasetError(f"{truth_files[i]}: {exc}") from None
-        elif isinstance(src, BagSource):
-            out.append(src.ground_truth())
-        elif isinstance(src, RecordedSource) and (src.dir / "ground_truth").is_dir():
-            out.append(read_ground_truth(src.dir).poses.get(src.robot))
-        else:
-            out.append(None)
-    return out
-
-
-def _world(sources: Sequence[KeyframeSource]) -> tuple[ScenarioConfig | None, int]:
-    """The simulated scenario and seed the data came from, if the first source says so."""
-    src = sources[0]
-    if isinstance(src, BagSource) and src.cfg.origin and "scenario" in src.cfg.origin:
-        path = Path(str(src.cfg.origin["scenario"]))
-        if path.is_file():
-            return load_scenario(path, robots=len(sources)), int(src.cfg.origin.get("seed", 0))
-    if isinstance(src, RecordedSource) and (src.dir / "ground_truth").is_dir():
-        gt = read_ground_truth(src.dir)
-        cfg = recorded_scenario(gt)
-        return cfg, int(gt.info.get("seed", 0))
-    return None, 0
-
-
 class ReplayRunner(SimRunner):
     """:class:`SimRunner` over recorded sources; scoring what the ground truth allows."""
 
@@ -185,24 +113,13 @@ class ReplayRunner(SimRunner):
         return results
 
     def _scored(self, wall_s: float) -> Results:
-        """What the ground truth allows without the world: trajectories and closures, or nothing."""
-        truth = [np.array(tr.true) for tr in self.tracks]
+        """What the ground truth allows without the world (:func:`recorded_scores`)."""
+        truth = [np.array(tr.true) for tr in self.tracks] if self.team.has_truth else None
         est = [o.poses for o in self.outcomes] if self.outcomes else [np.array(tr.est) for tr in self.tracks]
-        extra: dict[str, Any] = {"rays": self.rays, "ground_truth": self.team.has_truth}
-        if self.team.has_truth:
-            robots, team, T = trajectory_results(truth, est, anchored=not self.outcomes)
-        else:
-            robots = [RobotResult(i, len(e), float(np.linalg.norm(np.diff(e[:, :3, 3], axis=0), axis=1).sum()),
-                                  math.nan) for i, e in enumerate(est)]
-            team = {"ate_rmse_m": math.nan, "keyframes": sum(r.keyframes for r in robots),
-                    "trajectory_length_m": sum(r.trajectory_length_m for r in robots), "frames": "no ground truth"}
-            T = np.eye(4)
+        robots, team, T, scored = recorded_scores(truth, est, self.outcomes)
+        extra: dict[str, Any] = {"rays": self.rays, **scored}
         if self.outcomes:
-            extra["loop_closures"] = (closure_stats(truth, self.outcomes) if self.team.has_truth
-                                      else {"accepted_inter": sum(c.accepted and c.peer != o.robot
-                                                                  for o in self.outcomes for c in o.closures)})
-            extra.update(alignment=alignment_report(self.outcomes), bytes_sent=traffic_totals(self.outcomes),
-                         pgo_runs=self._epochs(), transport=self.transport)
+            extra.update(pgo_runs=self._epochs(), transport=self.transport)
             if self.map_report is not None:
                 extra["map_consensus"], _ = self._map_results(T)
         return Results(scenario=self.name, mode=self.mode, seed=self.team.seed, robots=robots, team=team,
@@ -225,10 +142,10 @@ def replay(specs: Sequence[str], mode: str = "distributed", out_dir: str | Path 
     if mode not in MODES:
         raise ConfigError("mode", f"unknown mode {mode!r} (available: {', '.join(MODES)})")
     sources = open_sources(specs, bag_config)
-    truths = _truth(sources, truth)
-    scenario, seed = _world(sources)
+    truths = source_truth(sources, truth)
+    scenario, seed = recorded_world(sources)
     world = Simulation(scenario, seed).world if scenario is not None else None
-    team = RecordedTeam(sources, [_stamps(s) for s in sources], truths, seed, world)
+    team = RecordedTeam(sources, [source_stamps(s) for s in sources], truths, seed, world)
     name = scenario.name if scenario is not None else Path(specs[0].removeprefix("bag:")).name
     cfg = scenario or ScenarioConfig(name=name, spaces=[SpaceConfig(name="unknown", min=(0.0, 0.0), max=(1.0, 1.0))])
     config = config or KimeraConfig.defaults()
