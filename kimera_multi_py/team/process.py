@@ -157,12 +157,15 @@ def _resources(agent: Agent, node: AgentNode) -> dict[str, Any]:
     return out
 
 
-async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: float = 0.05) -> dict[str, Any]:
+async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: float = 0.05,
+                      settle: float = 2.0) -> dict[str, Any]:
     """After the final epoch, serve the team until this robot's map evidence and pose tables match
     every team robot's last version summary (``mapshare.consensus.MapConsensus.gaps``) and no
-    epoch runs, or for
-    ``cap`` s. ``robots``: the team's size (default: every robot heard of). Returns what
-    ``linger.json`` records: whether the team was whole, the wait, and what was missing."""
+    epoch runs, and that has held for ``settle`` s (two state periods: a leader that learns of a
+    late closure from a robot's state re-runs the final epoch, and a robot gone by then could
+    never match the new poses), or for ``cap`` s. ``robots``: the team's size (default: every
+    robot heard of). Returns what ``linger.json`` records: whether the team was whole, the wait,
+    and what was missing."""
     maps = node.maps
     t0 = time.monotonic()
     if maps is None or maps.mode != "exact":  # no version summaries to compare
@@ -174,10 +177,20 @@ async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: flo
     def busy() -> bool:  # an epoch still running (robots that met late run another final one)
         return node.pgo is not None and node.pgo.busy
 
-    while ((gaps := maps.gaps(team())) or busy()) and time.monotonic() - t0 < cap:
+    quiet_since: float | None = None
+    while time.monotonic() - t0 < cap:
+        gaps = maps.gaps(team())
+        now = time.monotonic()
+        if gaps or busy():
+            quiet_since = None
+        elif quiet_since is None:
+            quiet_since = now
+        elif now - quiet_since >= settle:
+            break
         await node.drain()
         await node.tick()
         await asyncio.sleep(poll)
+    gaps = maps.gaps(team())
     waited = round(time.monotonic() - t0, 2)
     if gaps:
         log.warning("robot %d: the team map is not whole after %.0f s (--linger-max): %s", node.robot, waited,
