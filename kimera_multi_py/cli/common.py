@@ -17,6 +17,12 @@ err_console = Console(stderr=True)
 
 ConfigFile = Annotated[Path | None, typer.Option("--config", help="YAML or TOML configuration (e.g. a run folder's "
                                                                   "config.yaml); flags given override it.")]
+Truth = Annotated[list[Path] | None, typer.Option("--truth", help="With recorded data: TUM file of a robot's true "
+                                                  "base poses, one per robot in order (default: the bags' "
+                                                  "ground-truth topic, if any).")]
+BagConfig = Annotated[Path | None, typer.Option("--bag-config", help="With recorded data: topics, frames and classes "
+                                                "of the bags (TOML or YAML; docs/bags.md); default: each bag's own "
+                                                "BAG.toml, else ROS conventions.")]
 
 
 def setup_logging(verbose: bool) -> None:

@@ -7,7 +7,16 @@ from typing import Annotated
 
 import typer
 
-from kimera_multi_py.cli.common import ConfigFile, console, fail, results_table, setup_logging, summary
+from kimera_multi_py.cli.common import (
+    BagConfig,
+    ConfigFile,
+    Truth,
+    console,
+    fail,
+    results_table,
+    setup_logging,
+    summary,
+)
 from kimera_multi_py.core.errors import KimeraMultiError
 
 
@@ -19,12 +28,8 @@ def register(app: typer.Typer) -> None:
                                                   "one folder) is the whole team.")],
         mode: Annotated[str, typer.Option(help="distributed, centralized or odometry.")] = "distributed",
         out: Annotated[Path, typer.Option(help="Run folder, as `sim` writes it.")] = Path("runs/replay"),
-        truth: Annotated[list[Path] | None, typer.Option("--truth", help="TUM file of a robot's true base "
-                                                         "poses, one per robot in order (default: the bags' "
-                                                         "ground-truth topic, if any).")] = None,
-        bag_config: Annotated[Path | None, typer.Option("--bag-config", help="Topics, frames and classes of "
-                                                        "the bags (TOML or YAML; docs/bags.md); default: "
-                                                        "each bag's own BAG.toml, else ROS defaults.")] = None,
+        truth: Truth = None,
+        bag_config: BagConfig = None,
         out_bag: Annotated[Path | None, typer.Option("--out-bag", help="Also write each robot's trajectory, "
                                                      "team map and objects into this ROS 2 bag.")] = None,
         config: ConfigFile = None,

@@ -10,7 +10,7 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
-from kimera_multi_py.cli.common import ConfigFile
+from kimera_multi_py.cli.common import BagConfig, ConfigFile, Truth
 from kimera_multi_py.core.errors import ConfigError, KimeraMultiError
 from kimera_multi_py.core.ids import MAX_AGENT_ID
 
@@ -151,12 +151,8 @@ def register(app: typer.Typer) -> None:
                                                          "bag:PATH[:CONFIG] or a recorded folder, one per robot "
                                                          "in id order; one bag with /robotN namespaces is the "
                                                          "whole team (docs/bags.md).")] = None,
-        truth: Annotated[list[Path] | None, typer.Option("--truth", help="With --source: TUM file of a robot's "
-                                                         "true base poses, one per robot in order (default: the "
-                                                         "bags' ground-truth topic, if any).")] = None,
-        bag_config: Annotated[Path | None, typer.Option("--bag-config", help="With --source: topics, frames and "
-                                                        "classes of the bags (TOML/YAML; default: each bag's "
-                                                        "own BAG.toml, else ROS conventions).")] = None,
+        truth: Truth = None,
+        bag_config: BagConfig = None,
         config: ConfigFile = None,
         verbose: Verbose = False,
     ) -> None:

@@ -69,9 +69,8 @@ def test_evidence_map_does_not_depend_on_the_order_of_updates() -> None:
     assert not same(snapshot(em.octree), snapshot(ref))
 
 
-def test_small_corrections_move_the_team_map_exactly() -> None:
-    """Corrections of millimetres move only the cells that change voxel; after any sequence of
-    them the team map is the fusion at the last poses, bit for bit."""
+def _placed_store():
+    """Three robots' maps, their records and an evidence store holding every record, placed."""
     maps = {r: robot_map(r) for r in range(3)}
     records = [rec for r in maps for rec in records_of(r, maps[r])]
     em = EvidenceMap(maps[0].octree)
@@ -79,6 +78,13 @@ def test_small_corrections_move_the_team_map_exactly() -> None:
         em.set_cells(rec.key, rec.codes, rec.rows)
         em.set_pose(rec.key, rec.T_ref, rec.T)
         em.set_active(rec.key, True)
+    return maps, records, em
+
+
+def test_small_corrections_move_the_team_map_exactly() -> None:
+    """Corrections of millimetres move only the cells that change voxel; after any sequence of
+    them the team map is the fusion at the last poses, bit for bit."""
+    maps, records, em = _placed_store()
     rng = np.random.default_rng(4)
     final = {}
     for step in range(6):
@@ -145,13 +151,7 @@ def test_laplacian_states_split_into_messages_rebuild_the_same_copy() -> None:
 def test_the_evidence_store_does_not_grow_with_re_anchorings() -> None:
     """Moving the same submaps again and again (a whole pose table at a time, as a peer's tables
     arrive) leaves the store's bytes where one placement puts them, and its map the fusion."""
-    maps = {r: robot_map(r) for r in range(3)}
-    records = [rec for r in maps for rec in records_of(r, maps[r])]
-    em = EvidenceMap(maps[0].octree)
-    for rec in records:
-        em.set_cells(rec.key, rec.codes, rec.rows)
-        em.set_pose(rec.key, rec.T_ref, rec.T)
-        em.set_active(rec.key, True)
+    maps, records, em = _placed_store()
     em.octree  # noqa: B018  (the view is part of what is held while it is built)
     placed = em.nbytes
     rng = np.random.default_rng(4)
