@@ -268,7 +268,7 @@ class SubmapMap:
         return map_codes(ref_codes, C, self.resolution)
 
     def _apply(self, codes: np.ndarray, rows: np.ndarray, support: np.ndarray) -> None:
-        """Add rows and support counts at (possibly repeated) world codes; refresh the view."""
+        """Add rows and support counts at (possibly repeated) world codes; note the cells for the view."""
         if len(codes) == 0:
             return
         uniq, (summed, sup) = group_sums(codes, rows.astype(np.int32), support.astype(np.int32))
