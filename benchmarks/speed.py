@@ -6,9 +6,10 @@
     python benchmarks/speed.py --repo ../other-checkout --json # the same cases on another checkout
 
 Every case runs in a fresh process (so its peak RSS is its own). A simulation case reports the
-realtime factor (stream seconds per wall second), CPU seconds per robot per stream-second, the
-process's peak RSS (all robots, one process) and per robot, ATE and closures (so a faster run
-that is worse shows it). ``launch3`` starts the router and 3 agent processes at ``--rate 1``
+realtime factor (stream seconds per wall second, the scoring after the run included), CPU
+seconds per robot per stream-second (the run's process; ``cpu_s_workers``: the evaluation's
+worker processes, which build the quality maps beside it), the process's peak RSS (all robots,
+one process) and per robot, ATE and closures (so a faster run that is worse shows it). ``launch3`` starts the router and 3 agent processes at ``--rate 1``
 and reports each agent's CPU seconds per stream-second and peak RSS (the agents write them to
 ``resources.json``). With ``--stages`` each simulation runs under cProfile and the cumulative
 seconds of the stage functions are reported (profiled time: slower than the plain run, and
@@ -75,6 +76,7 @@ with tempfile.TemporaryDirectory() as d:
         prof.disable()
     wall = time.perf_counter() - t0
 ru = resource.getrusage(resource.RUSAGE_SELF)
+kids = resource.getrusage(resource.RUSAGE_CHILDREN)  # evaluation's worker processes
 stages = {{}}
 if prof is not None:
     st = pstats.Stats(prof).stats
@@ -88,6 +90,7 @@ print(json.dumps({{
     "robots": n, "sim_seconds": res["sim_seconds"], "wall_s": round(wall, 1),
     "run_wall_s": res["wall_s"], "realtime_factor": round(res["sim_seconds"] / wall, 3),
     "cpu_s": round(ru.ru_utime + ru.ru_stime, 1),
+    "cpu_s_workers": round(kids.ru_utime + kids.ru_stime, 1),
     "cpu_s_per_robot_per_stream_s": round((ru.ru_utime + ru.ru_stime) / n / res["sim_seconds"], 3),
     "peak_rss_mb": round(ru.ru_maxrss / 1024), "peak_rss_mb_per_robot": round(ru.ru_maxrss / 1024 / n),
     "team_ate_m": res["team"]["ate_rmse_m"], "true_inter": lc.get("true_accepted_inter"),
