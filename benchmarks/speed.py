@@ -9,10 +9,11 @@ Every case runs in a fresh process (so its peak RSS is its own). A simulation ca
 realtime factor (stream seconds per wall second, the scoring after the run included), CPU
 seconds per robot per stream-second (the run's process; ``cpu_s_workers``: the evaluation's
 worker processes, which build the quality maps beside it), the process's peak RSS (all robots,
-one process) and per robot, ATE and closures (so a faster run that is worse shows it). ``launch3`` starts the router and 3 agent processes at ``--rate 1``
-and reports each agent's CPU seconds per stream-second and peak RSS (the agents write them to
-``resources.json``). With ``--stages`` each simulation runs under cProfile and the cumulative
-seconds of the stage functions are reported (profiled time: slower than the plain run, and
+one process) and per robot, ATE and closures (so a faster run that is worse shows it).
+``launch3`` starts the router and 3 agent processes at ``--rate 1`` and reports each agent's
+CPU seconds per stream-second and peak RSS (the agents write them to ``resources.json``).
+With ``--stages`` each simulation runs under cProfile and the cumulative seconds of the stage
+functions are reported (profiled time: slower than the plain run, and
 nested stages overlap, e.g. frame decisions sit inside PGO).
 
 Targets (docs/performance.md): 3 robots realtime factor >= 5, 8 robots >= 1.5; launch agents
