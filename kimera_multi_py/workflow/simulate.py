@@ -390,7 +390,7 @@ class SimRunner:
         live = [n for n in self.nodes if n.maps is not None and n._sub is not None]
         cells = {n.robot: n.maps.team_cells() for n in live if n.maps is not None}
         pairs = [(a.robot, b.robot) for i, a in enumerate(live) for b in live[i + 1:]]
-        self._phi.record(self.clock.t, cells, pairs, self.nodes[0].agent.map.octree.model.prior_row)
+        self._phi.record(self.clock.t, cells, pairs, self.nodes[0].agent.map.template.model.prior_row)
         self._phi_s += time.perf_counter() - t0
         self._add_phi()
         if force and not isinstance(self.viz, NullViz):  # the end: each team map, placed like the team
