@@ -45,7 +45,7 @@ import gtsam
 import numpy as np
 
 from kimera_multi_py.comms.messages.base import Message
-from kimera_multi_py.comms.messages.pgo import GncWeights, PgoCommand, PgoStatus, PublicPoses
+from kimera_multi_py.comms.messages.pgo import EdgeVeto, GncWeights, PgoCommand, PgoStatus, PublicPoses
 from kimera_multi_py.core.geometry import to_gtsam
 from kimera_multi_py.pgo.factors import between, neighbour_factor, neighbour_parts, to_values
 from kimera_multi_py.pgo.frame_decision import FrameDecision
@@ -104,6 +104,7 @@ class PgoAgent:
         self.relaxed = 0
         self.statuses: dict[int, PgoStatus] = {}
         self.last_sent_round = -10**9
+        self._veto_round = -10**9
         self._base: gtsam.NonlinearFactorGraph | None = None
         self._parts: dict[int, tuple[float, tuple[gtsam.Pose3, gtsam.noiseModel.Base]]] = {}
 
@@ -143,6 +144,8 @@ class PgoAgent:
                 self.solve_from = msg.round
         elif isinstance(msg, GncWeights):
             self.weights.absorb(msg)
+        elif isinstance(msg, EdgeVeto):
+            self._absorb_veto(msg)
 
     # ---------------------------------------------------------------- the step
     def active(self, rnd: int) -> bool:
@@ -161,6 +164,7 @@ class PgoAgent:
             out.append(self._public(rnd, self.state.poses))
         if self.params.robust and not self.frame.screened and self.params.screen != "none":
             self.frame.screen()
+        out.extend(self._vetoes(rnd))
         if self.stage == "init" and self.solve_from is not None and rnd >= self.solve_from:
             self._start_solve(rnd)
         if (self.params.robust and self.stage == "solve" and self.weights.pending is not None
@@ -187,6 +191,32 @@ class PgoAgent:
             return True
         self.wait_updates += 1
         return self.wait_updates > self.params.align_patience
+
+    def _vetoes(self, rnd: int) -> list[EdgeVeto]:
+        """The barred inter-robot edges (:meth:`.state.SolveState.bar`), one message per peer, when
+        newly barred and then every ``resend_interval`` rounds (a peer may have lost them)."""
+        st = self.state
+        if not st.barred.any() or not (self.frame.veto_news or rnd - self._veto_round >= self.params.resend_interval):
+            return []
+        self.frame.veto_news = False
+        self._veto_round = rnd
+        lg = self.local
+        out = []
+        for peer in np.unique(lg.inter_peer[st.barred]):
+            sel = np.flatnonzero(st.barred & (lg.inter_peer == peer))
+            out.append(EdgeVeto(robot=self.robot, peer=int(peer), round=rnd, keys_a=lg.keys[lg.inter_own[sel]],
+                                keys_b=lg.inter_peer_key[sel]))
+        return out
+
+    def _absorb_veto(self, msg: EdgeVeto) -> None:
+        """A peer's barred edges with this robot: held at weight 0 here too."""
+        if msg.peer != self.robot:
+            return
+        lg = self.local
+        vetoed = {(int(a), int(b)) for a, b in zip(msg.keys_b, msg.keys_a, strict=True)}
+        mask = np.array([(int(a), int(b)) in vetoed for a, b in zip(lg.keys[lg.inter_own], lg.inter_peer_key,
+                                                                    strict=True)], dtype=bool)
+        self.state.bar(mask & (lg.inter_peer == msg.robot))
 
     def _status(self, rnd: int) -> PgoStatus:
         rel = float(self.rel_change) if np.isfinite(self.rel_change) else 1e300

@@ -103,6 +103,10 @@ class FrameDecision:
         self.map_view: Callable[[np.ndarray], MapAgreement | None] | None = None
         self._map_scores: dict[tuple[int, ...], MapAgreement | None] = {}
         self.map_refuted: list[dict[str, object]] = []  # hypotheses the maps refuted, for the report
+        # inter-robot edges of hypotheses the maps refuted: once a frame is adopted, those it does
+        # not rest on are barred (held at weight 0, here and at their owners: :meth:`vetoes`)
+        self.refuted_edges = np.zeros(len(local.inter_edge), dtype=bool)
+        self.veto_news = False  # edges were newly barred: tell their owners
 
     # ---------------------------------------------------------------- alignment
     def try_align(self) -> None:
@@ -155,6 +159,7 @@ class FrameDecision:
             # edges the screen rejects start as outliers; GNC revisits them
             keep = inliers if self.params.screen == "alignment" else self._supported(known)
             self.state.inter_weights = np.where(known & ~keep, 0.0, 1.0)
+            self._bar_refuted(inliers)
         self.screened = bool(known.all())
         log.info("robot %d aligned with %d/%d inter-robot edges", self.robot,
                  int(inliers.sum()), int(known.sum()))
@@ -176,7 +181,20 @@ class FrameDecision:
                                 lg.inter_peer[idx], place_radius=self.params.place_radius)
         for h in hyps:
             h.edges = idx[h.edges]
-        return [h for h in hyps if not self._map_refutes(h.T, h)]
+        kept = []
+        for h in hyps:
+            if self._map_refutes(h.T, h):
+                self.refuted_edges[h.edges] = True
+            else:
+                kept.append(h)
+        return kept
+
+    def _bar_refuted(self, inliers: np.ndarray) -> None:
+        """Bar the edges of map-refuted hypotheses that the adopted frame does not rest on: GNC
+        must not bring back what the maps ruled out (an alias as large as the truth fits the
+        least-squares solution as well as the truth does)."""
+        if self.state.bar(self.refuted_edges & ~inliers):
+            self.veto_news = True
 
     # ---------------------------------------------------------------- maps
     def set_map_view(self, view: Callable[[np.ndarray], MapAgreement | None] | None) -> None:
@@ -303,8 +321,10 @@ class FrameDecision:
         for h in self._hypotheses(known):
             if near_identity(h.T):
                 inliers[h.edges] = True
-        # edges outside the hypothesis start as outliers; GNC and its rechecks revisit them
+        # edges outside the hypothesis start as outliers; GNC and its rechecks revisit them,
+        # except those of hypotheses the maps refuted
         self.state.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
+        self._bar_refuted(inliers)
         self.screened = bool(known.all())
         self.settled = settles
         self.alignment = self._report("aligned", best, margin, len(hyps))
@@ -402,6 +422,7 @@ class FrameDecision:
             for h in here:
                 keep[h.edges] = True
             self.state.inter_weights = np.where(known & ~keep, 0.0, 1.0)
+            self._bar_refuted(keep)
             self.screened = True
             if self.root and here:
                 others = [h.places for h in hyps if not near_identity(h.T)]

@@ -128,6 +128,7 @@ class GnRobust:
                 w = lookup.get((int(a), int(b)))
                 if w is not None:
                     self.state.inter_weights[e] = w
+            self.state.hold_bars()
 
     def start_weights_in(self) -> bool:
         """Every lower-id neighbour's start weights have arrived (robust; always true otherwise)."""
@@ -150,6 +151,7 @@ class GnRobust:
             self.state.inter_weights[:] = 0.0
         elif self.off_peers:
             self.state.inter_weights[np.isin(lg.inter_peer, list(self.off_peers))] = 0.0
+        self.state.hold_bars()
 
     # ---------------------------------------------------------------- between outer steps
     def robust_r2_all(self, poses: np.ndarray, peer_X: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:

@@ -34,6 +34,22 @@ class SolveState:
     intra_weights: np.ndarray  # per intra-robot edge (odometry stays 1)
     neighbour_poses: dict[int, np.ndarray] = field(default_factory=dict)  # pose key -> latest public pose
     peer_settled: dict[int, bool] = field(default_factory=dict)  # robot -> its frame is settled, as last heard
+    barred: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # inter edges the maps refuted
+
+    def bar(self, edges: np.ndarray) -> bool:
+        """Hold inter-robot ``edges`` (a mask) at weight 0 for the rest of the epoch: they belong
+        to a frame hypothesis the maps refute. Returns whether any edge is newly barred."""
+        if len(self.barred) != len(self.inter_weights):
+            self.barred = np.zeros(len(self.inter_weights), dtype=bool)
+        new = bool(np.any(edges & ~self.barred))
+        self.barred |= edges
+        self.hold_bars()
+        return new
+
+    def hold_bars(self) -> None:
+        """Put the barred edges back to weight 0 (after any part wrote the weights)."""
+        if len(self.barred) == len(self.inter_weights) and self.barred.any():
+            self.inter_weights[self.barred] = 0.0
 
     @classmethod
     def start(cls, local: LocalGraph, poses: np.ndarray) -> SolveState:

@@ -39,6 +39,7 @@ import numpy as np
 from kimera_multi_py.alignment.map_check import MapAgreement
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.pgo import (
+    EdgeVeto,
     FrameLandmarks,
     GncWeights,
     PgoCommand,
@@ -56,7 +57,7 @@ log = logging.getLogger(__name__)
 
 EPOCH_ROUNDS = 1_000_000
 EPOCH_RESEND = 25  # the leader repeats an epoch's opening every this many rounds
-_PGO_MESSAGES = (PublicPoses, PoseDeltas, PgoStatus, PgoCommand, GncWeights)
+_PGO_MESSAGES = (PublicPoses, PoseDeltas, PgoStatus, PgoCommand, GncWeights, EdgeVeto)
 
 
 @dataclass

@@ -71,6 +71,7 @@ class RobustWeights:
             w = lookup.get((int(a), int(b)))
             if w is not None:
                 self.state.inter_weights[e] = float(w)
+        self.state.hold_bars()
 
     # ---------------------------------------------------------------- weight updates
     def update(self, rnd: int) -> tuple[list[Message], bool]:
@@ -98,6 +99,7 @@ class RobustWeights:
             w = self.gnc.update(r2, mu0=mu0)
         self.state.intra_weights[loop] = w[: len(loop)]
         self.state.inter_weights[inter] = w[len(loop):]
+        self.state.hold_bars()
         out: list[Message] = []
         for peer in lg.neighbours:
             sel = inter[lg.inter_peer[inter] == peer]

@@ -37,13 +37,19 @@ def _team(seed: int = 0, starts: tuple[tuple[float, float], ...] = ((0.5, 0.0), 
     """Robots looping the corridor from ``starts`` (arc length, lateral offset), and their odometry."""
     rng = np.random.default_rng(seed) if rng is None else rng
     trajs = [np.stack([_ring_pose(s0 + k, lat) for k in range(48)]) for s0, lat in starts]
+    return (trajs, *_odometry(trajs, rng))
+
+
+def _odometry(trajs: list[np.ndarray], rng: np.random.Generator
+              ) -> tuple[list[tuple[int, int, np.ndarray, np.ndarray, bool]], np.ndarray]:
+    """Noisy odometry edges along each true trajectory, and each robot's first pose index."""
     first = np.cumsum([0] + [len(T) for T in trajs])[:-1]
     odo = []
     for r, T in enumerate(trajs):
         for k in range(len(T) - 1):
             odo.append((first[r] + k, first[r] + k + 1, _noisy(inverse(T[k]) @ T[k + 1], ODO_SIGMA, rng),
                         np.diag(1.0 / ODO_SIGMA**2), False))
-    return trajs, odo, first
+    return odo, first
 
 
 def _near(T: np.ndarray, centre: np.ndarray) -> list[int]:

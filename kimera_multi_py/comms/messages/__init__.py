@@ -3,7 +3,7 @@
 - :mod:`.fields` — field specs and the reference validation;
 - :mod:`.base` — :class:`~.base.Message` and the ``@message`` decorator (compiled checks);
 - :mod:`.pgo` — distributed PGO (``PublicPoses``, ``PoseDeltas``, ``PgoStatus``, ``PgoCommand``, ``GncWeights``,
-  ``PcgState``, ``FrameLandmarks``);
+  ``PcgState``, ``FrameLandmarks``, ``EdgeVeto``);
 - :mod:`.closures` — loop closures (``KeyframeDescriptor``, ``LoopClosureRequest``/``Reply``,
   ``LoopClosures``/``LoopClosuresAck``, ``KeyframeOdometry``);
 - :mod:`.maps` — map sharing (``MapDelta``, ``SubmapEvidence``, ``SubmapPoses``, ``MapVersions``,
@@ -37,6 +37,7 @@ from kimera_multi_py.comms.messages.maps import (
     SubmapPoses,
 )
 from kimera_multi_py.comms.messages.pgo import (
+    EdgeVeto,
     FrameLandmarks,
     GncWeights,
     PcgState,
@@ -48,7 +49,7 @@ from kimera_multi_py.comms.messages.pgo import (
 from kimera_multi_py.comms.messages.team import AgentState, Heartbeat, PgoEpoch, Ping
 from kimera_multi_py.core.errors import MessageError
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 # every message type by its wire name, in the order they were first defined (samples and
 # tests iterate it)
@@ -58,7 +59,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         PublicPoses, FrameLandmarks, PgoStatus, PcgState, PgoCommand, GncWeights,
         KeyframeDescriptor, LoopClosureRequest, LoopClosureReply, LoopClosures, LoopClosuresAck,
         MapDelta, SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap, ObjectUpdate,
-        Heartbeat, Ping, KeyframeOdometry, PgoEpoch, AgentState, PoseDeltas, PeopleUpdate,
+        Heartbeat, Ping, KeyframeOdometry, PgoEpoch, AgentState, PoseDeltas, PeopleUpdate, EdgeVeto,
     )
 }
 if set(MESSAGE_TYPES.values()) != set(Message.__subclasses__()):  # a type defined but not listed

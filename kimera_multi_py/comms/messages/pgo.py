@@ -69,6 +69,19 @@ class FrameLandmarks(Message):
     centroids: np.ndarray = arr("float32", "n", 3)
 
 
+@message("EdgeVeto", keys.EDGE_VETO)
+class EdgeVeto(Message):
+    """Inter-robot edges between ``robot`` (pose keys ``keys_a``) and ``peer`` (``keys_b``) that
+    ``robot``'s frame decision found in a frame hypothesis the maps refute: both ends hold them
+    at weight 0 until the epoch ends, whatever GNC would make of them (the maps already decided)."""
+
+    robot: int = robot_id()
+    peer: int = robot_id()
+    round: int = count()
+    keys_a: np.ndarray = arr("int64", "m")
+    keys_b: np.ndarray = arr("int64", "m")
+
+
 @message("PgoStatus", keys.PGO_STATUS)
 class PgoStatus(Message):
     """A robot's PGO progress: ``ready`` once the relative pose change is below tolerance."""
