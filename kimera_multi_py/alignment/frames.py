@@ -19,7 +19,12 @@ from kimera_multi_py.core.robust import MU_STEP, GncSchedule, initial_mu, tls_we
 
 log = logging.getLogger(__name__)
 
-SAME_FRAME_M = 2.5  # hypotheses moving the closure poses by less are one frame (rooms sit further apart)
+# Hypotheses that move every closure pose by less are one frame: a true group that the robot's
+# drift split (the edge-level agreement tolerates 1 m plus 5 % of the lever arm, so over a long
+# path drift can exceed it) differs by well under this. Two copies of one room differ by at least
+# a room's width, and a hypothesis that merges an alias closer than this with the truth is still
+# checked against the maps, and its edges start at weight 0 unless they fit the adopted frame.
+SAME_FRAME_M = 2.5
 
 
 @dataclass
@@ -313,13 +318,14 @@ def decide(hypotheses: list[FrameHypothesis], min_places: int = 2, min_margin: i
     another hypothesis is not decided: the robot waits for more evidence (or stays out of the
     team frame). A hypothesis leads a competitor that rests on fewer than two places by
     ``min_margin`` places. A competitor resting on several places is a twin room with several
-    distinct spots (office: a twin office's desks, three places): then the leader needs
-    ``lead_ratio`` times its places (office, 5 robots, seed 3: a 3-to-2 lead put a robot in the
-    twin office), or ``lead_ratio`` times the places only the competitor explains
-    (:func:`exclusive_places`), and at least ``min_places`` of its own. The latter tells a row of
-    identical rooms from the truth: the frame shifted by one room explains closures in every room
-    but one (aliased_wing, 8 robots, seed 5: 12 places against the true 20), yet few that the
-    true frame does not (6, against the true frame's 16 the alias does not). The margin of a
+    distinct spots (a twin room's desks are several places): then the leader needs
+    ``lead_ratio`` times its places (a lead of one place over a twin room is within what one
+    more visit to either room changes), or ``lead_ratio`` times the places only the competitor
+    explains (:func:`exclusive_places`), and at least ``min_places`` of its own. The latter tells
+    a row of identical rooms from the truth: the frame shifted by one room explains closures in
+    every room of the row but one, so it can rest on nearly as many places as the truth, yet it
+    explains few places the true frame does not, while the truth alone explains every place that
+    looks like no other. The margin of a
     decided hypothesis is its smallest lead over a competitor, in places or in exclusive places,
     whichever decided it.
     """

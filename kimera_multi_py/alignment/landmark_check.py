@@ -1,13 +1,11 @@
 """Landmark agreement of frame hypotheses: which frame the team's object map supports.
 
 Closures cannot tell twin rooms apart: when a robot met its peers only in rooms that have
-identical twins, the true frame and the frame shifted by one room rest on as many places
-(aliased_wing, 3 robots, seed 9: 3 places each, 24 and 17 edges). The object maps can. Moved by
+identical twins, the true frame and the frame shifted by one room rest on as many places. The
+object maps can. Moved by
 the true hypothesis, a robot's landmarks land on landmarks of the same class wherever its peers
 mapped the same part of the building (corridor bays, unique rooms, every room); moved by an
 alias, only those in the twin rooms do, and the rest land next to objects of other classes.
-Measured there (the run's report): the truth put all 54 of the robot's landmarks on same-class
-team landmarks (12 places, 0 conflicts), the one-room alias 23 (4 places) with 22 conflicts.
 
 :func:`landmark_scores` scores each hypothesis; :func:`landmark_lead` names the one the
 landmarks clearly favour, or none. The frame decision asks only when closures do not decide

@@ -2,8 +2,8 @@
 
 The server receives each robot's odometry in the robot's own frame, and every loop closure the
 front ends accepted, aliases included. GNC on that graph alone has no notion of a frame: an
-alias group spread over many keyframes can be cheaper than the truth (office, 5 robots, seed 1:
-104 false closures kept, 2.24 m). So before GNC the server decides each robot's frame as the
+alias group spread over many keyframes can be cheaper than the truth, and GNC then keeps the
+alias and drops the truth. So before GNC the server decides each robot's frame as the
 agents do (:mod:`kimera_multi_py.pgo.frame_decision`):
 
 * the root (lowest id) is the team frame; the other robots join it one at a time;
@@ -213,8 +213,7 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
         s.moved(r)
         # the edges GNC sees: every group at the identity in the new frame, groups not merged. The
         # merge (SAME_FRAME_M) joins what drift split for counting a frame's support, but it also
-        # joins an alias one corridor stretch (2 m) away, which GNC may then keep (aliased_wing, 5
-        # robots, seed 6: 18 false closures between robots 1 and 3, robot 3 bent by 0.46 m)
+        # joins an alias closer than that (a repeated corridor stretch), which GNC may then keep
         kept: set[int] = set()
         for h in s.hypotheses(r, s.edges(r, aligned), merge_distance=KEEP_M):
             if near_identity(h.T, max_trans=KEEP_M):

@@ -301,9 +301,9 @@ class PgoAgent:
         """Peers whose edges this robot's solve leaves out: a robot in a settled frame (the root,
         or one aligned on a clear lead) is not pulled by peers whose frames are not settled (one
         place, or the consensus of a tie). They align to it and follow it; it does not follow
-        them, so an alias they sit in cannot bend the team frame (aliased_wing, 3 robots, seed 6:
-        two robots adopted on their start office, the twin of the root's, rotated the root by
-        34°). Once a peer settles, its edges count both ways again, and so do all edges once
+        them, so an alias they sit in cannot bend the team frame (two robots adopted on a start
+        room that is the twin of the root's would otherwise rotate the root towards their
+        alias). Once a peer settles, its edges count both ways again, and so do all edges once
         the GNC schedule is over: the re-checks and the final solve are the joint ones, so the
         converged estimate is the team's optimum over the closures GNC kept."""
         p = self.params

@@ -298,8 +298,8 @@ class FrameDecision:
             return
         # a robot already in the team frame switches frames only on every neighbour's evidence:
         # at the start of an epoch only the root has published, and two of its places that look
-        # like the robot's own outvote the one true place they share (office, 5 robots, seed 5:
-        # an early 2-vs-1 lead moved a robot aligned on 11 places into the twin office, 2.5 m)
+        # like the robot's own outvote the one true place they share (an early 2-vs-1 lead can
+        # move a robot that an earlier epoch aligned on many places into a twin room)
         switch = best is not None and self.in_team_frame and not near_identity(best.T)
         if best is None or (not final and (margin < p.align_early_margin or switch)):
             if final:

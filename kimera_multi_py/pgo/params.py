@@ -144,10 +144,11 @@ class PgoParams:
     # (safety property: a frame resting on a single aliased group is not merged)
     align_tie_min_places: int = 2
     """``consensus`` only between hypotheses that each rest on this many places or more."""
-    # False fixed office, 5 robots, seed 5 (a robot aligned on one room sat in the twin office 6 m
-    # off, and a second robot joined it there), but it keeps out every robot whose overlap with
-    # the team is one room: the small scenario's team lost all its closures (tests/sim), so the
-    # default adopts
+    # a frame on one place cannot be told from a twin room's alias, so adopting it is a risk (a
+    # robot aligned on one room can sit in its twin, and pull a second robot there); keeping such
+    # robots out instead loses every robot whose overlap with the team is one room. The default
+    # adopts, reports the frame as unsettled (peers do not align through it), and leaves the
+    # maps, the drift check and the safety net to catch an alias
     align_lone_place: bool = True
     """One group from a single place and no competitor: true adopts it once no more edges can arrive;
     false keeps the robot out of the team frame until a second place agrees."""
