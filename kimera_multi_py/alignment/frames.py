@@ -23,8 +23,10 @@ log = logging.getLogger(__name__)
 # drift split (the edge-level agreement tolerates 1 m plus 5 % of the lever arm, so over a long
 # path drift can exceed it) differs by well under this. Two copies of one room differ by at least
 # a room's width, and a hypothesis that merges an alias closer than this with the truth is still
-# checked against the maps, and its edges start at weight 0 unless they fit the adopted frame.
+# checked against the maps, and its edges start at weight 0 unless they fit the adopted frame
+# on their own (:data:`KEEP_M`).
 SAME_FRAME_M = 2.5
+KEEP_M = 1.0  # an adopted frame rests on the unmerged groups that it moves by less than this
 
 
 @dataclass

@@ -37,6 +37,7 @@ import numpy as np
 
 from kimera_multi_py.alignment.evidence import hypothesis_evidence
 from kimera_multi_py.alignment.frames import (
+    KEEP_M,
     SAME_FRAME_M,
     FrameHypothesis,
     frame_hypotheses,
@@ -46,7 +47,6 @@ from kimera_multi_py.alignment.frames import (
 from kimera_multi_py.alignment.map_check import CellStates, MapAgreement, frame_key, refined_agreement, team_agreement
 from kimera_multi_py.core.posegraph import PoseGraph
 
-KEEP_M = 1.0  # an inter-robot group is kept when it moves its closure poses by less than this
 # robot, its keyframe poses (n, 4, 4) -> its occupancy cells placed there (None: no map held)
 CellsAt = Callable[[int, np.ndarray], CellStates | None]
 

@@ -43,6 +43,8 @@ from scipy.spatial import cKDTree
 
 from kimera_multi_py.alignment.evidence import hypothesis_evidence
 from kimera_multi_py.alignment.frames import (
+    KEEP_M,
+    SAME_FRAME_M,
     Alignment,
     FrameHypothesis,
     align_frames,
@@ -172,13 +174,15 @@ class FrameDecision:
         self.aligned = True
         self.excluded = False
 
-    def _hypotheses(self, known: np.ndarray) -> list[FrameHypothesis]:
-        """Frame hypotheses of the known inter-robot edges (edge indices into the local graph)."""
+    def _hypotheses(self, known: np.ndarray, merge_distance: float = SAME_FRAME_M) -> list[FrameHypothesis]:
+        """Frame hypotheses of the known inter-robot edges (edge indices into the local graph),
+        groups closer than ``merge_distance`` merged (:func:`.alignment.frame_hypotheses`)."""
         lg = self.local
         idx = np.flatnonzero(known)
         nb = np.stack([self.state.neighbour_poses[int(k)] for k in lg.inter_peer_key[idx]])
         hyps = frame_hypotheses(self.state.poses[lg.inter_own[idx]], nb, lg.inter_meas[idx], lg.inter_own_is_i[idx],
-                                lg.inter_peer[idx], place_radius=self.params.place_radius)
+                                lg.inter_peer[idx], place_radius=self.params.place_radius,
+                                merge_distance=merge_distance)
         for h in hyps:
             h.edges = idx[h.edges]
         kept = []
@@ -314,13 +318,15 @@ class FrameDecision:
                     self.alignment["evidence"] = self._evidence_table(hyps, None, landmarks)
             return
         inliers = np.zeros(len(lg.inter_edge), dtype=bool)
-        inliers[best.edges] = True
         self._move_into(best.T, inliers)
-        # in the new frame, every group at the identity agrees with the chosen hypothesis
-        # (a true group split by drift over long lever arms is re-joined)
-        for h in self._hypotheses(known):
-            if near_identity(h.T):
+        # the edges the frame rests on: in the new frame, every group at the identity, groups
+        # not merged (the merge joins what drift split for counting a frame's support, and it
+        # would also join an alias closer than SAME_FRAME_M), as the server's screen keeps them
+        for h in self._hypotheses(known, merge_distance=KEEP_M):
+            if near_identity(h.T, max_trans=KEEP_M):
                 inliers[h.edges] = True
+        if not inliers.any():
+            inliers[best.edges] = True
         # edges outside the hypothesis start as outliers; GNC and its rechecks revisit them,
         # except those of hypotheses the maps refuted
         self.state.inter_weights = np.where(known & ~inliers, 0.0, 1.0)
