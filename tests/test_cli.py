@@ -54,3 +54,11 @@ def test_missing_scenario_and_bad_team_size(tmp_path):
     assert proc.returncode == 1 and "file not found" in proc.stderr and "Traceback" not in proc.stderr
     proc = cli("sim", "sims/tiny.toml", "--robots", 0, "--out", tmp_path / "o", "--no-rerun")
     assert proc.returncode == 1 and "robots" in proc.stderr
+
+
+def test_checkpoints_stretch_to_stay_a_small_share_of_the_cpu() -> None:
+    from kimera_multi_py.team.process import CHECKPOINT_SHARE, next_checkpoint
+
+    assert next_checkpoint(5.0, 0.01) == 5.0  # cheap: the user's interval
+    wait = next_checkpoint(5.0, 0.56)  # a late-run office checkpoint
+    assert wait > 5.0 and 0.56 / wait <= CHECKPOINT_SHARE + 1e-12

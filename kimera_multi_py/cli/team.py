@@ -56,7 +56,8 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", help="Run folder; outputs go to OUT/robotI/.")],
         connect: Connect = None, listen: Listen = None, zenoh_config: ZenohConfig = None, team: Team = "t0",
         rate: Annotated[str, typer.Option(help="Pace keyframes at RATE x their stamps; inf: no pacing.")] = "inf",
-        checkpoint_every: Annotated[float, typer.Option(help="Seconds between checkpoints.")] = 10.0,
+        checkpoint_every: Annotated[float, typer.Option(
+            help="Seconds between checkpoints (at least: longer once one would take over 5 % of the CPU).")] = 10.0,
         resume: Annotated[bool, typer.Option("--resume", help="Restore OUT/robotI/checkpoint.kmc.")] = False,
         linger_max: LingerMax = 60.0,
         centralized: Annotated[bool | None, typer.Option("--centralized/--distributed", help="A server optimises "
@@ -133,7 +134,8 @@ def register(app: typer.Typer) -> None:
                                                                        "then restart it with --resume.")] = None,
         join: Annotated[list[str] | None, typer.Option("--join", help="I@T: start agent I once the team's "
                                                                        "stream reaches T s.")] = None,
-        checkpoint_every: Annotated[float, typer.Option(help="Seconds between agent checkpoints.")] = 5.0,
+        checkpoint_every: Annotated[float, typer.Option(
+            help="Seconds between agent checkpoints (at least: longer once one takes over 5 % of the CPU).")] = 5.0,
         pgo_period: PgoPeriod = None,
         timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 1800.0,
         map_consensus: MapMode = None,

@@ -4,8 +4,10 @@
 An agent process builds its :class:`Agent` (or restores it from its checkpoint), opens one Zenoh
 session, runs its :class:`AgentNode` over keyframes from a source until the team's final
 optimisation, and writes ``OUT/robotI/``. Checkpoints go to ``OUT/robotI/checkpoint.kmc`` every
-``checkpoint_every`` seconds (atomically); ``resume`` restores the agent and continues its
-source at the next keyframe. Parameters come from the job's
+``checkpoint_every`` seconds at most (atomically), and no more often than keeps their CPU within
+:data:`CHECKPOINT_SHARE` of the process's (a checkpoint grows with the map: see
+:func:`next_checkpoint`); ``resume`` restores the agent and continues its source at the next
+keyframe, so a later checkpoint costs recomputation after a kill, never data. Parameters come from the job's
 :class:`~kimera_multi_py.team.config.KimeraConfig`; each process writes the configuration it runs
 with to ``OUT/robotI/config.yaml`` (``OUT/server/config.yaml``; docs/outputs.md).
 """
@@ -64,6 +66,15 @@ class Connection:
                         config_file=self.zenoh_config)
 
 
+CHECKPOINT_SHARE = 0.05  # the most of an agent's CPU that checkpoints may take
+
+
+def next_checkpoint(every: float, cost_s: float, share: float = CHECKPOINT_SHARE) -> float:
+    """Seconds until the next checkpoint: ``every``, or longer when the last one took ``cost_s``
+    CPU seconds, so that checkpoints take at most ``share`` of the time between them."""
+    return max(every, cost_s / share)
+
+
 @dataclass
 class AgentJob:
     robot: int
@@ -119,13 +130,14 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     node = AgentNode(agent, bus, pgo_params, schedule, node_params, map_params=map_params)
     if node.pgo is not None:
         node.pgo.epoch = node.pgo.completed = int(extra.get("epoch", 0))
-    last = time.monotonic()
+    last, wait = time.monotonic(), job.checkpoint_every
 
     def on_keyframe(kf: KeyframeInput) -> None:
-        nonlocal last
-        if time.monotonic() - last >= job.checkpoint_every:
-            last = time.monotonic()
+        nonlocal last, wait
+        if time.monotonic() - last >= wait:
+            cpu = time.process_time()
             save_checkpoint(ckpt, agent, _node_state(node, source))
+            last, wait = time.monotonic(), next_checkpoint(job.checkpoint_every, time.process_time() - cpu)
 
     try:
         await node.start()
