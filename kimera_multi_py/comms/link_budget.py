@@ -206,6 +206,11 @@ class LinkQueue:
     def report(self) -> dict[str, Any]:
         return self.stats.as_dict(self.pending())
 
+    def waiting(self) -> list[Any]:
+        """The items queued or in transfer, in no particular order."""
+        out = [e.item for q in self._queues for e in q]
+        return out + ([self._current[0].item] if self._current is not None else [])
+
     # ---------------------------------------------------------------------------- internal
     def _make_room(self, entry: _Entry) -> bool:
         cap = self.budget.queue_bytes

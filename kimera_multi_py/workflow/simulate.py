@@ -162,6 +162,9 @@ class SimRunner:
         self.node_params = self.config.to_node_params()
         # a byte budget per link (loopback: on the simulated clock; zenoh: on wall time)
         self.budget: LinkBudget | None = budget_of(self.node_params.link_budget, self.node_params.link_policy)
+        if self.budget is not None and transport != "loopback":
+            raise ConfigError("link_budget", "the simulation runs a link budget on its clock over the loopback "
+                                             "transport (Zenoh processes: agent, launch)")
         self._net: LoopbackNetwork | None = None
         self._streams_end: float | None = None
         self._complete_at: float | None = None  # when every team map last became whole after the streams' end
