@@ -93,7 +93,7 @@ class NodeParams:
     False: the full-size formats (to measure what compaction saves)."""
     link_budget: float | None = None
     """kB/s per peer link, a token bucket in the bus with PGO and closure traffic first, then
-    objects, then map evidence (docs/wire.md, "Link budget"); null: unlimited."""
+    objects, then map evidence (docs/deployment.md, "Link budget"); null: unlimited."""
     link_policy: Literal["priority", "fifo"] = "priority"
     """Under a link budget: by priority class (the default) or first in, first out (a baseline)."""
 

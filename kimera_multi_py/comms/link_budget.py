@@ -1,4 +1,4 @@
-"""A byte budget per peer link: a token bucket and a priority scheduler (docs/wire.md, "Link budget").
+"""A byte budget per peer link: a token bucket and a priority scheduler (docs/deployment.md, "Link budget").
 
 A robot's radio gives each peer link a few kB/s. :class:`LinkBudget` says how many (``kbps``,
 in kB = 1000 bytes per second), how deep the bucket is, and how the link picks what goes next.

@@ -354,7 +354,7 @@ class LoopbackNetwork:
 
     def link_report(self) -> dict[str, dict[str, object]]:
         """Per link ``"src->dst"``: messages and bytes sent, queue delay (mean, max), and what
-        was dropped or is still queued (docs/wire.md)."""
+        was dropped or is still queued (docs/deployment.md, "Link budget")."""
         return {f"{a}->{b}": q.report() for (a, b), q in sorted(self._links.items())}
 
     def _route(self, sender: LoopbackBus, key: str, data: bytes) -> None:

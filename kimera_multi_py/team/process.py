@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 CHECKPOINT_NAME = "checkpoint.kmc"
 LINGER_NAME = "linger.json"
 RESOURCES_NAME = "resources.json"  # the agent process's CPU time and peak memory
-LINKS_NAME = "links.json"  # under a link budget: what the robot's links carried (docs/wire.md)
+LINKS_NAME = "links.json"  # under a link budget: what the robot's links carried (docs/deployment.md, "Link budget")
 LINGER_MAX = 60.0  # s: the longest an agent waits, after its final epoch, for the team to be whole
 
 
