@@ -97,12 +97,12 @@ def linger_reports(run_dir: Path, robots: list[int]) -> dict[str, object]:
 
 
 def link_reports(run_dir: Path, robots: list[int]) -> dict[str, object]:
-    """Under a link budget, each robot's ``links.json`` (team/process.py) merged: the budget and
-    every robot's link figures (bytes, queue delay, dropped, still queued at its exit)."""
+    """Under a link budget, each robot's (and the server's) ``links.json`` (team/process.py) merged:
+    the budget and every process's link figures (bytes, queue delay, dropped, still queued at its exit)."""
     out: dict[str, object] = {}
     links: dict[str, object] = {}
-    for r in robots:
-        path = run_dir / f"robot{r}" / "links.json"
+    for folder in [f"robot{r}" for r in robots] + ["server"]:
+        path = run_dir / folder / "links.json"
         if path.exists():
             try:
                 rep = json.loads(path.read_text())

@@ -232,7 +232,8 @@ async def _server(job: ServerJob) -> dict[str, Any]:
     d = Path(job.out_dir) / "server"
     KimeraConfig.resolved(config.run.model_copy(update={"mode": "centralized"}), params, config.to_pgo_params(),
                           config.to_node_params(), schedule, map_params, config.to_scene_graph_params()).write(d)
-    bus = job.connection.bus(SERVER_ID)
+    node_params = config.to_node_params()
+    bus = job.connection.bus(SERVER_ID, budget_of(node_params.link_budget, node_params.link_policy))
     server = Server(SERVER_ID, None, params.closure_sigmas, params.odom_sigmas)
     node = ServerNode(server, bus, schedule)
     # the agents' map, mapping and PGO parameters (exact fusion; the frame screen faces the maps)
@@ -246,6 +247,9 @@ async def _server(job: ServerJob) -> dict[str, Any]:
         await bus.close()
     if node.maps is not None:
         export_team_map(node.maps.team_map, d)
+    if bus.budget is not None:
+        (d / LINKS_NAME).write_text(json.dumps({"kbps": bus.budget.kbps, "policy": bus.budget.policy,
+                                                "links": bus.link_report()}, indent=1))
     graph, _ = server.graph()
     if graph.num_poses:
         write_g2o(d / "graph.g2o", graph)
