@@ -46,7 +46,7 @@ from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.comm_range import neighbours_within
 from kimera_multi_py.comms.faults import check_robots, cut_links
-from kimera_multi_py.comms.link_budget import LinkBudget, budget_of
+from kimera_multi_py.comms.link_budget import budget_of
 from kimera_multi_py.comms.loopback import Faults, LoopbackBus, LoopbackNetwork
 from kimera_multi_py.comms.team import TRANSPORTS, open_buses
 from kimera_multi_py.core.errors import ConfigError
@@ -79,13 +79,12 @@ from kimera_multi_py.sim.source import keyframe_input
 from kimera_multi_py.team.build import agent_params
 from kimera_multi_py.team.config import DEFAULT_SCENARIO, KimeraConfig
 from kimera_multi_py.viz.rerun_viz import NullViz, Viz
+from kimera_multi_py.workflow.sim_links import DRAIN_S, SimLinks
 from kimera_multi_py.workflow.sim_viz import log_team
 
 MODES = ("odometry", "distributed", "centralized")
 MAP_SETTLE_S = 15.0  # sim seconds the team keeps exchanging maps after its final optimisation
 PHI_EVERY_S = 10.0  # sim seconds between two records of the team maps' disagreement
-BUDGET_ROUND_WAIT_S = 5.0  # under a link budget: sim seconds a waiting PGO round lets the links run
-BUDGET_DRAIN_S = 300.0  # under a link budget: sim seconds after the streams' end the team may take to finish
 Progress = Callable[[int, int], None]
 
 
@@ -105,12 +104,6 @@ class _Track:
         self.est.append(pose)
         self.true.append(kf.true_pose)
         return pose
-
-
-def _round_of(node: AgentNode | ServerNode) -> int:
-    """The PGO round a node waits in (-1: none)."""
-    session = getattr(getattr(node, "pgo", None), "session", None)
-    return int(session.rnd) if session is not None else -1
 
 
 class _SimClock:
@@ -160,15 +153,11 @@ class SimRunner:
         # over Zenoh a round waits on the wall clock; over loopback until the network is quiet
         self.schedule = self.config.to_schedule(round_timeout=0.5 if transport == "zenoh" else None)
         self.node_params = self.config.to_node_params()
-        # a byte budget per link (loopback: on the simulated clock; zenoh: on wall time)
-        self.budget: LinkBudget | None = budget_of(self.node_params.link_budget, self.node_params.link_policy)
-        if self.budget is not None and transport != "loopback":
+        # a byte budget per link, on the simulated clock (docs/deployment.md, "Link budget")
+        self.links = SimLinks(budget_of(self.node_params.link_budget, self.node_params.link_policy))
+        if self.links.budget is not None and transport != "loopback":
             raise ConfigError("link_budget", "the simulation runs a link budget on its clock over the loopback "
                                              "transport (Zenoh processes: agent, launch)")
-        self._net: LoopbackNetwork | None = None
-        self._streams_end: float | None = None
-        self._complete_at: float | None = None  # when every team map last became whole after the streams' end
-        self._wait: tuple[float, tuple[tuple[int, int], ...]] | None = None  # a PGO round's wait: since, rounds
         self.map_params = self.config.to_map_params()
         self.scene_graph_params = self.config.to_scene_graph_params()
         self.clock = _SimClock()
@@ -314,26 +303,26 @@ class SimRunner:
             for node in self.nodes:
                 if node in nodes:
                     await node.finish_stream()
-            end = self._streams_end = self.clock.t
+            end = self.links.streams_end = self.clock.t
             while not all(n.complete for n in nodes):
                 if not await self._settle(nodes, buses):
                     # quiet but not done: time passes (a robot that left is waited for a while)
-                    if self.clock.t - end > 10 * self.schedule.absent_timeout + (BUDGET_DRAIN_S if self.budget
+                    if self.clock.t - end > 10 * self.schedule.absent_timeout + (DRAIN_S if self.links.active
                                                                                  else 0.0):
                         raise RuntimeError("the team stopped before its final optimisation")  # a bug
                     await self._links_until(self.clock.t + 1.0, nodes, buses)
                     self.clock.t += 1.0
                     self._show_partitions(buses)
-                self._note_complete(nodes)
+                self.links.note_complete(self.clock.t, nodes)
             settle_end = self.clock.t + MAP_SETTLE_S
             # map consensus relays what is still missing (under a budget: until the links drain)
-            while self.clock.t < settle_end or (self.budget is not None and self.clock.t - end < BUDGET_DRAIN_S
-                                                and not self._note_complete(nodes)):
+            while self.clock.t < settle_end or (self.links.active and self.clock.t - end < DRAIN_S
+                                                and not self.links.note_complete(self.clock.t, nodes)):
                 await self._links_until(self.clock.t + 1.0, nodes, buses)
                 self.clock.t += 1.0
                 self._show_partitions(buses)
                 await self._settle(nodes, buses)
-                self._note_complete(nodes)
+                self.links.note_complete(self.clock.t, nodes)
             self._record_phi(force=True)
             self._add_phi(finish=True)
             self._log_team()
@@ -353,8 +342,8 @@ class SimRunner:
             return
         self._cut = frozenset()
         net = LoopbackNetwork(team="sim", seed=self.sim.seed, faults=self.faults, robots=ids, clock=self.clock.now,
-                              budget=self.budget)
-        self._net = net
+                              budget=self.links.budget)
+        self.links.net = net
         buses: list[Bus] = [net.bus(r) for r in ids]
         try:
             yield buses
@@ -450,37 +439,10 @@ class SimRunner:
     async def _links_until(self, t: float, nodes: list[AgentNode | ServerNode], buses: list[Bus]) -> None:
         """Under a link budget: let the simulated clock run to ``t`` through every transfer that ends
         before it, the team answering each delivery at its time (a no-op without a budget)."""
-        net = self._net
-        if net is None or net.budget is None:
-            return
-        while (nxt := net.next_delivery()) is not None and nxt <= t:
+        while (nxt := self.links.next_delivery()) is not None and nxt <= t:
             self.clock.t = max(self.clock.t, nxt)
             self._show_partitions(buses)
             await self._settle(nodes, buses)
-
-    def _note_complete(self, nodes: list[AgentNode | ServerNode]) -> bool:
-        """After the streams' end: is every robot's team map whole (no gap against any robot's
-        version summary, exact mode) with nothing left on the links? Records when that began."""
-        live = [n for n in nodes if isinstance(n, AgentNode) and n.maps is not None]
-        team = {n.robot for n in live}
-        whole = all(n.complete for n in nodes) and all(
-            not n.maps.gaps(team) for n in live if n.maps is not None and n.maps.mode == "exact")
-        if self._net is not None and self._net.budget is not None and self._net.next_delivery() is not None:
-            whole = False
-        if not whole:
-            self._complete_at = None
-        elif self._complete_at is None:
-            self._complete_at = self.clock.t
-        return whole
-
-    def _round_waits(self, blocked: list[AgentNode | ServerNode], next_delivery: float | None) -> bool:
-        """Under a link budget: do the waiting PGO rounds wait on (rather than time out)? While a
-        transfer that ends within :data:`BUDGET_ROUND_WAIT_S` of the wait's start is under way (a
-        round timeout's worth of link time); a round whose links are idle can get nothing more."""
-        rounds = tuple((n.robot, _round_of(n)) for n in blocked)
-        if self._wait is None or self._wait[1] != rounds:
-            self._wait = (self.clock.t, rounds)
-        return next_delivery is not None and next_delivery <= self._wait[0] + BUDGET_ROUND_WAIT_S
 
     async def _settle(self, nodes: list[AgentNode | ServerNode], buses: list[Bus]) -> bool:
         """Run the nodes until the team is quiet: no message queued or in flight, no timer due.
@@ -491,9 +453,8 @@ class SimRunner:
         net = getattr(buses[0], "network", None)
         wall = self.clock.now if net is not None else time.monotonic
         progressed = False
-        budgeted = isinstance(net, LoopbackNetwork) and net.budget is not None
         while True:
-            handled = self._net.pump() if budgeted and self._net is not None else 0
+            handled = self.links.pump()
             for node in nodes:
                 handled += await node.drain()
             for node in nodes:
@@ -509,14 +470,14 @@ class SimRunner:
                 continue
             blocked = [n for n in nodes if n.blocked()]
             if not blocked:
-                self._wait = None
+                self.links.end_wait()
                 return progressed
             if net is None:  # Zenoh: wait for messages or the round timeout
                 await asyncio.sleep(0.001)
                 continue
-            if budgeted and self._round_waits(blocked, net.next_delivery()):
+            if self.links.round_waits(self.clock.t, blocked):
                 return progressed  # its messages are on the links: time passes, the streams go on
-            self._wait = None
+            self.links.end_wait()
             for node in blocked:
                 await node.tick(wall(), force=True)
             progressed = True
@@ -547,7 +508,7 @@ class SimRunner:
                                               [tr.scans for tr in self.tracks], self.agents, self.outcomes,
                                               T_world_team, excluded_robots(self.outcomes), self._team_maps))
             extra["transport"] = self.transport
-            extra["link_budget"] = self._link_results()
+            extra["link_budget"] = self.links.results()
             team_maps = None
             if self.map_report is not None:
                 extra["map_consensus"], team_maps = self._map_results(T_world_team)
@@ -564,24 +525,6 @@ class SimRunner:
             self._team_maps.close()
         return Results(scenario=self.cfg.name, mode=self.mode, seed=self.sim.seed, robots=robots, team=team,
                        sim_seconds=max(self.sim.duration, self.clock.t), wall_s=wall_s, extra=extra)
-
-    def _link_results(self) -> dict[str, Any]:
-        """``results.json["link_budget"]``: the budget, each link's figures (bytes, queue delay, what
-        could not be sent), and the seconds from the streams' end until every team map was whole."""
-        out: dict[str, Any] = {"kbps": self.budget.kbps if self.budget is not None else None,
-                               "policy": self.budget.policy if self.budget is not None else None}
-        if self._net is not None and self.budget is not None:
-            links = self._net.link_report()
-            out["links"] = links
-            out["dropped_messages"] = sum(int(v["dropped_messages"]) for v in links.values())  # type: ignore[call-overload]
-            out["queued_messages_at_end"] = sum(int(v["queued_messages"]) for v in links.values())  # type: ignore[call-overload]
-            out["queue_delay_max_s"] = max((float(v["queue_delay_max_s"]) for v in links.values()),  # type: ignore[arg-type]
-                                           default=0.0)
-        end = self._streams_end
-        out["streams_end_s"] = end
-        out["team_maps_complete_s"] = (self._complete_at - end) if end is not None and self._complete_at is not None \
-            else None
-        return out
 
     def _reference_map(self) -> Any:
         """The reference team map: the centralised fusion of the evidence of every robot in the

@@ -51,8 +51,8 @@ def test_budgeted_run_is_deterministic_and_reports_its_links():
 def test_the_budget_is_part_of_the_run_configuration(tmp_path):
     config = KimeraConfig.defaults().updated({"node": {"link_budget": 50}})
     runner = SimRunner(short_tiny(), seed=0, mode="distributed", config=config)
-    assert runner.budget is not None and runner.budget.rate == 50_000
+    assert runner.links.budget is not None and runner.links.budget.rate == 50_000
     runner.resolved_config().write(tmp_path)
     text = (tmp_path / "config.yaml").read_text()
     assert re.search(r"^\s+link_budget: 50(\.0)?$", text, re.M)
-    assert SimRunner(short_tiny(), seed=0, mode="distributed").budget is None  # off by default
+    assert SimRunner(short_tiny(), seed=0, mode="distributed").links.budget is None  # off by default
