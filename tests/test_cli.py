@@ -91,3 +91,9 @@ def test_sim_link_budget_refuses_a_negative_rate(tmp_path):
     assert proc.returncode == 1 and "Traceback" not in proc.stderr + proc.stdout
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "link_budget" in lines[0], proc.stderr
+
+
+@pytest.mark.parametrize("command", ["sim", "agent", "launch"])
+def test_link_budget_flag_on_every_team_command(command):
+    proc = cli(command, "--help")
+    assert proc.returncode == 0 and "--link-budget" in proc.stdout, proc.stdout
