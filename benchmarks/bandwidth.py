@@ -61,6 +61,7 @@ def summarise(res: dict) -> dict:
         "team_map_f1": res.get("team_map", {}).get("occupancy_f1"),
         "team_map_miou": res.get("team_map", {}).get("semantic_miou"),
         "refused_messages": res.get("refused_messages"),
+        "sim_seconds": res.get("sim_seconds"),
         "wall_s": res["wall_s"],
         **_link_figures(res.get("link_budget") or {}),
     }

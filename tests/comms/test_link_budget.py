@@ -182,3 +182,26 @@ async def test_loopback_budget_on_the_loop_clock() -> None:
 def test_budget_refuses_fault_delays() -> None:
     with pytest.raises(ConfigError):
         LoopbackNetwork(faults=Faults(delay=0.01), budget=LinkBudget(50))
+
+
+@pytest.mark.parametrize("policy", ["priority", "fifo"])
+def test_a_link_never_beats_its_rate(policy: str) -> None:
+    """Random traffic: by any time t the link has finished at most burst + rate * t bytes, and
+    every message is delivered once, or dropped, never both."""
+    rng = np.random.default_rng(3)
+    budget = LinkBudget(10, burst_s=0.5, queue_s=30.0, policy=policy)  # type: ignore[arg-type]
+    q = LinkQueue(budget)
+    t, sizes, done = 0.0, {}, []
+    for i in range(600):
+        t += float(rng.exponential(0.05))
+        sizes[i] = int(rng.integers(10, 8000))
+        q.push(i, sizes[i], int(rng.integers(0, 3)), t)
+        done += q.advance(t)
+    done += q.advance(1e9)
+    ends = np.array([end for _, end in done])
+    assert np.all(np.diff(ends) >= 0)
+    finished = np.cumsum([sizes[item] for item, _ in done])
+    assert np.all(finished <= budget.burst + budget.rate * ends + 1e-6)
+    items = [item for item, _ in done]
+    assert len(set(items)) == len(items)
+    assert len(items) + q.stats.dropped_messages == len(sizes) and q.stats.dropped_messages > 0
