@@ -9,6 +9,14 @@ it reports bytes per topic, the total, MB per km of team travel (the true paths'
 team ATE, the true and false inter-robot closures, the map agreement with the centralised fusion
 and the team map's F1 / mIoU; then each compact figure beside the full-size one.
 Also ``--from-results DIR/results.json``: the same figures of a run made with ``kimera-multi sim``.
+
+The link-budget sweep (docs/deployment.md, "Link budget") runs the compact format once per budget:
+
+    python benchmarks/bandwidth.py --json --scenario sims/tiny.toml --robots 2 --budgets unlimited 200 50 20
+
+and reports per budget the same figures plus each link's queue delay, what could not be sent
+(dropped, still queued at the end) and the seconds from the streams' end until every robot's
+team map was whole (``team_maps_complete_s``; null: not within the run).
 """
 
 from __future__ import annotations
@@ -29,7 +37,8 @@ from kimera_multi_py.sim import load_scenario
 from kimera_multi_py.team.config import KimeraConfig
 from kimera_multi_py.workflow.simulate import SimRunner
 cfg = load_scenario({scenario!r}, robots={robots})
-config = KimeraConfig.defaults().updated({{"node": {{"compact_wire": {compact!r}}}}})
+config = KimeraConfig.defaults().updated({{"node": {{"compact_wire": {compact!r}, "link_budget": {budget!r},
+                                                    "link_policy": {policy!r}}}}})
 with tempfile.TemporaryDirectory() as d:
     res = SimRunner(cfg, seed={seed}, mode="distributed", out_dir=d, config=config).run().to_dict()
 print(json.dumps(res, default=str))
@@ -52,12 +61,32 @@ def summarise(res: dict) -> dict:
         "team_map_f1": res.get("team_map", {}).get("occupancy_f1"),
         "team_map_miou": res.get("team_map", {}).get("semantic_miou"),
         "refused_messages": res.get("refused_messages"),
+        "sim_seconds": res.get("sim_seconds"),
         "wall_s": res["wall_s"],
+        **_link_figures(res.get("link_budget") or {}),
     }
 
 
-def run_one(scenario: str, robots: int, seed: int, compact: bool) -> dict:
-    code = _CHILD.format(repo=str(REPO), scenario=scenario, robots=robots, seed=seed, compact=compact)
+def _link_figures(lb: dict) -> dict:
+    """The link budget's figures of a run (none without a budget but the maps' completion)."""
+    links = lb.get("links") or {}
+    out: dict = {"link_budget_kbps": lb.get("kbps"), "team_maps_complete_s": lb.get("team_maps_complete_s")}
+    if links:
+        n = sum(v["messages"] for v in links.values())
+        out.update(
+            queue_delay_mean_s=sum(v["queue_delay_mean_s"] * v["messages"] for v in links.values()) / n if n else 0.0,
+            queue_delay_max_s=max(v["queue_delay_max_s"] for v in links.values()),
+            control_delay_max_s=max(v["queue_delay_max_s_by_class"]["control"] for v in links.values()),
+            dropped_messages=sum(v["dropped_messages"] for v in links.values()),
+            queued_messages_at_end=sum(v["queued_messages"] for v in links.values()),
+            link_bytes={k: v["bytes"] for k, v in links.items()})
+    return out
+
+
+def run_one(scenario: str, robots: int, seed: int, compact: bool, budget: float | None = None,
+            policy: str = "priority") -> dict:
+    code = _CHILD.format(repo=str(REPO), scenario=scenario, robots=robots, seed=seed, compact=compact,
+                         budget=budget, policy=policy)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return summarise(json.loads(out.stdout.strip().splitlines()[-1]))
 
@@ -84,8 +113,14 @@ def main() -> None:
     ap.add_argument("--formats", nargs="+", choices=sorted(FORMATS), default=["compact", "full"])
     ap.add_argument("--from-results", nargs="+", default=[], metavar="FORMAT=RESULTS_JSON",
                     help="summarise existing runs (e.g. compact=/tmp/run/results.json) instead of running")
+    ap.add_argument("--budgets", nargs="+", default=[], metavar="KBPS",
+                    help="link-budget sweep (compact format): 'unlimited' or kB/s per link, e.g. unlimited 200 50 20")
+    ap.add_argument("--policy", choices=["priority", "fifo"], default="priority", help="the sweep's link scheduling")
     ap.add_argument("--json", action="store_true", help="print the JSON summary only")
     args = ap.parse_args()
+    if args.budgets:
+        sweep(args)
+        return
     runs = {}
     for item in args.from_results:
         name, _, path = item.partition("=")
@@ -108,6 +143,37 @@ def main() -> None:
     print(f"{'topic':>22} " + " ".join(f"{n:>10}" for n in runs))
     for t in topics:
         print(f"{t:>22} " + " ".join(f"{r['bytes_by_topic'].get(t, 0) / 1e6:>9.3f}M" for r in runs.values()))
+
+
+def budget_value(label: str) -> float | None:
+    """``unlimited`` -> None, else kB/s."""
+    if label == "unlimited":
+        return None
+    value = float(label)
+    if not value > 0:
+        raise SystemExit(f"--budgets: {label!r} is not 'unlimited' or kB/s > 0")
+    return value
+
+
+def sweep(args: argparse.Namespace) -> None:
+    """One compact run per link budget (each in a fresh process), the figures side by side."""
+    budgets = [(label, budget_value(label)) for label in args.budgets]
+    runs = {}
+    for label, kbps in budgets:
+        runs[label] = run_one(args.scenario, args.robots, args.seed, True, kbps, args.policy)
+        print(json.dumps({label: runs[label]}), file=sys.stderr, flush=True)
+    summary = {"scenario": Path(args.scenario).name, "robots": args.robots, "seed": args.seed,
+               "policy": args.policy, "budget_sweep": runs}
+    if args.json:
+        print(json.dumps(summary, indent=1))
+        return
+    print(f"{'kB/s':>9} {'MB':>7} {'ATE [m]':>8} {'true':>5} {'false':>5} {'delay max':>9} {'dropped':>7} "
+          f"{'complete [s]':>12}")
+    for label, r in runs.items():
+        done = r.get("team_maps_complete_s")
+        print(f"{label:>9} {r['bytes_total'] / 1e6:>7.2f} {r['team_ate_m']:>8.3f} {r['true_accepted_inter']:>5} "
+              f"{r['false_accepted_inter']:>5} {r.get('queue_delay_max_s', 0.0):>9.1f} "
+              f"{r.get('dropped_messages', 0):>7} {'-' if done is None else f'{done:.1f}':>12}")
 
 
 if __name__ == "__main__":

@@ -62,3 +62,44 @@ def test_checkpoints_stretch_to_stay_a_small_share_of_the_cpu() -> None:
     assert next_checkpoint(5.0, 0.01) == 5.0  # cheap: the user's interval
     wait = next_checkpoint(5.0, 0.56)  # a late-run office checkpoint
     assert wait > 5.0 and 0.56 / wait <= CHECKPOINT_SHARE + 1e-12
+def _short_tiny(tmp_path: Path) -> Path:
+    """tiny with each robot touring two rooms instead of three."""
+    text = (REPO / "sims" / "tiny.toml").read_text()
+    text = text.replace('route = ["room_a", "room_b", "room_a"]', 'route = ["room_a", "room_b"]')
+    text = text.replace('route = ["room_b", "room_a", "room_b"]', 'route = ["room_b", "room_a"]')
+    assert text.count("route = [") == 2 and '"room_a", "room_b", "room_a"' not in text
+    path = tmp_path / "short.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.slow
+def test_sim_link_budget_flag(tmp_path):
+    out = tmp_path / "run"
+    proc = cli("sim", _short_tiny(tmp_path), "--robots", 2, "--mode", "distributed", "--out", out, "--no-rerun",
+               "--link-budget", 50)
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads((out / "results.json").read_text())
+    lb = res["link_budget"]
+    assert lb["kbps"] == 50 and set(lb["links"]) == {"0->1", "1->0"}
+    assert all(v["bytes"] > 0 and v["queue_delay_max_s"] > 0 for v in lb["links"].values())
+    assert "link_budget: 50" in (out / "config.yaml").read_text()
+    # the run folder's configuration repeats the budget
+    again = tmp_path / "again"
+    proc = cli("sim", "--config", out / "config.yaml", "--out", again, "--no-rerun")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((again / "results.json").read_text())["link_budget"]["links"] == lb["links"]
+
+
+def test_sim_link_budget_refuses_a_negative_rate(tmp_path):
+    proc = cli("sim", "sims/tiny.toml", "--mode", "distributed", "--out", tmp_path / "o", "--no-rerun",
+               "--link-budget", -5)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr + proc.stdout
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "link_budget" in lines[0], proc.stderr
+
+
+@pytest.mark.parametrize("command", ["sim", "agent", "launch"])
+def test_link_budget_flag_on_every_team_command(command):
+    proc = cli(command, "--help")
+    assert proc.returncode == 0 and "--link-budget" in proc.stdout, proc.stdout

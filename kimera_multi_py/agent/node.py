@@ -91,6 +91,11 @@ class NodeParams:
     """Compact encodings: verification clouds at the closure registration's resolution, packed
     small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`).
     False: the full-size formats (to measure what compaction saves)."""
+    link_budget: float | None = None
+    """kB/s per peer link, a token bucket in the bus with PGO and closure traffic first, then
+    objects, then map evidence (docs/deployment.md, "Link budget"); null: unlimited."""
+    link_policy: Literal["priority", "fifo"] = "priority"
+    """Under a link budget: by priority class (the default) or first in, first out (a baseline)."""
 
 
 class AgentNode:

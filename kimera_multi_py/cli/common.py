@@ -24,6 +24,10 @@ BagConfig = Annotated[Path | None, typer.Option("--bag-config", help="With recor
                                                 "of the bags (TOML or YAML; docs/bags.md); default: each bag's own "
                                                 "BAG.toml, else ROS conventions.")]
 
+LinkBudgetOption = Annotated[float | None, typer.Option(
+    "--link-budget", metavar="KBPS", help="kB/s per peer link (a token bucket in the bus; PGO and loop-closure "
+                                          "traffic first, then objects, then map evidence); default unlimited.")]
+
 
 def setup_logging(verbose: bool) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.WARNING,

@@ -11,6 +11,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from kimera_multi_py.cli.common import (
     ConfigFile,
+    LinkBudgetOption,
     console,
     err_console,
     fail,
@@ -58,6 +59,7 @@ def sim(
     partition: Annotated[list[str] | None, typer.Option("--partition", help="Loopback: 'A,B|C@T0:T1' cuts robots "
                                                                              "A,B off from C from T0 to T1 s "
                                                                              "(repeatable).")] = None,
+    link_budget: LinkBudgetOption = None,
     config: ConfigFile = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
 ) -> None:
@@ -74,7 +76,8 @@ def sim(
         run = {"scenario": scenario, "robots": robots, "seed": seed, "mode": mode, "transport": transport,
                "comm_range": comm_range, "join": dict(robot_at(j, "join") for j in join) if join else None,
                "faults": faults}
-        settings = load_config(config, overrides(run=run, node={"map_consensus": map_consensus}))
+        settings = load_config(config, overrides(run=run, node={"map_consensus": map_consensus,
+                                                                 "link_budget": link_budget}))
         viz = make_viz(out / "recording.rrd" if rerun else None)
         runner = SimRunner.from_config(settings, out_dir=out, viz=viz)
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),

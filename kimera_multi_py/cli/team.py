@@ -10,7 +10,7 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
-from kimera_multi_py.cli.common import BagConfig, ConfigFile, Truth
+from kimera_multi_py.cli.common import BagConfig, ConfigFile, LinkBudgetOption, Truth
 from kimera_multi_py.core.errors import ConfigError, KimeraMultiError
 from kimera_multi_py.core.ids import MAX_AGENT_ID
 
@@ -65,6 +65,7 @@ def register(app: typer.Typer) -> None:
                                                          "distributed).")] = None,
         pgo_period: PgoPeriod = None,
         map_consensus: MapMode = None,
+        link_budget: LinkBudgetOption = None,
         config: ConfigFile = None,
         verbose: Verbose = False,
     ) -> None:
@@ -76,7 +77,8 @@ def register(app: typer.Typer) -> None:
         try:
             mode = None if centralized is None else "centralized" if centralized else "distributed"
             settings = load_config(config, overrides(run={"mode": mode}, schedule={"period": pgo_period},
-                                                     node={"map_consensus": map_consensus}))
+                                                     node={"map_consensus": map_consensus,
+                                                           "link_budget": link_budget}))
             conn = _connection(team, connect, listen, zenoh_config, "client" if connect and not listen else None)
             summary = run_agent(AgentJob(robot, source, out, conn, _rate(rate), checkpoint_every, resume, settings,
                                          linger_max))
@@ -155,6 +157,7 @@ def register(app: typer.Typer) -> None:
                                                          "whole team (docs/bags.md).")] = None,
         truth: Truth = None,
         bag_config: BagConfig = None,
+        link_budget: LinkBudgetOption = None,
         config: ConfigFile = None,
         verbose: Verbose = False,
     ) -> None:
@@ -178,7 +181,8 @@ def register(app: typer.Typer) -> None:
                    "join": dict(robot_at(j, "join") for j in join) if join else None,
                    "faults": {"partitions": [parse_partition(p) for p in partition] if partition else None}}
             settings = load_config(config, overrides(run=run, schedule={"period": pgo_period},
-                                                     node={"map_consensus": map_consensus}))
+                                                     node={"map_consensus": map_consensus,
+                                                           "link_budget": link_budget}))
             job = launch_job(settings, out, rate=_rate(rate), kills=[parse_kill(k) for k in kill or []],
                              checkpoint_every=checkpoint_every, timeout=timeout, verbose=verbose, tls=tls,
                              router_restarts=[parse_restart(t) for t in restart_router or []], linger_max=linger_max,

@@ -12,6 +12,16 @@ Queries cross the same faulty links (request and reply each may be dropped or de
 Presence follows ``announce()`` and ``close()``; ``peers()`` also hides robots that a partition
 currently separates from this one.
 
+With a :class:`~kimera_multi_py.comms.link_budget.LinkBudget`, every link between two robots is a
+:class:`~kimera_multi_py.comms.link_budget.LinkQueue` on the network's clock: a message arrives
+when its transfer ends, by priority class, and :meth:`LoopbackNetwork.link_report` says what each
+link carried, how long messages waited and what could not be sent. On a custom clock (the
+simulation's) nothing moves by itself: the owner calls :meth:`LoopbackNetwork.pump` as its clock
+advances (:meth:`LoopbackNetwork.next_delivery` says when the next transfer ends), so a run is
+deterministic. On the loop's clock the network pumps itself. A query is answered at once, but its
+request and reply bytes are charged to their links at the top class, so they delay what follows
+them. A budget replaces the fault delays (``delay``, ``jitter``, ``reorder`` must be 0).
+
 Example::
 
     net = LoopbackNetwork(seed=1, faults=Faults(drop=0.1, delay=0.01, jitter=0.005))
@@ -35,6 +45,7 @@ from dataclasses import dataclass, field, fields
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import BusBase, Handler, Subscription
+from kimera_multi_py.comms.link_budget import CONTROL, LinkBudget, LinkQueue, priority_of
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.stream import DEFAULT_QUEUE_SIZE, Stream
 from kimera_multi_py.core.errors import ConfigError, MessageError
@@ -146,9 +157,15 @@ class LoopbackNetwork:
         robots: Collection[int] | None = None,
         clock: Callable[[], float] | None = None,
         queue_size: int = DEFAULT_QUEUE_SIZE,
+        budget: LinkBudget | None = None,
     ) -> None:
         self.team = keys.check_team(team)
         self.faults = faults or Faults()
+        if budget is not None and (self.faults.delay or self.faults.jitter or self.faults.reorder):
+            raise ConfigError("link_budget", "a link budget sets the links' delays: delay, jitter and reorder "
+                                             "must be 0")
+        self.budget = budget
+        self._links: dict[tuple[int, int], LinkQueue] = {}
         self.robots = frozenset(robots) if robots is not None else None
         self.queue_size = queue_size
         self.stats = FaultStats()
@@ -165,6 +182,7 @@ class LoopbackNetwork:
         self._order = itertools.count()
         self._tick: float | None = None
         self._subs_changed = asyncio.Event()
+        self._pump_due: float | None = None  # the pending pump timer's time (the loop's clock, a budget)
 
     # setup ----------------------------------------------------------------------------
     def bus(self, robot: int, team: str | None = None) -> LoopbackBus:
@@ -209,9 +227,20 @@ class LoopbackNetwork:
         return self._flight.count
 
     async def settle(self, timeout: float = 10.0) -> None:
-        """Wait until no delayed delivery or query is in flight."""
+        """Wait until no delayed delivery or query is in flight (and, on the loop's clock, every
+        budgeted link is idle; on a custom clock budgeted links wait for :meth:`pump`)."""
+
+        async def quiet() -> None:
+            while True:
+                await self._flight.idle.wait()
+                nxt = self.next_delivery() if self._clock is None else None
+                if nxt is None:
+                    return
+                await asyncio.sleep(max(0.0, nxt - self.now()))
+                self.pump()
+
         try:
-            await asyncio.wait_for(self._flight.idle.wait(), timeout)
+            await asyncio.wait_for(quiet(), timeout)
         except TimeoutError:
             raise TimeoutError(f"{self._flight.count} deliveries still in flight") from None
 
@@ -273,12 +302,71 @@ class LoopbackNetwork:
                 self._flight.idle.set()
             fn()
 
+    # link budget ----------------------------------------------------------------------
+    def _link(self, src: int, dst: int) -> LinkQueue:
+        q = self._links.get((src, dst))
+        if q is None:
+            assert self.budget is not None
+            q = self._links[(src, dst)] = LinkQueue(self.budget, self.now())
+        return q
+
+    def _enqueue(self, src: int, dst: int, key: str, item: object, nbytes: int, priority: int) -> None:
+        """Put a message (or, ``item`` None, a query's bytes) on the budgeted link src->dst."""
+        now = self.now()
+        self._link(src, dst).push(item, nbytes, priority, now)
+        self._schedule_pump()
+
+    def _schedule_pump(self) -> None:
+        """On the loop's clock: a timer for the next transfer's end (one pending at a time)."""
+        if self._clock is not None or (nxt := self.next_delivery()) is None:
+            return
+        if self._pump_due is not None and self._pump_due <= nxt:
+            return
+        self._pump_due = nxt
+        asyncio.get_running_loop().call_later(max(1e-4, nxt - self.now()), self._timed_pump, nxt)
+
+    def _timed_pump(self, due: float) -> None:
+        if self._pump_due == due:
+            self._pump_due = None
+        self.pump()
+
+    def pump(self) -> int:
+        """Deliver every budgeted message whose transfer ended by now, in the order they ended
+        (ties: by link); return how many."""
+        if not self._links:
+            return 0
+        now = self.now()
+        done = [(end, link, i, item) for link, q in sorted(self._links.items())
+                for i, (item, end) in enumerate(q.advance(now))]
+        done.sort(key=lambda d: d[:3])
+        for *_, item in done:
+            if item is not None:
+                subs, key, data = item  # type: ignore[misc]
+                for s in subs:
+                    s.push((key, data))
+        self._schedule_pump()
+        return len(done)
+
+    def next_delivery(self) -> float | None:
+        """When the next budgeted transfer ends (None: every link is idle)."""
+        ends = [e for q in self._links.values() if (e := q.next_done()) is not None]
+        return min(ends) if ends else None
+
+    def link_report(self) -> dict[str, dict[str, object]]:
+        """Per link ``"src->dst"``: messages and bytes sent, queue delay (mean, max), and what
+        was dropped or is still queued (docs/deployment.md, "Link budget")."""
+        return {f"{a}->{b}": q.report() for (a, b), q in sorted(self._links.items())}
+
     def _route(self, sender: LoopbackBus, key: str, data: bytes) -> None:
+        budget = self.budget is not None
         for (_, robot), bus in sorted(self._buses.items(), key=lambda kv: (kv[0][1], kv[0][0])):
             subs = [s for s in bus._subs if keys.intersects(s.key_expr, key)]
             if not subs:
                 continue
             for d in self._link_delays(sender.robot, robot):
+                if budget and robot != sender.robot:
+                    self._enqueue(sender.robot, robot, key, (subs, key, data), len(data), priority_of(key))
+                    continue
                 # (mypy cannot infer lambdas whose parameters bind defaults)
                 self._after(d, lambda subs=subs: [s.push((key, data)) for s in subs])  # type: ignore[misc]
 
@@ -369,6 +457,8 @@ class LoopbackBus(BusBase):
             fut: asyncio.Future[list[Message]] = loop.create_future()
             futures.append(fut)
             delays = net._link_delays(self.robot, served.bus.robot)[:1]
+            if delays and net.budget is not None and served.bus.robot != self.robot:
+                net._enqueue(self.robot, served.bus.robot, selector, None, len(request or b""), CONTROL)
             for d in delays:
                 net._after(d, lambda s=served, f=fut: loop.create_task(  # type: ignore[misc]
                     self._answer(s, selector, request, f)))
@@ -393,6 +483,7 @@ class LoopbackBus(BusBase):
             return
         reply_key, replies = answered
         good: list[Message] = []
+        nbytes = 0
         for reply in replies:
             try:
                 data = server.encode_for(reply_key, reply)
@@ -400,10 +491,13 @@ class LoopbackBus(BusBase):
                 log.warning("robot %d: cannot reply on %s: %s", server.robot, reply_key, exc)
                 continue
             server.counters.count_sent(reply_key, len(data))
+            nbytes += len(data)
             env = self.accept(reply_key, data)
             if env is not None:
                 good.append(env.msg)
         delays = net._link_delays(server.robot, self.robot)[:1]
+        if delays and net.budget is not None and server.robot != self.robot:
+            net._enqueue(server.robot, self.robot, reply_key, None, nbytes, CONTROL)
         for d in delays:
             net._after(d, lambda: fut.done() or fut.set_result(good))  # type: ignore[func-returns-value]
 

@@ -96,6 +96,25 @@ def linger_reports(run_dir: Path, robots: list[int]) -> dict[str, object]:
     return out
 
 
+def link_reports(run_dir: Path, robots: list[int]) -> dict[str, object]:
+    """Under a link budget, each robot's (and the server's) ``links.json`` (team/process.py) merged:
+    the budget and every process's link figures (bytes, queue delay, dropped, still queued at its exit)."""
+    out: dict[str, object] = {}
+    links: dict[str, object] = {}
+    for folder in [f"robot{r}" for r in robots] + ["server"]:
+        path = run_dir / folder / "links.json"
+        if path.exists():
+            try:
+                rep = json.loads(path.read_text())
+                links.update(rep["links"])
+                out.update(kbps=rep["kbps"], policy=rep["policy"])
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                raise DatasetError(f"{path}: {exc}") from None
+    if links:
+        out["links"] = links
+    return out
+
+
 def _checked(run_dir: Path, outcomes: list[RobotOutcome], mode: str, keyframes: Sequence[int]) -> None:
     """Every robot processed its ``keyframes``; the server's closure weights onto the closures."""
     weights = _server_weights(run_dir)
@@ -169,6 +188,8 @@ def evaluate_recorded_run(run_dir: str | Path, truth: Sequence[np.ndarray | None
         extra["map_consensus"] = team_map_figures(world, team_maps, T)
     if lingered := linger_reports(run_dir, [o.robot for o in outcomes]):
         extra["linger"] = lingered
+    if links := link_reports(run_dir, [o.robot for o in outcomes]):
+        extra["link_budget"] = links
     for o, true in zip(outcomes, truth, strict=True):
         if true is not None:
             write_tum(run_dir / f"robot{o.robot}_gt.tum", o.stamps, np.asarray(true))
@@ -198,6 +219,8 @@ def evaluate_run(run_dir: str | Path, cfg: ScenarioConfig, seed: int, mode: str,
         extra["map_consensus"] = team_map_figures(sim.world, team_maps, T)
     if lingered := linger_reports(run_dir, [o.robot for o in outcomes]):
         extra["linger"] = lingered
+    if links := link_reports(run_dir, [o.robot for o in outcomes]):
+        extra["link_budget"] = links
     graphs: dict[str, object] = {}
     extra["scene_graph"] = scene_graph_results(sim.world, outcomes, T, run_dir, team_maps or None,
                                                params=config.to_scene_graph_params(), graphs=graphs)

@@ -30,6 +30,7 @@ from kimera_multi_py.agent.checkpoint import load_checkpoint, save_checkpoint
 from kimera_multi_py.agent.node import AgentNode
 from kimera_multi_py.agent.outputs import outcome_of, own_graph, write_outcome
 from kimera_multi_py.comms import runtime
+from kimera_multi_py.comms.link_budget import LinkBudget, budget_of
 from kimera_multi_py.comms.zenoh_bus import ZenohBus
 from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.ids import MAX_AGENT_ID, SERVER_ID
@@ -48,6 +49,7 @@ log = logging.getLogger(__name__)
 CHECKPOINT_NAME = "checkpoint.kmc"
 LINGER_NAME = "linger.json"
 RESOURCES_NAME = "resources.json"  # the agent process's CPU time and peak memory
+LINKS_NAME = "links.json"  # under a link budget: what the robot's links carried (docs/deployment.md, "Link budget")
 LINGER_MAX = 60.0  # s: the longest an agent waits, after its final epoch, for the team to be whole
 
 
@@ -61,9 +63,9 @@ class Connection:
     zenoh_config: str | None = None
     mode: str | None = None  # zenoh mode (peer, client, router); default peer without a file
 
-    def bus(self, robot: int) -> ZenohBus:
+    def bus(self, robot: int, budget: LinkBudget | None = None) -> ZenohBus:
         return ZenohBus(self.team, robot, mode=self.mode, listen=list(self.listen), connect=list(self.connect),
-                        config_file=self.zenoh_config)
+                        config_file=self.zenoh_config, budget=budget)
 
 
 CHECKPOINT_SHARE = 0.05  # the most of an agent's CPU that checkpoints may take
@@ -126,7 +128,7 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
     run = config.run.model_copy(update={"mode": "centralized" if params.server is not None else "distributed"})
     KimeraConfig.resolved(run, agent.params, pgo_params, node_params, schedule, map_params,
                           config.to_scene_graph_params()).write(ckpt.parent)
-    bus = job.connection.bus(job.robot)
+    bus = job.connection.bus(job.robot, budget_of(node_params.link_budget, node_params.link_policy))
     node = AgentNode(agent, bus, pgo_params, schedule, node_params, map_params=map_params)
     if node.pgo is not None:
         node.pgo.epoch = node.pgo.completed = int(extra.get("epoch", 0))
@@ -148,6 +150,9 @@ async def _agent(job: AgentJob) -> dict[str, Any]:
         d = write_outcome(job.out_dir, outcome_of(node), own_graph(agent))
         (d / LINGER_NAME).write_text(json.dumps(whole, indent=1))
         (d / RESOURCES_NAME).write_text(json.dumps(_resources(agent, node), indent=1))
+        if bus.budget is not None:
+            (d / LINKS_NAME).write_text(json.dumps({"kbps": bus.budget.kbps, "policy": bus.budget.policy,
+                                                    "links": bus.link_report()}, indent=1))
         if node.maps is not None:
             export_team_map(node.maps.team_map, d)
     finally:
@@ -239,7 +244,8 @@ async def _server(job: ServerJob) -> dict[str, Any]:
     d = Path(job.out_dir) / "server"
     KimeraConfig.resolved(config.run.model_copy(update={"mode": "centralized"}), params, config.to_pgo_params(),
                           config.to_node_params(), schedule, map_params, config.to_scene_graph_params()).write(d)
-    bus = job.connection.bus(SERVER_ID)
+    node_params = config.to_node_params()
+    bus = job.connection.bus(SERVER_ID, budget_of(node_params.link_budget, node_params.link_policy))
     server = Server(SERVER_ID, None, params.closure_sigmas, params.odom_sigmas)
     node = ServerNode(server, bus, schedule)
     # the agents' map, mapping and PGO parameters (exact fusion; the frame screen faces the maps)
@@ -253,6 +259,9 @@ async def _server(job: ServerJob) -> dict[str, Any]:
         await bus.close()
     if node.maps is not None:
         export_team_map(node.maps.team_map, d)
+    if bus.budget is not None:
+        (d / LINKS_NAME).write_text(json.dumps({"kbps": bus.budget.kbps, "policy": bus.budget.policy,
+                                                "links": bus.link_report()}, indent=1))
     graph, _ = server.graph()
     if graph.num_poses:
         write_g2o(d / "graph.g2o", graph)

@@ -46,6 +46,7 @@ from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.comm_range import neighbours_within
 from kimera_multi_py.comms.faults import check_robots, cut_links
+from kimera_multi_py.comms.link_budget import budget_of
 from kimera_multi_py.comms.loopback import Faults, LoopbackBus, LoopbackNetwork
 from kimera_multi_py.comms.team import TRANSPORTS, open_buses
 from kimera_multi_py.core.errors import ConfigError
@@ -78,6 +79,7 @@ from kimera_multi_py.sim.source import keyframe_input
 from kimera_multi_py.team.build import agent_params
 from kimera_multi_py.team.config import DEFAULT_SCENARIO, KimeraConfig
 from kimera_multi_py.viz.rerun_viz import NullViz, Viz
+from kimera_multi_py.workflow.sim_links import DRAIN_S, SimLinks
 from kimera_multi_py.workflow.sim_viz import log_team
 
 MODES = ("odometry", "distributed", "centralized")
@@ -151,6 +153,11 @@ class SimRunner:
         # over Zenoh a round waits on the wall clock; over loopback until the network is quiet
         self.schedule = self.config.to_schedule(round_timeout=0.5 if transport == "zenoh" else None)
         self.node_params = self.config.to_node_params()
+        # a byte budget per link, on the simulated clock (docs/deployment.md, "Link budget")
+        self.links = SimLinks(budget_of(self.node_params.link_budget, self.node_params.link_policy))
+        if self.links.budget is not None and transport != "loopback":
+            raise ConfigError("link_budget", "the simulation runs a link budget on its clock over the loopback "
+                                             "transport (Zenoh processes: agent, launch)")
         self.map_params = self.config.to_map_params()
         self.scene_graph_params = self.config.to_scene_graph_params()
         self.clock = _SimClock()
@@ -271,7 +278,8 @@ class SimRunner:
                     await node.start()
             epochs = 0
             for done, kf in enumerate(self._stream(), 1):
-                self.clock.t = kf.stamp
+                await self._links_until(kf.stamp, nodes, buses)
+                self.clock.t = max(self.clock.t, kf.stamp)
                 self._show_partitions(buses)
                 for r, t in self.leave.items():
                     if kf.stamp >= t and self.nodes[r] in nodes:
@@ -295,18 +303,26 @@ class SimRunner:
             for node in self.nodes:
                 if node in nodes:
                     await node.finish_stream()
-            end = self.clock.t
+            end = self.links.streams_end = self.clock.t
             while not all(n.complete for n in nodes):
                 if not await self._settle(nodes, buses):
                     # quiet but not done: time passes (a robot that left is waited for a while)
-                    if self.clock.t - end > 10 * self.schedule.absent_timeout:
+                    if self.clock.t - end > 10 * self.schedule.absent_timeout + (DRAIN_S if self.links.active
+                                                                                 else 0.0):
                         raise RuntimeError("the team stopped before its final optimisation")  # a bug
+                    await self._links_until(self.clock.t + 1.0, nodes, buses)
                     self.clock.t += 1.0
                     self._show_partitions(buses)
-            for _ in range(int(MAP_SETTLE_S)):  # map consensus relays what is still missing
+                self.links.note_complete(self.clock.t, nodes)
+            settle_end = self.clock.t + MAP_SETTLE_S
+            # map consensus relays what is still missing (under a budget: until the links drain)
+            while self.clock.t < settle_end or (self.links.active and self.clock.t - end < DRAIN_S
+                                                and not self.links.note_complete(self.clock.t, nodes)):
+                await self._links_until(self.clock.t + 1.0, nodes, buses)
                 self.clock.t += 1.0
                 self._show_partitions(buses)
                 await self._settle(nodes, buses)
+                self.links.note_complete(self.clock.t, nodes)
             self._record_phi(force=True)
             self._add_phi(finish=True)
             self._log_team()
@@ -325,7 +341,9 @@ class SimRunner:
                 yield zbuses
             return
         self._cut = frozenset()
-        net = LoopbackNetwork(team="sim", seed=self.sim.seed, faults=self.faults, robots=ids, clock=self.clock.now)
+        net = LoopbackNetwork(team="sim", seed=self.sim.seed, faults=self.faults, robots=ids, clock=self.clock.now,
+                              budget=self.links.budget)
+        self.links.net = net
         buses: list[Bus] = [net.bus(r) for r in ids]
         try:
             yield buses
@@ -418,6 +436,14 @@ class SimRunner:
             return self.server.server.stats.solves
         return max((n.pgo.stats.epochs for n in self.nodes if n.pgo is not None), default=0)
 
+    async def _links_until(self, t: float, nodes: list[AgentNode | ServerNode], buses: list[Bus]) -> None:
+        """Under a link budget: let the simulated clock run to ``t`` through every transfer that ends
+        before it, the team answering each delivery at its time (a no-op without a budget)."""
+        while (nxt := self.links.next_delivery()) is not None and nxt <= t:
+            self.clock.t = max(self.clock.t, nxt)
+            self._show_partitions(buses)
+            await self._settle(nodes, buses)
+
     async def _settle(self, nodes: list[AgentNode | ServerNode], buses: list[Bus]) -> bool:
         """Run the nodes until the team is quiet: no message queued or in flight, no timer due.
 
@@ -428,7 +454,7 @@ class SimRunner:
         wall = self.clock.now if net is not None else time.monotonic
         progressed = False
         while True:
-            handled = 0
+            handled = self.links.pump()
             for node in nodes:
                 handled += await node.drain()
             for node in nodes:
@@ -444,10 +470,14 @@ class SimRunner:
                 continue
             blocked = [n for n in nodes if n.blocked()]
             if not blocked:
+                self.links.end_wait()
                 return progressed
             if net is None:  # Zenoh: wait for messages or the round timeout
                 await asyncio.sleep(0.001)
                 continue
+            if self.links.round_waits(self.clock.t, blocked):
+                return progressed  # its messages are on the links: time passes, the streams go on
+            self.links.end_wait()
             for node in blocked:
                 await node.tick(wall(), force=True)
             progressed = True
@@ -478,6 +508,7 @@ class SimRunner:
                                               [tr.scans for tr in self.tracks], self.agents, self.outcomes,
                                               T_world_team, excluded_robots(self.outcomes), self._team_maps))
             extra["transport"] = self.transport
+            extra["link_budget"] = self.links.results()
             team_maps = None
             if self.map_report is not None:
                 extra["map_consensus"], team_maps = self._map_results(T_world_team)

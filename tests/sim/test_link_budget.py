@@ -1,0 +1,58 @@
+"""The simulation under a link budget: the loopback links run on the simulated clock, so a
+budgeted run is as deterministic as any other, and results.json says what each link carried."""
+
+import json
+import re
+
+import pytest
+
+from kimera_multi_py.sim import load_scenario
+from kimera_multi_py.team.config import KimeraConfig
+from kimera_multi_py.workflow.simulate import SimRunner
+
+from .helpers import TINY
+
+
+def short_tiny():
+    """tiny with each robot touring two rooms instead of three (about half the keyframes)."""
+    cfg = load_scenario(TINY)
+    cfg.robots[0].route = ["room_a", "room_b"]
+    cfg.robots[1].route = ["room_b", "room_a"]
+    return cfg
+
+
+def budgeted(kbps: float, policy: str = "priority") -> dict:
+    config = KimeraConfig.defaults().updated({"node": {"link_budget": kbps, "link_policy": policy}})
+    return SimRunner(short_tiny(), seed=0, mode="distributed", quality=False, config=config).run().metrics()
+
+
+@pytest.mark.slow
+def test_budgeted_run_is_deterministic_and_reports_its_links():
+    first, second = budgeted(20), budgeted(20)
+    assert json.dumps(second, sort_keys=True) == json.dumps(first, sort_keys=True)  # NaN-safe equality
+    lb = first["link_budget"]
+    assert lb["kbps"] == 20 and lb["policy"] == "priority"
+    assert set(lb["links"]) == {"0->1", "1->0"}
+    sent = sum(v["bytes"] for v in lb["links"].values())
+    # every byte a robot sent crossed its one link (or could not be sent, and is counted as such)
+    lost = sum(v["dropped_bytes"] + v["queued_bytes"] for v in lb["links"].values())
+    assert sent + lost == first["bytes_sent"]["total"]
+    for link in lb["links"].values():
+        assert link["messages"] > 0 and 0 < link["queue_delay_mean_s"] <= link["queue_delay_max_s"]
+        # the priority classes: PGO and the closure protocol never wait behind the map backlog
+        by_class = link["queue_delay_max_s_by_class"]
+        assert by_class["control"] < by_class["map"]
+    # 20 kB/s: the maps need time after the streams' end, and they get whole
+    assert lb["team_maps_complete_s"] is not None and lb["team_maps_complete_s"] > 5.0
+    assert all(a["identical"] == 1.0 for a in first["map_consensus"]["agreement"].values())
+    assert first["loop_closures"]["true_accepted_inter"] > 0 and first["loop_closures"]["false_accepted_inter"] == 0
+
+
+def test_the_budget_is_part_of_the_run_configuration(tmp_path):
+    config = KimeraConfig.defaults().updated({"node": {"link_budget": 50}})
+    runner = SimRunner(short_tiny(), seed=0, mode="distributed", config=config)
+    assert runner.links.budget is not None and runner.links.budget.rate == 50_000
+    runner.resolved_config().write(tmp_path)
+    text = (tmp_path / "config.yaml").read_text()
+    assert re.search(r"^\s+link_budget: 50(\.0)?$", text, re.M)
+    assert SimRunner(short_tiny(), seed=0, mode="distributed").links.budget is None  # off by default
