@@ -35,7 +35,8 @@ CLASS_NAMES = ("control", "objects", "map")
 PRIORITY: dict[str, int] = {
     # the pose-graph optimisation and the loop-closure protocol: small, and the team waits on them
     keys.PUBLIC_POSES: CONTROL, keys.POSE_DELTAS: CONTROL, keys.PGO_STATUS: CONTROL, keys.PGO_COMMAND: CONTROL,
-    keys.GNC_WEIGHTS: CONTROL, keys.PCG_STATE: CONTROL, keys.FRAME_LANDMARKS: CONTROL, keys.PGO_EPOCH: CONTROL,
+    keys.GNC_WEIGHTS: CONTROL, keys.EDGE_VETO: CONTROL, keys.PCG_STATE: CONTROL, keys.FRAME_LANDMARKS: CONTROL,
+    keys.PGO_EPOCH: CONTROL,
     keys.DESCRIPTORS: CONTROL, keys.LC_REQUEST: CONTROL, keys.LC_REPLY: CONTROL, keys.LOOP_CLOSURES: CONTROL,
     keys.LOOP_CLOSURES_ACK: CONTROL, keys.KEYFRAME: CONTROL, keys.AGENT_STATE: CONTROL, keys.ODOMETRY: CONTROL,
     keys.HEARTBEAT: CONTROL, keys.PING: CONTROL,
