@@ -96,6 +96,11 @@ def _odometry_start(trajs: list[np.ndarray], odo: list) -> np.ndarray:
 
 async def _epoch(graph: PoseGraph, **params: object) -> tuple[list[PgoAgent], np.ndarray]:
     agents = [PgoAgent(local, team_params(max_rounds=300, **params)) for local in split_local(graph, frames="given")]
+    return agents, await _run_agents(agents, graph)
+
+
+async def _run_agents(agents: list[PgoAgent], graph: PoseGraph) -> np.ndarray:
+    """One epoch of ``agents`` over a loopback network; the team's final poses."""
     net = LoopbackNetwork(team="switch", seed=0, robots=[a.robot for a in agents])
     buses = [net.bus(a.robot) for a in agents]
     try:
@@ -106,7 +111,7 @@ async def _epoch(graph: PoseGraph, **params: object) -> tuple[list[PgoAgent], np
     poses = np.empty_like(graph.poses)
     for a in agents:
         poses[graph.robot_indices(a.robot)] = a.final_poses()
-    return agents, poses
+    return poses
 
 
 def _frame_error(trajs: list[np.ndarray], poses: np.ndarray, first: np.ndarray) -> float:

@@ -20,17 +20,15 @@ import numpy as np
 import pytest
 
 from kimera_multi_py.alignment.map_check import FREE, OCCUPIED, CellStates, refined_agreement
-from kimera_multi_py.comms.loopback import LoopbackNetwork
 from kimera_multi_py.core.geometry import inverse, make_pose
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.local_graph import split_local
 from kimera_multi_py.pgo.params import team_params
-from kimera_multi_py.pgo.runtime import run_team
 from kimera_multi_py.sim.generate import generate_building, repeated_layouts
 from kimera_multi_py.sim.scenario import ScenarioConfig
 from kimera_multi_py.sim.simulation import keyframe_poses
 from kimera_multi_py.sim.world import World
-from tests.consensus.test_alignment_switch import _frame_error, _graph, _odometry, _odometry_start
+from tests.consensus.test_alignment_switch import _frame_error, _graph, _odometry, _odometry_start, _run_agents
 from tests.consensus.test_pgo_aliased import CLOSURE_SIGMA, _noisy
 
 SEEDS = (1, 2, 3)  # generated floors with a row of three twins and two distinct rooms
@@ -124,19 +122,7 @@ def _decide(seed: int, map_check: bool, with_truth: bool) -> tuple[float, int, d
     maps = _maps(cfg, trajs, [start[graph.robot_indices(r)] for r in range(len(trajs))])
     agents[1].frame.set_map_view(lambda T: refined_agreement(maps[1], maps[0], T))
 
-    async def epoch() -> None:
-        net = LoopbackNetwork(team="twins", seed=0, robots=[a.robot for a in agents])
-        buses = [net.bus(a.robot) for a in agents]
-        try:
-            await run_team(agents, buses, 300, round_timeout=0.2)
-        finally:
-            for b in buses:
-                await b.close()
-
-    asyncio.run(epoch())
-    poses = np.empty_like(graph.poses)
-    for a in agents:
-        poses[graph.robot_indices(a.robot)] = a.final_poses()
+    poses = asyncio.run(_run_agents(agents, graph))
     # aliased closures either end still weighs (the owner of an edge decides its weight)
     kept_aliases = max(int(np.sum(graph.outlier[a.local.inter_edge] & (a.state.inter_weights > 0.5))) for a in agents)
     return _frame_error(trajs, poses, first), kept_aliases, agents[1].frame.alignment

@@ -18,14 +18,20 @@ import numpy as np
 
 from kimera_multi_py.alignment.map_check import CellStates, refined_agreement
 from kimera_multi_py.alignment.server_frames import MapRule, screen_frames
-from kimera_multi_py.comms.loopback import LoopbackNetwork
 from kimera_multi_py.core.geometry import transform_points
 from kimera_multi_py.pgo.agent import PgoAgent
 from kimera_multi_py.pgo.local_graph import split_local
 from kimera_multi_py.pgo.params import team_params
-from kimera_multi_py.pgo.runtime import run_team
 from tests.alignment.world import Floor, seen
-from tests.consensus.test_alignment_switch import CORNER, _closures, _frame_error, _graph, _odometry_start, _team
+from tests.consensus.test_alignment_switch import (
+    CORNER,
+    _closures,
+    _frame_error,
+    _graph,
+    _odometry_start,
+    _run_agents,
+    _team,
+)
 from tests.consensus.test_pgo_aliased import OFFSET, ROOM_A, ROOM_B
 
 # the ring's corridors (2 m wide around its sides) and the twin rooms south of its first side
@@ -48,19 +54,7 @@ def _run(edges_at: list, map_check: bool, seed: int = 3, alias_per_place: int = 
     maps = [seen(RING_FLOOR, T[:, :2, 3], T_world_own=T[0]) for T in trajs]
     agents[1].frame.set_map_view(lambda T: refined_agreement(maps[1], maps[0], T))
 
-    async def epoch() -> None:
-        net = LoopbackNetwork(team="maps", seed=0, robots=[a.robot for a in agents])
-        buses = [net.bus(a.robot) for a in agents]
-        try:
-            await run_team(agents, buses, 300, round_timeout=0.2)
-        finally:
-            for b in buses:
-                await b.close()
-
-    asyncio.run(epoch())
-    poses = np.empty_like(graph.poses)
-    for a in agents:
-        poses[graph.robot_indices(a.robot)] = a.final_poses()
+    poses = asyncio.run(_run_agents(agents, graph))
     return _frame_error(trajs, poses, first), agents[1].frame.alignment
 
 
