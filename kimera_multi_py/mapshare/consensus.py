@@ -80,12 +80,21 @@ class MapConsensusParams:
     """Laplacian consensus: step size."""
     refresh_every: int = 10
     """Laplacian consensus: a full state every this many rounds."""
+    hold: float = 5.0
+    """Exact: seconds between sends of the robot's newest submap while it still grows (its cells
+    change with every scan, so each send would carry most of them again); a submap that is no
+    longer the newest goes out at once. 0: every period."""
+    split_rows: bool = True
+    """Exact: evidence rows as their minimum and the differences to it (:mod:`.wire`); False:
+    the plain rows (the format before, to measure what the split saves)."""
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"map consensus mode must be one of {MODES}, got {self.mode!r}")
         if not (self.period > 0 and self.roam_period > 0):
             raise ValueError("map consensus periods must be positive")
+        if not self.hold >= 0:
+            raise ValueError(f"map consensus hold must be non-negative, got {self.hold}")
 
 
 @dataclass
@@ -358,8 +367,11 @@ class MapConsensus:
                 out.append(SubmapPoses(robot=self.robot, source=table.source, version=table.version,
                                        frame=table.frame, submaps=table.submaps, T_ref=table.T_ref, T=table.T))
                 self._sent_poses[src] = (table.version, self._now)
+        newest = max(self.local.submaps, default=None)
         for key, h in sorted(self.held.items()):
             if h.version == 0:
+                continue
+            if key == (self.robot, newest) and self._holding(key):
                 continue
             bases = self._bases(nbrs, key[0], h.version, h.got, self._sent.get(key), self._reported(key))
             if bases:
@@ -368,7 +380,8 @@ class MapConsensus:
                 codes, rows = self.team.record(key)
                 out.append(SubmapEvidence(robot=self.robot, source=key[0], submap=key[1], base=base,
                                           version=h.version, cells=int(sel.sum()), classes=self.k,
-                                          payload=pack_cells(codes[sel], rows[sel, 1:].astype(np.int16))))
+                                          payload=pack_cells(codes[sel], rows[sel, 1:].astype(np.int16),
+                                                             self.params.split_rows)))
                 self._sent[key] = (h.version, self._now)
         summary = self._versions()
         content = summary.sources.tobytes() + summary.submaps.tobytes() + summary.versions.tobytes() + \
@@ -380,6 +393,11 @@ class MapConsensus:
         else:
             self._summary = (content, self._summary[1] + 1)
         return out
+
+    def _holding(self, key: Key) -> bool:
+        """Whether the growing newest own submap waits: it went out less than ``hold`` ago."""
+        sent = self._sent.get(key)
+        return sent is not None and self._now - sent[1] < self.params.hold
 
     def _versions(self) -> MapVersions:
         keys = sorted(k for k, h in self.held.items() if h.version > 0)

@@ -7,6 +7,16 @@ zlib otherwise; the payload's first byte names which): on map cells zstd at leve
 small fraction of zlib level 6's time and makes smaller payloads (docs/performance.md).
 Unpacking checks every size before trusting the payload, so a corrupt or hostile payload raises
 :class:`MessageError` instead of allocating without bound.
+
+Two row layouts, named by the high bits of the payload's first byte (its low bits name the
+compressor), so a receiver reads either:
+
+* *plain* (:data:`PLAIN`): the int16 rows as they are;
+* *split* (:data:`SPLIT`, the default): per cell the smallest entry of its row ``m`` (int16),
+  then ``row - m`` (uint16). A ray passing through a cell adds the same step to every class and
+  an end point adds one step to all classes and more to the observed one, so a row is mostly
+  "one value everywhere, a few classes above it": the differences are zeros but for those few
+  classes and compress to almost nothing. The values are rebuilt exactly (docs/algorithms/map_consensus.md).
 """
 
 from __future__ import annotations
@@ -33,25 +43,42 @@ def _unshuffle(data: bytes, dtype: str, n: int) -> np.ndarray:
     return np.ascontiguousarray(b.T).view(dtype).reshape(n)
 
 
-def pack_cells(codes: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """A uint8 payload of sorted unique codes ``(n,)`` int64 and rows ``(n, c)`` int16."""
+PLAIN = 0x00
+SPLIT = 0x10
+_LAYOUT = 0xF0  # the first byte's bits that name the row layout
+
+
+def pack_cells(codes: np.ndarray, values: np.ndarray, split: bool = True) -> np.ndarray:
+    """A uint8 payload of sorted unique codes ``(n,)`` int64 and rows ``(n, c)`` int16
+    (``split``: each row as its minimum and the differences to it, else as it is)."""
     codes = np.asarray(codes, dtype="<i8")
     values = np.asarray(values, dtype="<i2")
     if len(codes) > 1 and np.any(codes[1:] <= codes[:-1]):
         raise ValueError("codes must be sorted and unique")
     steps = np.diff(codes, prepend=np.int64(0))
-    raw = _shuffle(steps) + _shuffle(np.ascontiguousarray(values.T).reshape(-1))
-    return np.frombuffer(bytes([DEFAULT]) + compress(raw, DEFAULT), np.uint8).copy()
+    if split and values.size:
+        low = values.min(axis=1)
+        rest = (values.astype(np.int32) - low[:, None]).astype("<u2")
+        raw = _shuffle(steps) + _shuffle(low.astype("<i2")) + _shuffle(np.ascontiguousarray(rest.T).reshape(-1))
+    else:
+        raw = _shuffle(steps) + _shuffle(np.ascontiguousarray(values.T).reshape(-1))
+        split = False
+    head = (SPLIT if split else PLAIN) | DEFAULT
+    return np.frombuffer(bytes([head]) + compress(raw, DEFAULT), np.uint8).copy()
 
 
 def unpack_cells(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """Codes ``(n,)`` and rows ``(n, c)`` of a payload made by :func:`pack_cells`."""
-    expected = n * (8 + 2 * c)
+    """Codes ``(n,)`` and rows ``(n, c)`` of a payload made by :func:`pack_cells` (either layout)."""
     data = np.ascontiguousarray(payload, dtype=np.uint8).tobytes()
     if not data:
         raise MessageError(f"{where}: empty payload")
+    layout, method = data[0] & _LAYOUT, data[0] & ~_LAYOUT
+    if layout not in (PLAIN, SPLIT):
+        raise MessageError(f"{where}: unknown row layout {layout >> 4}")
+    split = layout == SPLIT and n > 0 and c > 0
+    expected = n * (8 + 2 * c + (2 if split else 0))
     try:
-        raw = decompress(data[1:], data[0], expected, where)
+        raw = decompress(data[1:], method, expected, where)
     except MessageError as exc:
         detail = str(exc).removeprefix(f"{where}: ")
         raise MessageError(f"{where}: payload does not hold {n} cells of {c} classes "
@@ -61,7 +88,15 @@ def unpack_cells(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.nd
               or int(steps.sum(dtype=np.float64)) >= _MAX_CODE):
         raise MessageError(f"{where}: codes are not sorted and unique")
     codes = np.cumsum(steps, dtype=np.int64)
-    values = _unshuffle(raw[8 * n:], "<i2", n * c).reshape(c, n).T.astype(np.int16)
+    if split:
+        low = _unshuffle(raw[8 * n: 10 * n], "<i2", n).astype(np.int32)
+        rest = _unshuffle(raw[10 * n:], "<u2", n * c).reshape(c, n).T.astype(np.int32)
+        full = rest + low[:, None]
+        if np.any(full > np.iinfo(np.int16).max) or np.any(rest.min(axis=1) != 0):
+            raise MessageError(f"{where}: split rows out of range (corrupt)")
+        values = full.astype(np.int16)
+    else:
+        values = _unshuffle(raw[8 * n:], "<i2", n * c).reshape(c, n).T.astype(np.int16)
     return codes, np.ascontiguousarray(values)
 
 
