@@ -81,9 +81,9 @@ class MapConsensusParams:
     refresh_every: int = 10
     """Laplacian consensus: a full state every this many rounds."""
     hold: float = 5.0
-    """Exact: seconds between sends of the robot's newest submap while it still grows (its cells
-    change with every scan, so each send would carry most of them again); a submap that is no
-    longer the newest goes out at once. 0: every period."""
+    """Exact: seconds between new versions of the robot's newest submap while it still grows (its
+    cells change with every scan, so each version would carry most of them again); a submap that
+    is no longer the newest gets its last version at once. 0: every period."""
     split_rows: bool = True
     """Exact: evidence rows as their minimum and the differences to it (:mod:`.wire`); False:
     the plain rows (the format before, to measure what the split saves)."""
@@ -280,12 +280,18 @@ class MapConsensus:
         return out
 
     def _snapshot_own(self) -> None:
-        """Take new versions of the own submaps (version = scans integrated) and the pose table."""
+        """Take new versions of the own submaps (version = scans integrated) and the pose table.
+
+        The newest submap, still growing, gets a new version at most every ``hold`` seconds: its
+        cells change with every scan, and each version goes out to the neighbours at once."""
+        newest = max(self.local.submaps, default=None)
         for sid, s in sorted(self.local.submaps.items()):
             key = (self.robot, sid)
             h = self.held.get(key)
             if h is None:
                 h = self.held[key] = _Held(0, np.zeros(0, np.int64), self._now)
+            if sid == newest and h.version > 0 and self._now - h.got < self.params.hold:
+                continue
             if s.num_scans > h.version:
                 h_codes, h_rows = self.team.record(key)
                 pos = np.searchsorted(h_codes, s.codes).clip(max=max(len(h_codes) - 1, 0))
@@ -367,11 +373,8 @@ class MapConsensus:
                 out.append(SubmapPoses(robot=self.robot, source=table.source, version=table.version,
                                        frame=table.frame, submaps=table.submaps, T_ref=table.T_ref, T=table.T))
                 self._sent_poses[src] = (table.version, self._now)
-        newest = max(self.local.submaps, default=None)
         for key, h in sorted(self.held.items()):
             if h.version == 0:
-                continue
-            if key == (self.robot, newest) and self._holding(key):
                 continue
             bases = self._bases(nbrs, key[0], h.version, h.got, self._sent.get(key), self._reported(key))
             if bases:
@@ -393,11 +396,6 @@ class MapConsensus:
         else:
             self._summary = (content, self._summary[1] + 1)
         return out
-
-    def _holding(self, key: Key) -> bool:
-        """Whether the growing newest own submap waits: it went out less than ``hold`` ago."""
-        sent = self._sent.get(key)
-        return sent is not None and self._now - sent[1] < self.params.hold
 
     def _versions(self) -> MapVersions:
         keys = sorted(k for k, h in self.held.items() if h.version > 0)
