@@ -10,7 +10,9 @@ is :attr:`MapConsensus.team_map`, the robot's belief about the whole team's spac
     reference grid. A :class:`SubmapEvidence` carries the cells of ``(source, submap)`` changed
     after version ``base`` with their values at ``version`` (absolute values): a robot at a
     version in ``[base, version)`` applies it, any other ignores it, so duplicates and reordering
-    are harmless and nothing is ever counted twice. A :class:`SubmapPoses` carries a source's
+    are harmless and nothing is ever counted twice. The robot's newest submap, still growing,
+    gets a new version at most every ``hold`` seconds (each version would otherwise re-send most
+    of its cells every period). A :class:`SubmapPoses` carries a source's
     pose table (versioned, with the frame it is in): after a PGO correction only it travels and
     the submaps move exactly. Every robot relays what a neighbour lacks, so evidence crosses the
     team one hop at a time. A :class:`MapVersions` summary (sent when it changes and every
