@@ -74,7 +74,7 @@ def unpack_cells(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.nd
         raise MessageError(f"{where}: empty payload")
     layout, method = data[0] & _LAYOUT, data[0] & ~_LAYOUT
     if layout not in (PLAIN, SPLIT):
-        raise MessageError(f"{where}: unknown row layout {layout >> 4}")
+        raise MessageError(f"{where}: corrupt payload (unknown row layout {layout >> 4})")
     split = layout == SPLIT and n > 0 and c > 0
     expected = n * (8 + 2 * c + (2 if split else 0))
     try:
