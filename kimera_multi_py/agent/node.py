@@ -91,8 +91,8 @@ class NodeParams:
     compact_wire: bool = True
     """Compact encodings: verification clouds at the closure registration's resolution, packed
     small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`);
-    map evidence with split rows, the growing submap held between sends (map consensus ``split_rows``
-    and ``hold``). False: the full-size formats (to measure what compaction saves)."""
+    map evidence as palette rows, the growing submap held between versions (map consensus
+    ``palette_rows`` and ``hold``). False: the full-size formats (to measure what compaction saves)."""
 
 
 class AgentNode:
@@ -126,7 +126,7 @@ class AgentNode:
         self.maps: MapConsensus | None = None
         if self.params.map_consensus != "off":
             if not self.params.compact_wire:  # the full-size evidence: plain rows, every period
-                map_params = dataclasses.replace(map_params or MapConsensusParams(), split_rows=False, hold=0.0)
+                map_params = dataclasses.replace(map_params or MapConsensusParams(), palette_rows=False, hold=0.0)
             self.maps = get_map_consensus(agent.robot, agent.map, self.params.map_consensus, base=map_params)
         # the team's objects ride on the exact consensus's submap pose tables
         self.objects: ObjectExchange | None = None

@@ -11,12 +11,14 @@ Unpacking checks every size before trusting the payload, so a corrupt or hostile
 Two row layouts, named by the high bits of the payload's first byte (its low bits name the
 compressor), so a receiver reads either:
 
-* *plain* (:data:`PLAIN`): the int16 rows as they are;
-* *split* (:data:`SPLIT`, the default): per cell the smallest entry of its row ``m`` (int16),
-  then ``row - m`` (uint16). A ray passing through a cell adds the same step to every class and
-  an end point adds one step to all classes and more to the observed one, so a row is mostly
-  "one value everywhere, a few classes above it": the differences are zeros but for those few
-  classes and compress to almost nothing. The values are rebuilt exactly (docs/algorithms/map_consensus.md).
+* *plain* (:data:`PLAIN`): the int16 rows as they are, column by column;
+* *palette* (:data:`PALETTE`, the default): the distinct rows once, most frequent first, and per
+  cell the index of its row (uint8, uint16 or uint32 as their number needs). A submap's cells
+  hold few distinct rows: a cell's row is the sum of a few kinds of steps (a ray passing through
+  adds the same step to every class, an end point one step to every class and more to the
+  observed one), so thousands of cells share each row. The table stores each row as its
+  smallest entry and the (unsigned) differences to it, zeros except in the classes observed.
+  The values are rebuilt exactly (docs/algorithms/map_consensus.md).
 """
 
 from __future__ import annotations
@@ -44,27 +46,38 @@ def _unshuffle(data: bytes, dtype: str, n: int) -> np.ndarray:
 
 
 PLAIN = 0x00
-SPLIT = 0x10
+PALETTE = 0x20
 _LAYOUT = 0xF0  # the first byte's bits that name the row layout
+_I16 = np.iinfo(np.int16)
 
 
-def pack_cells(codes: np.ndarray, values: np.ndarray, split: bool = True) -> np.ndarray:
+def _index_dtype(distinct: int) -> str:
+    return "<u1" if distinct <= 1 << 8 else "<u2" if distinct <= 1 << 16 else "<u4"
+
+
+def pack_cells(codes: np.ndarray, values: np.ndarray, palette: bool = True) -> np.ndarray:
     """A uint8 payload of sorted unique codes ``(n,)`` int64 and rows ``(n, c)`` int16
-    (``split``: each row as its minimum and the differences to it, else as it is)."""
+    (``palette``: the distinct rows once and an index per cell, else the rows as they are)."""
     codes = np.asarray(codes, dtype="<i8")
     values = np.asarray(values, dtype="<i2")
     if len(codes) > 1 and np.any(codes[1:] <= codes[:-1]):
         raise ValueError("codes must be sorted and unique")
     steps = np.diff(codes, prepend=np.int64(0))
-    if split and values.size:
-        low = values.min(axis=1)
-        rest = (values.astype(np.int32) - low[:, None]).astype("<u2")
-        raw = _shuffle(steps) + _shuffle(low.astype("<i2")) + _shuffle(np.ascontiguousarray(rest.T).reshape(-1))
-    else:
+    if not palette or values.size == 0:
         raw = _shuffle(steps) + _shuffle(np.ascontiguousarray(values.T).reshape(-1))
-        split = False
-    head = (SPLIT if split else PLAIN) | DEFAULT
-    return np.frombuffer(bytes([head]) + compress(raw, DEFAULT), np.uint8).copy()
+        return np.frombuffer(bytes([PLAIN | DEFAULT]) + compress(raw, DEFAULT), np.uint8).copy()
+    table, inverse, counts = np.unique(values, axis=0, return_inverse=True, return_counts=True)
+    order = np.argsort(-counts, kind="stable")  # the most frequent rows get the smallest indices
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    index = rank[inverse.reshape(-1)].astype(_index_dtype(len(table)))
+    table = table[order]
+    low = table.min(axis=1)
+    rest = (table.astype(np.int32) - low[:, None]).astype("<u2")
+    raw = _shuffle(steps) + _shuffle(index) + _shuffle(low.astype("<i2")) + \
+        _shuffle(np.ascontiguousarray(rest.T).reshape(-1))
+    head = bytes([PALETTE | DEFAULT]) + np.array([len(table)], "<u4").tobytes()
+    return np.frombuffer(head + compress(raw, DEFAULT), np.uint8).copy()
 
 
 def unpack_cells(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -73,12 +86,22 @@ def unpack_cells(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.nd
     if not data:
         raise MessageError(f"{where}: empty payload")
     layout, method = data[0] & _LAYOUT, data[0] & ~_LAYOUT
-    if layout not in (PLAIN, SPLIT):
+    if layout not in (PLAIN, PALETTE):
         raise MessageError(f"{where}: corrupt payload (unknown row layout {layout >> 4})")
-    split = layout == SPLIT and n > 0 and c > 0
-    expected = n * (8 + 2 * c + (2 if split else 0))
+    body, distinct, width = data[1:], 0, 0
+    if layout == PALETTE:
+        if len(data) < 5:
+            raise MessageError(f"{where}: corrupt payload (cut before its palette size)")
+        distinct = int(np.frombuffer(data[1:5], "<u4")[0])
+        if distinct > n or (n > 0 and c > 0 and distinct == 0):
+            raise MessageError(f"{where}: corrupt payload ({distinct} distinct rows for {n} cells)")
+        width = np.dtype(_index_dtype(distinct)).itemsize
+        body = data[5:]
+        expected = n * (8 + width) + distinct * 2 * (1 + c)
+    else:
+        expected = n * (8 + 2 * c)
     try:
-        raw = decompress(data[1:], method, expected, where)
+        raw = decompress(body, method, expected, where)
     except MessageError as exc:
         detail = str(exc).removeprefix(f"{where}: ")
         raise MessageError(f"{where}: payload does not hold {n} cells of {c} classes "
@@ -88,16 +111,18 @@ def unpack_cells(payload: np.ndarray, n: int, c: int, where: str) -> tuple[np.nd
               or int(steps.sum(dtype=np.float64)) >= _MAX_CODE):
         raise MessageError(f"{where}: codes are not sorted and unique")
     codes = np.cumsum(steps, dtype=np.int64)
-    if split:
-        low = _unshuffle(raw[8 * n: 10 * n], "<i2", n).astype(np.int32)
-        rest = _unshuffle(raw[10 * n:], "<u2", n * c).reshape(c, n).T.astype(np.int32)
-        full = rest + low[:, None]
-        if np.any(full > np.iinfo(np.int16).max) or np.any(rest.min(axis=1) != 0):
-            raise MessageError(f"{where}: split rows out of range (corrupt)")
-        values = full.astype(np.int16)
-    else:
+    if layout == PLAIN:
         values = _unshuffle(raw[8 * n:], "<i2", n * c).reshape(c, n).T.astype(np.int16)
-    return codes, np.ascontiguousarray(values)
+        return codes, np.ascontiguousarray(values)
+    at = 8 * n
+    index = _unshuffle(raw[at: at + width * n], _index_dtype(distinct), n).astype(np.int64)
+    at += width * n
+    low = _unshuffle(raw[at: at + 2 * distinct], "<i2", distinct).astype(np.int32)
+    rest = _unshuffle(raw[at + 2 * distinct:], "<u2", distinct * c).reshape(c, distinct).T.astype(np.int32)
+    table = rest + low[:, None]
+    if n and (np.any(index >= distinct) or np.any(table > _I16.max) or (c > 0 and np.any(rest.min(axis=1) != 0))):
+        raise MessageError(f"{where}: corrupt payload (palette rows or indices out of range)")
+    return codes, np.ascontiguousarray(table.astype(np.int16)[index].reshape(n, c))
 
 
 def pack_leaves(codes: np.ndarray, levels: np.ndarray, values: np.ndarray) -> np.ndarray:

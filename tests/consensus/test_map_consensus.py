@@ -39,6 +39,8 @@ def robot_map(r: int, submaps: int = 2) -> SubmapMap:
 
 
 def team(n: int, mode: str = "exact", **params: float) -> tuple[dict[int, SubmapMap], dict[int, MapConsensus]]:
+    """``n`` robots; the growing submap gets a version every period unless ``hold`` is given."""
+    params = {"hold": 0.0, **params}
     maps = {r: robot_map(r) for r in range(n)}
     nodes = {r: MapConsensus(r, maps[r], MapConsensusParams(mode=mode, **params), team_size=n) for r in maps}
     for node in nodes.values():
@@ -237,7 +239,7 @@ def test_a_server_without_a_map_fuses_centrally_and_serves_the_team_map_back() -
 
 
 def test_a_delta_on_top_of_a_lost_one_waits_until_the_lost_cells_are_resent() -> None:
-    maps, nodes = team(2, hold=0.0)  # the growing submap goes out every period
+    maps, nodes = team(2)
     a, b = nodes[0], nodes[1]
     for n in nodes.values():
         n.set_neighbours({0, 1})
