@@ -138,3 +138,13 @@ def test_holding_the_growing_submap_sends_fewer_bytes_for_the_same_team_map() ->
         assert_exact(maps, nodes)
         sent[hold] = net.bytes[0]["map/evidence"]
     assert sent[4.0] < sent[0.0]
+
+
+def test_rows_that_share_a_hash_still_get_their_own_palette_entries(monkeypatch: pytest.MonkeyPatch) -> None:
+    from kimera_multi_py.mapshare import wire
+
+    codes, values = _submap_rows()
+    monkeypatch.setattr(wire, "_MIX", np.zeros_like(wire._MIX))  # every row mixes to the same 64 bits
+    got_codes, got_values = unpack_cells(pack_cells(codes, values), len(codes), K, "w")
+    assert len(np.unique(values, axis=0)) > 1
+    assert np.array_equal(got_codes, codes) and np.array_equal(got_values, values)
