@@ -24,6 +24,7 @@ on wall time and returns when the team's final optimisation is done.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 import time
@@ -89,8 +90,9 @@ class NodeParams:
     ``resend_period`` while its target is present; and whenever the target (re)appears."""
     compact_wire: bool = True
     """Compact encodings: verification clouds at the closure registration's resolution, packed
-    small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`).
-    False: the full-size formats (to measure what compaction saves)."""
+    small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`);
+    map evidence as palette rows, the growing submap held between versions (map consensus
+    ``palette_rows`` and ``hold``). False: the full-size formats (to measure what compaction saves)."""
     link_budget: float | None = None
     """kB/s per peer link, a token bucket in the bus with PGO and closure traffic first, then
     objects, then map evidence (docs/deployment.md, "Link budget"); null: unlimited."""
@@ -128,6 +130,8 @@ class AgentNode:
                                    f"(available: {', '.join(MAP_MODES)})")
         self.maps: MapConsensus | None = None
         if self.params.map_consensus != "off":
+            if not self.params.compact_wire:  # the full-size evidence: plain rows, every period
+                map_params = dataclasses.replace(map_params or MapConsensusParams(), palette_rows=False, hold=0.0)
             self.maps = get_map_consensus(agent.robot, agent.map, self.params.map_consensus, base=map_params)
         # the team's objects ride on the exact consensus's submap pose tables
         self.objects: ObjectExchange | None = None

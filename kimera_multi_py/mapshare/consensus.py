@@ -10,7 +10,9 @@ is :attr:`MapConsensus.team_map`, the robot's belief about the whole team's spac
     reference grid. A :class:`SubmapEvidence` carries the cells of ``(source, submap)`` changed
     after version ``base`` with their values at ``version`` (absolute values): a robot at a
     version in ``[base, version)`` applies it, any other ignores it, so duplicates and reordering
-    are harmless and nothing is ever counted twice. A :class:`SubmapPoses` carries a source's
+    are harmless and nothing is ever counted twice. The robot's newest submap, still growing,
+    gets a version at most every ``hold`` seconds (each version would otherwise re-send most of
+    its cells every period); an older one gets its last version at once. A :class:`SubmapPoses` carries a source's
     pose table (versioned, with the frame it is in): after a PGO correction only it travels and
     the submaps move exactly. Every robot relays what a neighbour lacks, so evidence crosses the
     team one hop at a time. A :class:`MapVersions` summary (sent when it changes and every
@@ -80,12 +82,22 @@ class MapConsensusParams:
     """Laplacian consensus: step size."""
     refresh_every: int = 10
     """Laplacian consensus: a full state every this many rounds."""
+    hold: float = 10.0
+    """Exact: seconds between versions of the robot's newest submap while it still grows (its
+    cells change with every scan, so each version would carry most of them again), counted from
+    when the submap appeared; a submap that is no longer the newest gets its last version at
+    once. With a hold as long as a submap lasts, most submaps travel once. 0: every period."""
+    palette_rows: bool = True
+    """Exact: evidence rows as a palette of distinct rows and an index per cell (:mod:`.wire`);
+    False: the plain rows (the format before, to measure what the palette saves)."""
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"map consensus mode must be one of {MODES}, got {self.mode!r}")
         if not (self.period > 0 and self.roam_period > 0):
             raise ValueError("map consensus periods must be positive")
+        if not self.hold >= 0:
+            raise ValueError(f"map consensus hold must be non-negative, got {self.hold}")
 
 
 @dataclass
@@ -271,12 +283,19 @@ class MapConsensus:
         return out
 
     def _snapshot_own(self) -> None:
-        """Take new versions of the own submaps (version = scans integrated) and the pose table."""
+        """Take new versions of the own submaps (version = scans integrated) and the pose table.
+
+        The newest submap, still growing, gets a version ``hold`` seconds after it appeared and
+        at most every ``hold`` seconds after that: its cells change with every scan, and each
+        version goes out to the neighbours at once."""
+        newest = max(self.local.submaps, default=None)
         for sid, s in sorted(self.local.submaps.items()):
             key = (self.robot, sid)
             h = self.held.get(key)
             if h is None:
                 h = self.held[key] = _Held(0, np.zeros(0, np.int64), self._now)
+            if sid == newest and self._now - h.got < self.params.hold:
+                continue
             if s.num_scans > h.version:
                 h_codes, h_rows = self.team.record(key)
                 pos = np.searchsorted(h_codes, s.codes).clip(max=max(len(h_codes) - 1, 0))
@@ -368,7 +387,8 @@ class MapConsensus:
                 codes, rows = self.team.record(key)
                 out.append(SubmapEvidence(robot=self.robot, source=key[0], submap=key[1], base=base,
                                           version=h.version, cells=int(sel.sum()), classes=self.k,
-                                          payload=pack_cells(codes[sel], rows[sel, 1:].astype(np.int16))))
+                                          payload=pack_cells(codes[sel], rows[sel, 1:].astype(np.int16),
+                                                             self.params.palette_rows)))
                 self._sent[key] = (h.version, self._now)
         summary = self._versions()
         content = summary.sources.tobytes() + summary.submaps.tobytes() + summary.versions.tobytes() + \

@@ -39,6 +39,8 @@ def robot_map(r: int, submaps: int = 2) -> SubmapMap:
 
 
 def team(n: int, mode: str = "exact", **params: float) -> tuple[dict[int, SubmapMap], dict[int, MapConsensus]]:
+    """``n`` robots; the growing submap gets a version every period unless ``hold`` is given."""
+    params = {"hold": 0.0, **params}
     maps = {r: robot_map(r) for r in range(n)}
     nodes = {r: MapConsensus(r, maps[r], MapConsensusParams(mode=mode, **params), team_size=n) for r in maps}
     for node in nodes.values():

@@ -10,7 +10,7 @@ import pytest
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.geometry import make_pose, so3_exp
 from kimera_multi_py.mapping.octree_io import export_team_map
-from kimera_multi_py.mapshare.consensus import MapConsensus
+from kimera_multi_py.mapshare.consensus import MapConsensus, MapConsensusParams
 from kimera_multi_py.mapshare.exchange import MapExchange
 from kimera_multi_py.mapshare.fusion import (
     EvidenceMap,
@@ -169,7 +169,7 @@ def test_a_robots_map_consensus_holds_each_submap_once() -> None:
     """The evidence a robot holds of a submap lives in one place (the team store); what the map
     consensus adds beyond it is a version mark per cell."""
     local = robot_map(0)
-    mc = MapConsensus(0, local)
+    mc = MapConsensus(0, local, MapConsensusParams(hold=0.0))  # every submap versioned at once
     mc.step(0.0)
     cells = sum(len(s.codes) for s in local.submaps.values())
     store = sum(e.codes.nbytes + e.rows.nbytes + e.world.nbytes for e in mc.team.entries.values()
