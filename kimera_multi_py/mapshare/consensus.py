@@ -136,6 +136,9 @@ class MapConsensus:
         self._own_table: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._pose_version = 0
         self._nbr: dict[int, tuple[dict[Key, int], dict[int, int], float]] = {}
+        # per neighbour: how long our sends took to show in its summaries (smoothed, s); a summary
+        # that lacks a send younger than twice this is not a loss but a send still on its way
+        self._flight: dict[int, float] = {}
         self._nbr_frame: dict[int, int] = {}  # each neighbour's team frame, as its summary said
         self._sent: dict[Key, tuple[int, float]] = {}
         self._sent_poses: dict[int, tuple[int, float]] = {}
@@ -248,6 +251,7 @@ class MapConsensus:
         versions = {(int(s), int(m)): int(v) for s, m, v in
                     zip(msg.sources.tolist(), msg.submaps.tolist(), msg.versions.tolist(), strict=True)}
         pose_versions = dict(zip(msg.pose_sources.tolist(), msg.pose_versions.tolist(), strict=True))
+        self._learn_flight(msg.robot, versions, pose_versions)
         self._nbr[msg.robot] = (versions, pose_versions, self._now)
         self._nbr_frame[msg.robot] = int(msg.frame)
 
@@ -336,10 +340,22 @@ class MapConsensus:
             h.marks = np.insert(h.marks, pos[~known], version)
         self.team.set_cells(key, codes, rows)
 
-    @staticmethod
-    def _belief(reported: int, summary_time: float, sent: tuple[int, float] | None) -> int:
-        """The version a neighbour holds as far as we know: its summary, or what we sent since."""
-        if sent is not None and sent[1] >= summary_time:
+    def _learn_flight(self, k: int, versions: dict[Key, int], pose_versions: dict[int, int]) -> None:
+        """Time our sends took to show in neighbour ``k``'s summaries: from this summary, the
+        first since each send that holds what was sent (the slowest of them, smoothed)."""
+        last = self._nbr[k][2] if k in self._nbr else -np.inf
+        took = [self._now - t for key, (v, t) in self._sent.items() if t > last and versions.get(key, 0) >= v]
+        took += [self._now - t for src, (v, t) in self._sent_poses.items()
+                 if t > last and pose_versions.get(src, 0) >= v]
+        if took:
+            old = self._flight.get(k)
+            self._flight[k] = max(took) if old is None else 0.7 * old + 0.3 * max(took)
+
+    def _belief(self, k: int, reported: int, summary_time: float, sent: tuple[int, float] | None) -> int:
+        """The version neighbour ``k`` holds as far as we know: its summary, or what we sent since
+        (or before it, while that send may still be on its way: a slow link's queue holds it
+        longer than a summary period, and sending it again would only lengthen the queue)."""
+        if sent is not None and (sent[1] >= summary_time or self._now - sent[1] < 2.0 * self._flight.get(k, 0.0)):
             return max(reported, sent[0])
         return reported
 
@@ -357,7 +373,7 @@ class MapConsensus:
             if k == source:
                 continue
             t = self._nbr[k][2] if k in self._nbr else -np.inf
-            have = self._belief(reported(k), t, sent)
+            have = self._belief(k, reported(k), t, sent)
             if have < want and (source == self.robot or t > got):
                 out.append(have)
         return out

@@ -194,9 +194,11 @@ class PgoAgent:
 
     def _vetoes(self, rnd: int) -> list[EdgeVeto]:
         """The barred inter-robot edges (:meth:`.state.SolveState.bar`), one message per peer, when
-        newly barred and then every ``resend_interval`` rounds (a peer may have lost them)."""
+        newly barred and then every ten ``resend_interval`` (a peer may have lost them: until it
+        hears, its GNC may weigh them, and the safety net stays the backstop)."""
         st = self.state
-        if not st.barred.any() or not (self.frame.veto_news or rnd - self._veto_round >= self.params.resend_interval):
+        due = self.frame.veto_news or rnd - self._veto_round >= 10 * self.params.resend_interval
+        if not st.barred.any() or not due:
             return []
         self.frame.veto_news = False
         self._veto_round = rnd
