@@ -87,7 +87,8 @@ def run_seed(scenario: Path, seed: int, robots: int, params: PeopleParams) -> di
     import motmetrics as mm
 
     sim = Simulation(load_scenario(scenario, robots=robots), seed=seed)
-    accs, per_robot = [], {}
+    accs: list[Any] = []
+    per_robot: dict[str, dict[str, Any]] = {}
     for r in range(sim.num_robots):
         tr, views = track_robot(sim, r, params)
         acc = mot(sim, tr, views)
