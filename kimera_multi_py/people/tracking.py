@@ -79,6 +79,12 @@ class PeopleParams:
     velocity, added to ``max_gate``; 0: no re-acquisition."""
     reacquire_hits: int = 4
     """A new track may still turn out to continue a lost one until it has this many hits."""
+    reacquire_lateral: float = 0.5
+    """A person who turned back while unseen walks back within this distance (m) of their line."""
+    reacquire_min_speed: float = 0.2
+    """Below this speed (m/s) a track has no direction to have turned back from."""
+    turn_cos: float = 0.7
+    """Turned back: the young track heads at least this much (cosine) against the lost one."""
 
 
 @dataclass
@@ -281,9 +287,29 @@ class PeopleTracker:
                 tol_b = p.max_gate + p.reacquire_slack * (stamp - old.last_seen)
                 if fwd <= tol_f and bwd <= tol_b:
                     cost[i, j] = (fwd / tol_f) ** 2 + (bwd / tol_b) ** 2
+                elif (side := self._turned_back(old, new, t0, p0)) is not None:
+                    cost[i, j] = 2.0 + side  # after every straight continuation
         for r, c in zip(*linear_sum_assignment(cost), strict=True):
             if cost[r, c] < _INFEASIBLE:
                 self._continue(lost[int(r)], young[int(c)], owner)
+
+    def _turned_back(self, old: Track, new: Track, t0: float, p0: np.ndarray) -> float | None:
+        """Whether the young track ``new`` (first at ``p0``, ``t0``) is the lost track ``old``'s
+        person walking back along their own line: heading the other way, within
+        ``reacquire_lateral`` of the line, and where walking on to a turning point and back at the
+        two tracks' speeds puts them. Returns the sideways offset as a share of the bound (None: no)."""
+        p = self.params
+        v1, v2 = float(np.linalg.norm(old.x[2:])), float(np.linalg.norm(new.x[2:]))
+        if min(v1, v2) < p.reacquire_min_speed:
+            return None
+        u = old.x[2:] / v1
+        if float(u @ new.x[2:]) / v2 > -p.turn_cos:
+            return None
+        e = p0 - old.x[:2]
+        side = abs(float(e @ np.array([-u[1], u[0]]))) / p.reacquire_lateral
+        ahead = float(e @ u)
+        turn = (t0 - old.last_seen + ahead / v2) / (1.0 / v1 + 1.0 / v2)  # how far on they turned
+        return side if side <= 1.0 and turn >= max(ahead, 0.0) - p.max_gate else None
 
     def _continue(self, old: Track, new: Track, owner: np.ndarray) -> None:
         """``old`` takes over ``new`` (which began after ``old`` was last seen): its samples, state and id."""

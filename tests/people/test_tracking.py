@@ -209,3 +209,26 @@ def test_a_person_who_stood_out_of_sight_is_taken_up_again():
     assert {int(i) for rec in tr.log for i in rec.tracks} == {ids[0][0]}
     (track,) = tr.confirmed()
     assert len(track.stamps) == len(ids[0]) == 14 and list(tr.tracks) == [track.id]
+
+
+def test_a_person_who_turned_back_out_of_sight_keeps_their_id_and_a_passer_by_does_not_take_it():
+    """A walks east to the end of a corridor out of sight, turns back and is seen again walking
+    west on the same line; B walks west too, 1 m to the side, and comes into sight first. Carried
+    on straight, neither meets A's lost track; walking on to a turning point and back along A's
+    line explains A and not B."""
+    tr = PeopleTracker((HUMAN,), PeopleParams(confirm_hits=2))
+    tr.set_submap_pose(0, np.eye(4))
+
+    def a(t):  # east at 0.8 m/s to x = 5 (t = 6.25), then back west
+        if 3.0 < t < 9.0:
+            return None
+        return np.array([0.8 * t if t <= 6.25 else 5.0 - 0.8 * (t - 6.25), 0.0])
+
+    b = lambda t: None if t < 7.0 else np.array([4.0 - 0.8 * (t - 7.0), 1.0])  # noqa: E731
+    walk(tr, {0: a, 1: b}, np.arange(0.0, 12.01, 0.5))
+    assert tr.reacquired == 1
+    names = {}
+    for rec in tr.log:
+        for (xy, tid) in zip(rec.refs[:, :2], rec.tracks.tolist(), strict=True):
+            names.setdefault(int(abs(xy[1]) > 0.5), set()).add(tid)  # 0: A's line, 1: B's
+    assert len(names[0]) == 1 and len(names[1]) == 1 and names[0] != names[1]
