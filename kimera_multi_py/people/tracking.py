@@ -4,11 +4,12 @@ Each track is a constant-velocity Kalman filter on the floor plane (state ``x, y
 height is a running mean). At a keyframe every track is predicted to the keyframe's stamp, a
 detection gates with a track when its Mahalanobis distance under the innovation covariance is
 within ``gate_chi2`` and its distance within ``max_gate``, and detections are assigned to tracks
-by ``scipy.optimize.linear_sum_assignment`` on the Mahalanobis cost. A detection left over may
-re-acquire a track lost for a while that could have walked to it (a second assignment on the
-distance, :meth:`PeopleTracker._reacquire`); any other starts a tentative track. A track is
-confirmed (born) once ``confirm_hits`` keyframes saw it, and dies when it went unseen for
-``max_unseen`` seconds (``tentative_unseen`` before it is confirmed).
+by ``scipy.optimize.linear_sum_assignment`` on the Mahalanobis cost. A detection left over starts
+a new track; while that track is young it may turn out to continue a lost one, when the two agree
+walking on at constant velocity across the gap in both directions (:meth:`PeopleTracker._reacquire`;
+a single detection near where a track was lost is not enough: it is as often another person
+walking past the other way). A track is confirmed (born) once ``confirm_hits`` keyframes saw it,
+and dies when it went unseen for ``max_unseen`` seconds (``tentative_unseen`` before it is confirmed).
 ``association = "nearest"`` replaces the motion model by nearest-neighbour association on the
 last positions (the baseline that swaps the ids of people who cross).
 
@@ -71,10 +72,19 @@ class PeopleParams:
     max_unseen: float = 15.0
     """Seconds a confirmed track survives unseen."""
     association: Literal["kalman", "nearest"] = "kalman"
-    reacquire_speed: float = 1.0
-    """Re-acquisition of lost tracks: the speed (m/s) a person may have walked unseen; 0: off."""
     reacquire_after: float = 1.5
-    """Seconds unseen before a track counts as lost (for re-acquisition)."""
+    """Seconds unseen before a confirmed track counts as lost (and may be taken up by a young one)."""
+    reacquire_slack: float = 0.3
+    """Re-acquisition: how far (m) per second unseen a person may stray from walking on at constant
+    velocity, added to ``max_gate``; 0: no re-acquisition."""
+    reacquire_hits: int = 4
+    """A new track may still turn out to continue a lost one until it has this many hits."""
+    reacquire_lateral: float = 0.5
+    """A person who turned back while unseen walks back within this distance (m) of their line."""
+    reacquire_min_speed: float = 0.2
+    """Below this speed (m/s) a track has no direction to have turned back from."""
+    turn_cos: float = 0.7
+    """Turned back: the young track heads at least this much (cosine) against the lost one."""
 
 
 @dataclass
@@ -109,6 +119,9 @@ class KeyframePeople:
 
 class PeopleTracker:
     """One robot's people (see the module docstring)."""
+
+    reacquired: int = 0
+    """Lost tracks a young track turned out to continue (a class default: older checkpoints lack it)."""
 
     def __init__(self, dynamic_classes: tuple[int, ...], params: PeopleParams | None = None) -> None:
         self.dynamic_classes = tuple(int(c) for c in dynamic_classes)
@@ -223,7 +236,6 @@ class PeopleTracker:
             t.confirmed |= t.hits >= p.confirm_hits
             self._sample(t, stamp, submap, C_inv)
             owner[c] = t.id
-        self._reacquire(tracks, xy, dets, owner, stamp, submap, C_inv)
         for c in np.flatnonzero(owner < 0).tolist():
             P0 = np.diag([p.meas_sigma ** 2] * 2 + [p.init_speed_sigma ** 2] * 2)
             t = Track(self._next_id, np.array([xy[c, 0], xy[c, 1], 0.0, 0.0]), P0, float(dets.centroids[c, 2]),
@@ -232,6 +244,7 @@ class PeopleTracker:
             self._sample(t, stamp, submap, C_inv)
             self.tracks[t.id] = t
             owner[c] = t.id
+        self._reacquire(stamp, owner)
         for t in list(self.tracks.values()):
             if stamp - t.last_seen > (p.max_unseen if t.confirmed else p.tentative_unseen):
                 del self.tracks[t.id]
@@ -241,33 +254,77 @@ class PeopleTracker:
                                        transform_points(C_inv, dets.centroids).reshape(-1, 3), owner.copy()))
         return owner.tolist()
 
-    def _reacquire(self, tracks: list[Track], xy: np.ndarray, dets: PersonDetections, owner: np.ndarray,
-                   stamp: float, submap: int, C_inv: np.ndarray) -> None:
-        """Second stage: a detection left over goes to a track lost for at least ``reacquire_after`` s
-        that could have walked to it (within ``reacquire_speed`` x the time unseen + ``max_gate``
-        of where it was last seen), by Hungarian assignment on that distance; the track restarts
-        from the detection with an unknown velocity."""
+    def _reacquire(self, stamp: float, owner: np.ndarray) -> None:
+        """A young track (updated now, with ``2..reacquire_hits`` hits: it has a velocity) that
+        began at least ``reacquire_after`` s after a confirmed track was last seen continues that
+        lost track when each, walking on at constant velocity, meets the other across the gap: the
+        lost track carried forward to the young one's first sample, and the young one carried back
+        to where the lost one was last seen, are each within ``max_gate`` + ``reacquire_slack`` x
+        the time spanned. Pairs are chosen by Hungarian assignment on the normalised misfits; the
+        lost track takes the young one's samples (and its place in the log), so the person keeps
+        one id. A single detection near where a track was lost decides nothing: it is as often
+        another person walking past the other way."""
         p = self.params
-        free = np.flatnonzero(owner < 0)
-        taken = set(owner[owner >= 0].tolist())
-        lost = [t for t in tracks if t.id not in taken and stamp - t.last_seen >= p.reacquire_after]
-        if p.reacquire_speed <= 0 or not len(free) or not lost:
+        if p.reacquire_slack <= 0 or p.association == "nearest":
             return
-        last = np.array([t.x[:2] for t in lost])
-        reach = np.array([p.reacquire_speed * (stamp - t.last_seen) + p.max_gate for t in lost])
-        d = np.linalg.norm(xy[free][None] - last[:, None], axis=2)
-        cost = np.where(d <= reach[:, None], d, _INFEASIBLE)
+        young = [t for t in self.tracks.values() if t.last_seen == stamp and 2 <= t.hits <= p.reacquire_hits]
+        if not young:
+            return
+        first = {t.id: (t.stamps[0], self.positions(t)[0, :2]) for t in young}
+        before = max(f[0] for f in first.values()) - p.reacquire_after
+        lost = [t for t in self.tracks.values() if t.confirmed and t.last_seen <= before]
+        if not lost:
+            return
+        cost = np.full((len(lost), len(young)), _INFEASIBLE)
+        for i, old in enumerate(lost):
+            for j, new in enumerate(young):
+                t0, p0 = first[new.id]
+                if old.last_seen > t0 - p.reacquire_after:  # a shorter gap is the motion gate's to bridge
+                    continue
+                fwd = np.linalg.norm(old.x[:2] + old.x[2:] * (t0 - old.last_seen) - p0)
+                bwd = np.linalg.norm(new.x[:2] - new.x[2:] * (stamp - old.last_seen) - old.x[:2])
+                tol_f = p.max_gate + p.reacquire_slack * (t0 - old.last_seen)
+                tol_b = p.max_gate + p.reacquire_slack * (stamp - old.last_seen)
+                if fwd <= tol_f and bwd <= tol_b:
+                    cost[i, j] = (fwd / tol_f) ** 2 + (bwd / tol_b) ** 2
+                elif (side := self._turned_back(old, new, t0, p0)) is not None:
+                    cost[i, j] = 2.0 + side  # after every straight continuation
         for r, c in zip(*linear_sum_assignment(cost), strict=True):
-            if cost[r, c] >= _INFEASIBLE:
-                continue
-            t, k = lost[int(r)], int(free[int(c)])
-            t.x = np.array([xy[k, 0], xy[k, 1], 0.0, 0.0])
-            t.P = np.diag([p.meas_sigma ** 2] * 2 + [p.init_speed_sigma ** 2] * 2)
-            t.z = float(dets.centroids[k, 2])
-            t.hits += 1
-            t.confirmed |= t.hits >= p.confirm_hits
-            self._sample(t, stamp, submap, C_inv)
-            owner[k] = t.id
+            if cost[r, c] < _INFEASIBLE:
+                self._continue(lost[int(r)], young[int(c)], owner)
+
+    def _turned_back(self, old: Track, new: Track, t0: float, p0: np.ndarray) -> float | None:
+        """Whether the young track ``new`` (first at ``p0``, ``t0``) is the lost track ``old``'s
+        person walking back along their own line: heading the other way, within
+        ``reacquire_lateral`` of the line, and where walking on to a turning point and back at the
+        two tracks' speeds puts them. Returns the sideways offset as a share of the bound (None: no)."""
+        p = self.params
+        v1, v2 = float(np.linalg.norm(old.x[2:])), float(np.linalg.norm(new.x[2:]))
+        if min(v1, v2) < p.reacquire_min_speed:
+            return None
+        u = old.x[2:] / v1
+        if float(u @ new.x[2:]) / v2 > -p.turn_cos:
+            return None
+        e = p0 - old.x[:2]
+        side = abs(float(e @ np.array([-u[1], u[0]]))) / p.reacquire_lateral
+        ahead = float(e @ u)
+        turn = (t0 - old.last_seen + ahead / v2) / (1.0 / v1 + 1.0 / v2)  # how far on they turned
+        return side if side <= 1.0 and turn >= max(ahead, 0.0) - p.max_gate else None
+
+    def _continue(self, old: Track, new: Track, owner: np.ndarray) -> None:
+        """``old`` takes over ``new`` (which began after ``old`` was last seen): its samples, state and id."""
+        old.stamps += new.stamps
+        old.submaps += new.submaps
+        old.refs += new.refs
+        old.x, old.P, old.z, old.submap, old.last_seen = new.x, new.P, new.z, new.submap, new.last_seen
+        old.hits += new.hits
+        del self.tracks[new.id]
+        owner[owner == new.id] = old.id
+        for rec in reversed(self.log):
+            if rec.stamp < new.stamps[0]:
+                break
+            rec.tracks[rec.tracks == new.id] = old.id
+        self.reacquired += 1
 
     def _sample(self, t: Track, stamp: float, submap: int, C_inv: np.ndarray) -> None:
         t.last_seen, t.submap = stamp, submap

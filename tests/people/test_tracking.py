@@ -160,3 +160,75 @@ def test_pgo_correction_moves_the_tracks():
 def test_detection_with_too_few_points(n):
     d = detect_people(np.zeros((n, 3)), np.full(n, HUMAN), [HUMAN])
     assert len(d) == 0
+
+
+def walk(tracker: PeopleTracker, people, stamps) -> dict[int, list[int]]:
+    """Step ``tracker`` through ``stamps``; ``people`` maps a name to a function of time giving the
+    person's floor position, or None while they are out of sight. The track ids each person got."""
+    ids: dict[int, list[int]] = {k: [] for k in people}
+    for k, t in enumerate(stamps):
+        seen = [(name, xy) for name, f in people.items() if (xy := f(t)) is not None]
+        owner = tracker.step(k, float(t), 0, dets(*[xy for _, xy in seen]))
+        for (name, _), o in zip(seen, owner, strict=True):
+            ids[name].append(o)
+    return ids
+
+
+def test_a_passer_by_does_not_take_the_id_of_a_person_out_of_sight():
+    """A walks east and goes out of sight for 5 s; meanwhile B, walking the other way on the next
+    lane, appears 1.4 m from where A was last seen (but 2.5 m from where A would be by now). A
+    single detection near where a track was lost is no evidence that it is that person: B must
+    get a new id, and A, back in sight on their way, keep their own. (Re-acquiring a lost track by
+    its distance from where it was last seen gives B A's id here, and A a new one.)"""
+    tr = PeopleTracker((HUMAN,), PeopleParams(confirm_hits=2))
+    tr.set_submap_pose(0, np.eye(4))
+    a = lambda t: None if 3.0 < t < 8.0 else np.array([0.6 * t, 0.0])  # noqa: E731
+    b = lambda t: None if t < 5.0 else np.array([0.8 - 1.0 * (t - 5.0), 1.0])  # noqa: E731
+    ids = walk(tr, {0: a, 1: b}, np.arange(0.0, 10.01, 0.5))
+    assert len(ids[0]) == 12 and len(ids[1]) == 11
+    assert len(set(ids[0])) == 1, ids[0]
+    assert len(set(ids[1])) == 1, ids[1]
+    assert ids[0][0] != ids[1][0]
+
+
+def test_a_person_who_stood_out_of_sight_is_taken_up_again():
+    """A walks east, goes out of sight for 6 s and stands still for 4 of them, so the motion model's
+    prediction misses them by 2.4 m when they are back: the young track that agrees with the lost
+    one walking on, both ways, continues it (one id)."""
+    tr = PeopleTracker((HUMAN,), PeopleParams(confirm_hits=2))
+    tr.set_submap_pose(0, np.eye(4))
+
+    def a(t):
+        if 3.0 < t < 9.0:
+            return None
+        return np.array([0.6 * t if t <= 4.0 else 2.4 + 0.6 * max(t - 8.0, 0.0), 0.0])
+
+    ids = walk(tr, {0: a}, np.arange(0.0, 12.01, 0.5))
+    assert tr.reacquired == 1
+    # the keyframe that first saw A again named a new track; the log now names A's
+    assert {int(i) for rec in tr.log for i in rec.tracks} == {ids[0][0]}
+    (track,) = tr.confirmed()
+    assert len(track.stamps) == len(ids[0]) == 14 and list(tr.tracks) == [track.id]
+
+
+def test_a_person_who_turned_back_out_of_sight_keeps_their_id_and_a_passer_by_does_not_take_it():
+    """A walks east to the end of a corridor out of sight, turns back and is seen again walking
+    west on the same line; B walks west too, 1 m to the side, and comes into sight first. Carried
+    on straight, neither meets A's lost track; walking on to a turning point and back along A's
+    line explains A and not B."""
+    tr = PeopleTracker((HUMAN,), PeopleParams(confirm_hits=2))
+    tr.set_submap_pose(0, np.eye(4))
+
+    def a(t):  # east at 0.8 m/s to x = 5 (t = 6.25), then back west
+        if 3.0 < t < 9.0:
+            return None
+        return np.array([0.8 * t if t <= 6.25 else 5.0 - 0.8 * (t - 6.25), 0.0])
+
+    b = lambda t: None if t < 7.0 else np.array([4.0 - 0.8 * (t - 7.0), 1.0])  # noqa: E731
+    walk(tr, {0: a, 1: b}, np.arange(0.0, 12.01, 0.5))
+    assert tr.reacquired == 1
+    names = {}
+    for rec in tr.log:
+        for (xy, tid) in zip(rec.refs[:, :2], rec.tracks.tolist(), strict=True):
+            names.setdefault(int(abs(xy[1]) > 0.5), set()).add(tid)  # 0: A's line, 1: B's
+    assert len(names[0]) == 1 and len(names[1]) == 1 and names[0] != names[1]

@@ -1,0 +1,128 @@
+"""People tracking alone, at the robots' TRUE poses: detection, each robot's tracker and CLEAR MOT
+against the simulator's people, seed by seed (docs/algorithms/people.md).
+
+No SLAM runs: every robot's keyframes are simulated as in a run (same plans, same sensor noise for
+a seed) and placed at their true poses, so what is measured is the people pipeline by itself, in
+a minute per seed instead of a whole team run. The figures are those of ``results.json["people"]``
+(``eval/people.py``): per robot, frames are its keyframes, objects the people in view of it and
+hypotheses its confirmed tracks' samples; ``id_switches_per_person`` divides the switches by the
+people each robot saw, summed over the robots. ``switches`` lists each switch with the time the
+person had been out of the robot's sight (``gap_s``) and whether the new track had followed
+someone else before (``swap``) or was new (a person met again after a long gap, or seen again
+after their track died: nothing in the simulator tells look-alike people apart).
+Targets (per seed): MOTA >= 0.8 and at most one ID switch per person.
+
+    python benchmarks/people_tracking.py --json
+    python benchmarks/people_tracking.py --scenario sims/office.toml --seeds 0 1 --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kimera_multi_py.core.geometry import transform_points
+from kimera_multi_py.core.semantics import CLASS_IDS
+from kimera_multi_py.eval.people import people_in_view
+from kimera_multi_py.people import PeopleParams, PeopleTracker
+from kimera_multi_py.sim import Simulation, load_scenario
+
+REPO = Path(__file__).resolve().parents[1]
+TARGETS = {"mota": 0.8, "id_switches_per_person": 1.0}
+_HUMAN = CLASS_IDS["human"]
+
+
+def track_robot(sim: Simulation, robot: int, params: PeopleParams, keyframes_per_submap: int = 10
+                ) -> tuple[PeopleTracker, list[np.ndarray]]:
+    """One robot's tracker fed every keyframe at its true pose; the people in view of each keyframe."""
+    tr = PeopleTracker((_HUMAN,), params)
+    views = []
+    rng = sim.rng(robot)
+    for k in range(len(sim.plans[robot].stamps)):
+        kf = sim.keyframe(robot, k, rng)
+        pose, hit = kf.true_pose, kf.scan.hit
+        sid = k // keyframes_per_submap
+        if k % keyframes_per_submap == 0:
+            tr.set_submap_pose(sid, pose)
+        tr.update(k, kf.stamp, sid, transform_points(pose, kf.scan.points()[hit]), kf.scan.labels[hit], pose[:3, 3])
+        views.append(people_in_view(sim, pose, kf.stamp))
+    return tr, views
+
+
+def mot(sim: Simulation, tr: PeopleTracker, views: list[np.ndarray], gate: float = 0.5) -> Any:
+    """A motmetrics accumulator for one robot, as ``eval/people.py`` fills it."""
+    import motmetrics as mm
+
+    samples = {(t.id, float(s)): p for t in tr.confirmed() for s, p in zip(t.stamps, tr.positions(t), strict=True)}
+    acc = mm.MOTAccumulator(auto_id=True)
+    for rec, view in zip(tr.log, views, strict=True):
+        true = np.array([h.position(rec.stamp) for h in sim.humans]).reshape(-1, 3)
+        hyp = [(int(t), samples[(int(t), rec.stamp)]) for t in rec.tracks if (int(t), rec.stamp) in samples]
+        xyz = np.array([p for _, p in hyp], dtype=np.float64).reshape(-1, 3)
+        d = np.asarray(mm.distances.norm2squared_matrix(true[view][:, :2], xyz[:, :2], max_d2=gate ** 2))
+        acc.update(view.tolist(), [h for h, _ in hyp], d.reshape(len(view), len(hyp)))
+    return acc
+
+
+def switches(acc: Any, stamps: list[float]) -> list[dict[str, Any]]:
+    """Each ID switch: when, who, the time since the person's previous match, and whether the new
+    hypothesis had followed another person before."""
+    ev = acc.mot_events.reset_index()
+    m = ev[ev.Type.isin(["MATCH", "SWITCH"])]
+    out = []
+    for _, row in m[m.Type == "SWITCH"].iterrows():
+        prev = m[(m.OId == row.OId) & (m.FrameId < row.FrameId)].iloc[-1]
+        before = m[(m.HId == row.HId) & (m.FrameId < row.FrameId)]
+        out.append({"t": round(stamps[int(row.FrameId)], 1), "person": int(row.OId),
+                    "gap_s": round(stamps[int(row.FrameId)] - stamps[int(prev.FrameId)], 1),
+                    "swap": bool(len(before) and (before.OId != row.OId).any())})
+    return out
+
+
+def run_seed(scenario: Path, seed: int, robots: int, params: PeopleParams) -> dict[str, Any]:
+    import motmetrics as mm
+
+    sim = Simulation(load_scenario(scenario, robots=robots), seed=seed)
+    accs: list[Any] = []
+    per_robot: dict[str, dict[str, Any]] = {}
+    for r in range(sim.num_robots):
+        tr, views = track_robot(sim, r, params)
+        acc = mot(sim, tr, views)
+        accs.append(acc)
+        per_robot[str(r)] = {"switches": switches(acc, [rec.stamp for rec in tr.log]), "reacquired": tr.reacquired}
+    summary = mm.metrics.create().compute_many(accs, metrics=["mota", "num_switches", "num_unique_objects"],
+                                               names=list(per_robot), generate_overall=True)
+    overall = summary.loc["OVERALL"]
+    people = int(overall["num_unique_objects"])
+    return {"seed": seed, "mota": float(overall["mota"]), "id_switches": int(overall["num_switches"]),
+            "people_seen": people,
+            "id_switches_per_person": float(overall["num_switches"]) / people if people else None,
+            "swaps": sum(s["swap"] for v in per_robot.values() for s in v["switches"]),
+            "per_robot": per_robot}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenario", type=Path, default=REPO / "sims" / "people.toml")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    ap.add_argument("--robots", type=int, default=3)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    runs = [run_seed(args.scenario, s, args.robots, PeopleParams()) for s in args.seeds]
+    met = all(r["mota"] >= TARGETS["mota"] and (r["id_switches_per_person"] or 0) <= TARGETS["id_switches_per_person"]
+              for r in runs)
+    out = {"scenario": str(args.scenario), "robots": args.robots, "targets": TARGETS, "runs": runs, "met": met}
+    if args.json:
+        print(json.dumps(out, indent=2))
+    else:
+        for r in runs:
+            print(f"seed {r['seed']}: MOTA {r['mota']:.3f}, ID switches {r['id_switches']} "
+                  f"({r['id_switches_per_person']:.2f} per person), swaps {r['swaps']}")
+
+
+if __name__ == "__main__":
+    main()
