@@ -22,11 +22,10 @@ envelope per message. Messages of 16 KiB or more always go alone, encoded with o
 their arrays (:mod:`~kimera_multi_py.comms.largemsg`).
 
 Link budget: with a :class:`~kimera_multi_py.comms.link_budget.LinkBudget` every payload (a
-put, a query's request, a reply) waits in a :class:`~kimera_multi_py.comms.link_budget.LinkQueue`
-on the loop's clock and goes when the token bucket allows, by priority class. A put reaches
-every peer at once, so the one queue is each peer link's: :meth:`ZenohBus.link_report` gives
-its figures under ``"{robot}->*"``. What the queue drops is counted in
-``counters.dropped["link_budget"]``; what is still queued at ``close()`` is not sent.
+put, a query's request, a reply) is paced by a :class:`~kimera_multi_py.comms.link_pacer.LinkPacer`.
+A put reaches every peer at once, so the one queue is each peer link's:
+:meth:`ZenohBus.link_report` gives its figures under ``"{robot}->*"``; what is still queued at
+``close()`` is not sent.
 
 Construct inside a running event loop and close it (or use ``async with``)::
 
@@ -53,7 +52,8 @@ import zenoh
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import BusBase, Handler, Subscription
 from kimera_multi_py.comms.codec import MAX_BATCH, batch_header
-from kimera_multi_py.comms.link_budget import CONTROL, LinkBudget, LinkQueue, priority_of
+from kimera_multi_py.comms.link_budget import LinkBudget
+from kimera_multi_py.comms.link_pacer import LinkPacer
 from kimera_multi_py.comms.messages import MESSAGE_TYPES
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.stream import DEFAULT_QUEUE_SIZE, Stream
@@ -224,10 +224,9 @@ class ZenohBus(BusBase):
         self._tasks: set[asyncio.Task[None]] = set()
         self._token: zenoh.LivelinessToken | None = None
         self.budget = budget
-        self._link = LinkQueue(budget, self._loop.time()) if budget is not None else None
+        self._link = LinkPacer(budget, self._loop, self._put_now, self.counters, robot) if budget is not None else None
         if budget is not None:  # small batches: a message of a higher class waits for one at most
             self._batch_bytes = min(self._batch_bytes, max(1024, int(budget.rate * BUDGET_BATCH_S)))
-        self._link_timer: asyncio.TimerHandle | None = None
         self._presence_sub = self.session.liveliness().declare_subscriber(
             keys.alive_all(self.team),
             zenoh.handlers.Callback(self._on_presence),
@@ -338,9 +337,7 @@ class ZenohBus(BusBase):
         """One Zenoh put of a payload carrying ``messages`` messages (under a budget: queued)."""
         if self._link is not None:
             self._check_open()
-            if not self._link.push((key, data, messages), len(data), priority_of(key), self._loop.time()):
-                self.counters.count_dropped("link_budget")
-            self._pace()
+            self._link.put(key, data, messages)
             return
         self._put_now(key, data, messages)
 
@@ -351,50 +348,15 @@ class ZenohBus(BusBase):
             raise MessageError(f"key: zenoh refused to publish on {key!r}: {exc}") from exc
         self.counters.count_sent(key, len(data), messages)
 
-    # link budget -------------------------------------------------------------------------
-    def _pace(self) -> None:
-        """Send what the link budget lets go by now; arm a timer for the next transfer's end."""
-        link = self._link
-        if link is None or self.closed:
-            return
-        dropped = link.stats.dropped_messages
-        for item, _ in link.advance(self._loop.time()):
-            if isinstance(item, asyncio.Future):
-                if not item.done():
-                    item.set_result(None)
-                continue
-            key, data, messages = item
-            try:
-                self._put_now(key, data, messages)
-            except MessageError as exc:
-                self.counters.count_dropped("publish_error")
-                log.warning("robot %d: %s", self.robot, exc)
-        for _ in range(link.stats.dropped_messages - dropped):  # evicted from the queue
-            self.counters.count_dropped("link_budget")
-        nxt = link.next_done()
-        if self._link_timer is not None:
-            self._link_timer.cancel()
-            self._link_timer = None
-        if nxt is not None:
-            self._link_timer = self._loop.call_at(max(nxt, self._loop.time() + 1e-4), self._pace)
-
-    async def _wait_link(self, key: str, nbytes: int) -> bool:
-        """Under a budget: wait until ``nbytes`` for ``key`` (a query or reply) have crossed the
-        link, at the top class; False if the link dropped them. Without a budget: at once."""
-        if self._link is None:
-            return True
-        done: asyncio.Future[None] = self._loop.create_future()
-        if not self._link.push(done, nbytes, CONTROL, self._loop.time()):
-            self.counters.count_dropped("link_budget")
-            return False
-        self._pace()
-        await done
-        return not self.closed
+    async def _wait_link(self, nbytes: int) -> bool:
+        """Under a budget: wait until ``nbytes`` (a query or reply) have crossed the link; False
+        if the link dropped them. Without a budget: at once."""
+        return True if self._link is None else await self._link.wait(nbytes) and not self.closed
 
     def link_report(self) -> dict[str, dict[str, object]]:
         """Under a budget: the figures of this robot's peer links, which every put crosses alike
         (bytes, queue delay mean/max, dropped, still queued); empty without a budget."""
-        return {f"{self.robot}->*": self._link.report()} if self._link is not None else {}
+        return {f"{self.robot}->*": self._link.queue.report()} if self._link is not None else {}
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         pub = self._publishers.get(key)
@@ -485,7 +447,7 @@ class ZenohBus(BusBase):
             for reply in replies:
                 try:
                     out = self.encode_for(reply_key, reply)
-                    if not await self._wait_link(reply_key, len(out)):
+                    if not await self._wait_link(len(out)):
                         continue
                     query.reply(reply_key, out)
                 except (MessageError, zenoh.ZError) as exc:
@@ -503,7 +465,7 @@ class ZenohBus(BusBase):
     ) -> list[Message]:
         self._check_open()
         payload = self.codec.encode(msg) if msg is not None else None
-        if payload is not None and not await self._wait_link(selector, len(payload)):
+        if payload is not None and not await self._wait_link(len(payload)):
             return []
         pending = _PendingQuery()
 
@@ -566,13 +528,8 @@ class ZenohBus(BusBase):
             return
         self._flush()  # what was published before close() still goes out (unless a budget holds it)
         if self._link is not None:
-            self._pace()
+            self._link.close()
         self.closed = True
-        if self._link_timer is not None:
-            self._link_timer.cancel()
-        for item in self._link.waiting() if self._link is not None else ():
-            if isinstance(item, asyncio.Future) and not item.done():
-                item.set_result(None)  # a query or reply still waiting for the link: it is not sent
         for sub in list(self._subs):
             sub.close()
         for served in list(self._served):

@@ -50,13 +50,13 @@ from kimera_multi_py.alignment.frames import (
     align_frames,
     frame_hypotheses,
     near_identity,
-    odometry_disagreement,
     settled_decision,
     supported_edges,
 )
 from kimera_multi_py.alignment.landmark_check import LandmarkScore, landmark_lead, landmark_scores
 from kimera_multi_py.alignment.map_check import MapAgreement, frame_key
 from kimera_multi_py.core.geometry import inverse
+from kimera_multi_py.pgo.drift_check import odometry_ratio, own_solution
 from kimera_multi_py.pgo.local_graph import LocalGraph
 from kimera_multi_py.pgo.params import PgoParams
 from kimera_multi_py.pgo.state import SolveState
@@ -462,7 +462,7 @@ class FrameDecision:
     # ---------------------------------------------------------------- end of the epoch
     def final_poses(self, solve_alone: Callable[[], np.ndarray]) -> np.ndarray:
         """The poses to adopt at the end of the epoch (``solve_alone``: the robot's own graph
-        solved alone, see :meth:`_own_solution`).
+        solved alone, see :func:`.drift_check.own_solution`).
 
         Robust mode also settles the safety property here: a robot that never aligned (or that
         was excluded) returns its estimate in its own frame (first pose at the identity) with
@@ -477,49 +477,17 @@ class FrameDecision:
         if not self.aligned and not self.excluded:
             self._exclude("not aligned when the epoch ended", None, 0)
         if self.params.drift_check and not self.excluded:
-            ratio = self._odometry_disagreement()
+            ratio = odometry_ratio(self.local, self.state.poses, self.params)
             self.alignment["drift_ratio"] = round(ratio, 3)
             if ratio > 1.0:
                 log.warning("robot %d: estimate disagrees with its odometry (%.2f x its drift model)",
                             self.robot, ratio)
                 self._exclude(f"estimate disagrees with odometry ({ratio:.2f} x drift model)", None, 0)
                 self.alignment["drift_ratio"] = round(ratio, 3)
-                self.state.poses = self._own_solution(solve_alone)
+                self.state.poses = own_solution(self.local, self.state, self.params, solve_alone)
         if self.excluded:
             return inverse(self.state.poses[0]) @ self.state.poses
         return self.state.poses
-
-    def _odometry_chain(self) -> tuple[np.ndarray, float, float]:
-        """Dead reckoning from the odometry edges (first pose at the identity) and its sigmas."""
-        lg = self.local
-        n = len(lg.keys)
-        D = np.tile(np.eye(4), (n, 1, 1))
-        odo = np.flatnonzero(lg.intra_odometry)
-        steps = {int(lg.intra_i[e]): e for e in odo if int(lg.intra_j[e]) == int(lg.intra_i[e]) + 1}
-        for k in range(1, n):
-            e = steps.get(k - 1)
-            D[k] = D[k - 1] @ (lg.intra_meas[e] if e is not None else inverse(lg.poses[k - 1]) @ lg.poses[k])
-        if len(odo):
-            info = lg.intra_info[odo[0]]
-            return D, float(1.0 / np.sqrt(info[0, 0])), float(1.0 / np.sqrt(info[3, 3]))
-        return D, 0.0, 0.0
-
-    def _odometry_disagreement(self) -> float:
-        D, s_rot, s_trans = self._odometry_chain()
-        return odometry_disagreement(self.state.poses, D, s_rot, s_trans, self.params.drift_z, self.params.drift_floor)
-
-    def _own_solution(self, solve_alone: Callable[[], np.ndarray]) -> np.ndarray:
-        """The robot's own graph alone (odometry and the intra-robot closures GNC kept, solved by
-        ``solve_alone``), or its dead reckoning when its own closures bend it away from the
-        odometry too."""
-        lg = self.local
-        own = solve_alone()
-        D, s_rot, s_trans = self._odometry_chain()
-        if odometry_disagreement(own, D, s_rot, s_trans, self.params.drift_z, self.params.drift_floor) > 1.0:
-            self.state.intra_weights[~lg.intra_odometry] = 0.0  # its own closures bend it too: dead reckoning
-            return self.state.poses[0] @ D
-        return own
-
 
 def _competitors(hyps: list[FrameHypothesis]) -> list[list[object]]:
     """JSON-ready summary of frame hypotheses: ``[places, edges, peers, translation]`` each."""

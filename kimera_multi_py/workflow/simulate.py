@@ -41,7 +41,7 @@ import numpy as np
 
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.agent.node import AgentNode
-from kimera_multi_py.agent.outputs import RobotOutcome, outcome_of, own_graph, write_outcome
+from kimera_multi_py.agent.outputs import RobotOutcome, outcome_of
 from kimera_multi_py.agent.params import AgentParams
 from kimera_multi_py.comms.bus import Bus
 from kimera_multi_py.comms.comm_range import neighbours_within
@@ -53,24 +53,19 @@ from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.geometry import transform_points
 from kimera_multi_py.core.ids import SERVER_ID
 from kimera_multi_py.eval.accuracy import ScanRecord, TeamMaps, accuracy_results, start_team_maps
-from kimera_multi_py.eval.map_metrics import TeamMapReport, team_map_report
+from kimera_multi_py.eval.map_metrics import TeamMapReport
 from kimera_multi_py.eval.people import people_results
 from kimera_multi_py.eval.phi_records import PhiRecords
 from kimera_multi_py.eval.results import Results
-from kimera_multi_py.eval.slam import map_quality
 from kimera_multi_py.eval.team import (
     excluded_robots,
     scene_graph_results,
     team_frame_robots,
     team_results,
     trajectory_results,
-    write_team_graph,
 )
-from kimera_multi_py.io.tum import write_tum
 from kimera_multi_py.mapping.config import get_submap_map
-from kimera_multi_py.mapping.octree_io import export_team_map
-from kimera_multi_py.mapshare.consensus import MAP_MESSAGES
-from kimera_multi_py.mapshare.fusion import centralised_team_map, octree_cells
+from kimera_multi_py.mapshare.fusion import centralised_team_map
 from kimera_multi_py.pgo.params import PgoParams
 from kimera_multi_py.server.node import Server, ServerNode
 from kimera_multi_py.sim.scenario import ScenarioConfig, load_scenario
@@ -80,6 +75,7 @@ from kimera_multi_py.team.build import agent_params
 from kimera_multi_py.team.config import DEFAULT_SCENARIO, KimeraConfig
 from kimera_multi_py.viz.rerun_viz import NullViz, Viz
 from kimera_multi_py.workflow.sim_links import DRAIN_S, SimLinks
+from kimera_multi_py.workflow.sim_results import map_consensus_results, write_run
 from kimera_multi_py.workflow.sim_viz import log_team
 
 MODES = ("odometry", "distributed", "centralized")
@@ -538,42 +534,13 @@ class SimRunner:
         return self._reference
 
     def _map_results(self, T_world_team: np.ndarray) -> tuple[dict[str, Any], dict[int, Any]]:
-        """``results.json["map_consensus"]`` and each robot's team map."""
+        """``results.json["map_consensus"]`` and each robot's team map (:func:`.sim_results.map_consensus_results`)."""
         assert self.map_report is not None
-        ref = self._reference_map()
-        live = [n for n in self.nodes if n.maps is not None]
-        cells = {n.robot: n.maps.team_cells() for n in live if n.maps is not None}
-        map_topics = {m.TOPIC for m in MAP_MESSAGES}
-        sent = {n.robot: {t: int(v["bytes"]) for t, v in n.bus.counters.snapshot()["sent"].items()
-                          if t in map_topics} for n in live}
-        rep = team_map_report(self.map_mode, self.map_report.rounds, cells, octree_cells(ref),
-                              (ref.model.lo, ref.model.hi), sent,
-                              {n.robot: n.maps.roam_bytes for n in live if n.maps is not None}, self.map_report)
-        out = rep.to_dict()
-        maps = {n.robot: n.maps.team_map for n in live if n.maps is not None}
-        if self.quality:
-            grid = self.sim.world.gt_voxel_grid(ref.resolution)
-            centers, gt = grid.centers().reshape(-1, 3), grid.labels.reshape(-1)
-            out["team_map"] = {str(r): map_quality(t, T_world_team, centers, gt) for r, t in maps.items()}
-            out["centralised_fusion"] = map_quality(ref, T_world_team, centers, gt)
-        out["comm_range"] = self.comm_range
-        if self.out_dir is not None:
-            for r, t in maps.items():
-                export_team_map(t, self.out_dir / f"robot{r}")
-        return out, maps
+        return map_consensus_results(self.nodes, self._reference_map(), self.map_mode, self.map_report, T_world_team,
+                                     self.sim.world if self.quality else None, self.comm_range, self.out_dir)
 
     def _write_results(self, results: Results) -> None:
         if self.out_dir is None:
             return
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        for i, tr in enumerate(self.tracks):
-            est = self.outcomes[i].poses if self.outcomes else np.array(tr.est)
-            write_tum(self.out_dir / f"robot{i}_est.tum", np.array(tr.stamps), est)
-            write_tum(self.out_dir / f"robot{i}_gt.tum", np.array(tr.stamps), np.array(tr.true))
-        for node, outcome in zip(self.nodes, self.outcomes, strict=True):
-            write_outcome(self.out_dir, outcome, own_graph(node.agent))
-        if self.nodes:  # the team's joint graph, for `kimera-multi pgo` and offline study
-            write_team_graph(self.out_dir, self.agents, [np.array(tr.true) for tr in self.tracks])
-        results.write_json(self.out_dir / "results.json")
+        write_run(self.out_dir, self.tracks, self.outcomes, self.nodes, self.agents, results)
         self.resolved_config().write(self.out_dir)
-
