@@ -6,6 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.sim.helpers import short_tiny_file
+
 REPO = Path(__file__).resolve().parents[1]
 EXE = Path(sys.executable).parent / "kimera-multi"
 
@@ -62,21 +64,10 @@ def test_checkpoints_stretch_to_stay_a_small_share_of_the_cpu() -> None:
     assert next_checkpoint(5.0, 0.01) == 5.0  # cheap: the user's interval
     wait = next_checkpoint(5.0, 0.56)  # a late-run office checkpoint
     assert wait > 5.0 and 0.56 / wait <= CHECKPOINT_SHARE + 1e-12
-def _short_tiny(tmp_path: Path) -> Path:
-    """tiny with each robot touring two rooms instead of three."""
-    text = (REPO / "sims" / "tiny.toml").read_text()
-    text = text.replace('route = ["room_a", "room_b", "room_a"]', 'route = ["room_a", "room_b"]')
-    text = text.replace('route = ["room_b", "room_a", "room_b"]', 'route = ["room_b", "room_a"]')
-    assert text.count("route = [") == 2 and '"room_a", "room_b", "room_a"' not in text
-    path = tmp_path / "short.toml"
-    path.write_text(text)
-    return path
-
-
 @pytest.mark.slow
 def test_sim_link_budget_flag(tmp_path):
     out = tmp_path / "run"
-    proc = cli("sim", _short_tiny(tmp_path), "--robots", 2, "--mode", "distributed", "--out", out, "--no-rerun",
+    proc = cli("sim", short_tiny_file(tmp_path), "--robots", 2, "--mode", "distributed", "--out", out, "--no-rerun",
                "--link-budget", 50)
     assert proc.returncode == 0, proc.stderr
     res = json.loads((out / "results.json").read_text())

@@ -10,25 +10,16 @@ from pathlib import Path
 
 import pytest
 
+from tests.sim.helpers import short_tiny_file
+
 REPO = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.integration
-
-
-def short_tiny(tmp_path: Path) -> Path:
-    """tiny with each robot touring two rooms instead of three."""
-    text = (REPO / "sims" / "tiny.toml").read_text()
-    text = text.replace('route = ["room_a", "room_b", "room_a"]', 'route = ["room_a", "room_b"]')
-    text = text.replace('route = ["room_b", "room_a", "room_b"]', 'route = ["room_b", "room_a"]')
-    assert text.count("route = [") == 2 and '"room_a", "room_b", "room_a"' not in text
-    path = tmp_path / "short.toml"
-    path.write_text(text)
-    return path
 
 
 @pytest.mark.slow
 def test_launch_with_a_link_budget(tmp_path):
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli.main", "launch", str(short_tiny(tmp_path)),
+    proc = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli.main", "launch", str(short_tiny_file(tmp_path)),
                            "--robots", "2", "--seed", "0", "--out", str(out), "--rate", "4", "--link-budget", "50"],
                           capture_output=True, text=True, timeout=900, cwd=REPO)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

@@ -35,3 +35,15 @@ def scenario(data: dict[str, Any]) -> ScenarioConfig:
 def write_toml(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
+
+
+def short_tiny_file(tmp_path: Path) -> Path:
+    """``tiny`` with each robot touring two rooms instead of three (about half the keyframes), as a
+    scenario file in ``tmp_path`` (for the CLI)."""
+    text = TINY.read_text()
+    text = text.replace('route = ["room_a", "room_b", "room_a"]', 'route = ["room_a", "room_b"]')
+    text = text.replace('route = ["room_b", "room_a", "room_b"]', 'route = ["room_b", "room_a"]')
+    assert text.count("route = [") == 2 and '"room_a", "room_b", "room_a"' not in text
+    path = tmp_path / "short.toml"
+    path.write_text(text)
+    return path
