@@ -66,6 +66,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/map_consensus.py --json
 	$(BIN)/python benchmarks/team_robustness.py --quick --json
 	$(BIN)/python benchmarks/bandwidth.py --json
+	$(BIN)/python benchmarks/people_tracking.py --json
 	@if [ -d "$(DATASETS)/pgo" ]; then \
 		echo "$(BIN)/python benchmarks/pgo.py --json --data $(DATASETS)/pgo"; \
 		$(BIN)/python benchmarks/pgo.py --json --data "$(DATASETS)/pgo"; \
