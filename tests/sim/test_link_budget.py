@@ -39,9 +39,12 @@ def test_budgeted_run_is_deterministic_and_reports_its_links():
     assert sent + lost == first["bytes_sent"]["total"]
     for link in lb["links"].values():
         assert link["messages"] > 0 and 0 < link["queue_delay_mean_s"] <= link["queue_delay_max_s"]
-        # the priority classes: PGO and the closure protocol never wait behind the map backlog
+        # every class that crossed the link reports its delay; which class waited longest is not
+        # an invariant (a control message waits behind a transfer in progress and behind other
+        # control traffic, and little map evidence travels at all): that PGO is never starved by
+        # map traffic is the scheduler's test (tests/comms/test_link_budget.py, against FIFO)
         by_class = link["queue_delay_max_s_by_class"]
-        assert by_class["control"] < by_class["map"]
+        assert set(by_class) >= {"control", "map"} and all(v >= 0.0 for v in by_class.values())
     # 20 kB/s: the maps need time after the streams' end, and they get whole
     assert lb["team_maps_complete_s"] is not None and lb["team_maps_complete_s"] > 5.0
     assert all(a["identical"] == 1.0 for a in first["map_consensus"]["agreement"].values())
