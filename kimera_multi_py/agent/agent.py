@@ -331,6 +331,10 @@ class Agent:
         if not v.accepted:
             self.stats.rejected_verification += 1
             return None
+        if not self._views_agree(v.T):  # before the registration: it would pair faces wrongly
+            self.stats.rejected_verification += 1
+            self.stats.rejected_view_angle += 1
+            return None
         refined = self.closure_registration.register(own.cloud, np.asarray(cloud, dtype=float), v.T)
         confirmed = refined is not None and refined.converged and refined.overlap >= self.params.icp_min_overlap
         if confirmed:
@@ -347,6 +351,13 @@ class Agent:
         self.stats.verified += 1
         assert refined is not None
         return refined.T, v.num_inliers
+
+    def _views_agree(self, Z: np.ndarray) -> bool:
+        """Whether the two keyframes of relative pose ``Z`` face within ``max_view_angle`` of each
+        other (the angle between their forward axes): views facing apart see opposite faces of
+        the same objects, and registering one face to the other is off by the object's depth
+        (docs/algorithms/frontend.md, "Views facing apart")."""
+        return bool(Z[0, 0] >= np.cos(self.params.max_view_angle) - 1e-12)
 
     def _intra_closures(self, c: Constellation) -> list[Message]:
         """Intra-robot candidates against our own older keyframes (same machinery, no query)."""

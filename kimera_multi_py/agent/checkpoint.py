@@ -68,7 +68,8 @@ MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
 FORMAT_VERSION = 8
 READABLE_VERSIONS = (6, 7, 8)  # 6: before people were tracked (loads with an empty tracker); 7: map tree kept current
-ADDED_FIELDS: dict[str, tuple[str, ...]] = {"kimera_multi_py.agent.params.AgentParams": ("people",)}
+ADDED_FIELDS: dict[str, tuple[str, ...]] = {"kimera_multi_py.agent.params.AgentParams": ("people", "max_view_angle"),
+                                             "kimera_multi_py.agent.closures.LoopClosureStats": ("rejected_view_angle",)}
 _HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
 
@@ -326,8 +327,11 @@ class _Decoder:
             if dataclasses.is_dataclass(cls):
                 added = ADDED_FIELDS.get(name if name in ALLOWED_CLASSES else RENAMED_CLASSES.get(name, name), ())
                 for f in dataclasses.fields(cls):  # fields added since version 6 take their defaults
-                    if f.name not in fields and f.name in added and callable(f.default_factory):
-                        object.__setattr__(obj, f.name, f.default_factory())
+                    if f.name not in fields and f.name in added:
+                        if callable(f.default_factory):
+                            object.__setattr__(obj, f.name, f.default_factory())
+                        elif f.default is not dataclasses.MISSING:
+                            object.__setattr__(obj, f.name, f.default)
                 missing = [f.name for f in dataclasses.fields(cls) if f.name not in fields and not hasattr(obj, f.name)]
                 if missing:
                     raise StateError(f"{path}: {name} lacks the fields {', '.join(missing)}")

@@ -40,3 +40,4 @@ class LoopClosureStats:
     candidates: int = 0  # verification requests sent (inter) or attempted (intra)
     verified: int = 0  # passed geometric verification
     rejected_verification: int = 0
+    rejected_view_angle: int = 0  # of them: the two views faced too far apart (max_view_angle)

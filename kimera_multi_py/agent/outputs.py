@@ -124,7 +124,8 @@ def outcome_of(node: Any, server_weights: dict[tuple[int, int, int, int], float]
     return RobotOutcome(agent.robot, np.array(agent.stamps), np.array(agent.poses).reshape(-1, 4, 4),
                         agent.map.octree, objects, rows,
                         {"candidates": s.candidates, "verified": s.verified,
-                         "rejected_verification": s.rejected_verification}, traffic, epochs, alignment,
+                         "rejected_verification": s.rejected_verification,
+                         "rejected_view_angle": s.rejected_view_angle}, traffic, epochs, alignment,
                         None if sharing is None else sharing.team_objects(), people)
 
 

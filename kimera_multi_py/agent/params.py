@@ -71,6 +71,12 @@ class AgentParams:
     # height; measured: 12-14 degrees off)
     require_registration: bool = True
     """Reject a closure the scan registration does not confirm."""
+    # two views facing apart see opposite faces of the same furniture, and the registration pairs
+    # a front face with a back face: measured on generated buildings, closures between views over
+    # 135 degrees apart were off by about the objects' depth (0.2-0.6 m) along the view axis
+    # (docs/algorithms/frontend.md, "Views facing apart")
+    max_view_angle: float = np.deg2rad(90.0)
+    """Largest angle between the two keyframes' forward axes a closure may join (rad); pi: no limit."""
     closure_correspondence: tuple[float, ...] = (0.6, 0.3, 0.15)
     """GICP stages refining a closure: correspondence distances (m)."""
     revisit_radius: float = 1.0

@@ -118,6 +118,7 @@ def closure_stats(truth: Sequence[np.ndarray], outcomes: Sequence[RobotOutcome])
         "candidates": sum(s["candidates"] for s in fe),
         "verified": sum(s["verified"] for s in fe),
         "rejected_verification": sum(s["rejected_verification"] for s in fe),
+        "rejected_view_angle": sum(s.get("rejected_view_angle", 0) for s in fe),
         "verified_true_inter": int((inter & true).sum()),
         "verified_false_inter": int((inter & ~true).sum()),
         "rejected_pcm_true_inter": int((inter & ~pcm_ok & true).sum()),

@@ -139,6 +139,7 @@ def closure_counts(outcomes: Sequence[RobotOutcome]) -> dict[str, int]:
     fe = [o.front_end for o in outcomes]
     return {"candidates": sum(s["candidates"] for s in fe), "verified": sum(s["verified"] for s in fe),
             "rejected_verification": sum(s["rejected_verification"] for s in fe),
+            "rejected_view_angle": sum(s.get("rejected_view_angle", 0) for s in fe),
             "rejected_pcm_inter": int((inter & ~pcm_ok).sum()),
             "rejected_gnc_inter": int((inter & pcm_ok & ~final).sum()),
             "accepted_inter": int((inter & final).sum()), "accepted_intra": int((~inter & final).sum())}
