@@ -28,7 +28,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -150,6 +150,31 @@ class RobotView:
     finished: bool = False
     restarts: int = 0
     exit_code: int | None = None
+
+
+class TeamClock:
+    """Team stream time, which fault windows are given in: the furthest stream stamp any robot
+    has reported while the streams run. Once every robot the router still hears has finished its
+    stream, it runs on with the wall clock at the launch's rate (real time when the rate is
+    unbounded), so a window can end, and a partition heal, after the streams are over. It never
+    runs back (a robot heard again after a cut may report an old stamp)."""
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate if math.isfinite(rate) and rate > 0 else 1.0
+        self._over: tuple[float, float] | None = None  # (wall, team time) when the streams ended
+        self._last = 0.0
+
+    def now(self, views: dict[str, RobotView], heard: Collection[int], wall: float) -> float:
+        stamps = max((v.stamp for v in views.values()), default=0.0)
+        robots = [v for name, v in views.items() if name.startswith("robot") and int(name[5:]) in heard]
+        if not robots or not all(v.finished for v in robots):
+            self._over = None  # a robot still streams (or one heard again has not said it finished)
+            self._last = max(self._last, stamps)
+        else:
+            if self._over is None:
+                self._over = (wall, max(self._last, stamps))
+            self._last = max(self._last, stamps, self._over[1] + (wall - self._over[0]) * self.rate)
+        return self._last
 
 
 def parse_restart(spec: str) -> float:
@@ -343,13 +368,14 @@ async def _launch(job: LaunchJob, on_update: View | None) -> None:
             if r not in job.joins:
                 procs[f"robot{r}"] = start(f"robot{r}", agent_args(r, False))
         deadline = time.monotonic() + job.timeout
+        clock = TeamClock(job.rate)
         while True:
             while (msg := states.try_recv()) is not None:
                 if isinstance(msg, AgentState) and msg.robot < job.robots:
                     v = views[f"robot{msg.robot}"]
                     v.keyframes, v.stamp, v.epochs, v.finished = msg.keyframes, msg.stamp, msg.epoch, msg.finished
                     v.closures, v.rounds, v.bytes_sent = msg.closures, msg.rounds, msg.bytes_sent
-            team_time = max((v.stamp for v in views.values()), default=0.0)
+            team_time = clock.now(views, observer.peers(), time.monotonic())
             while pending_restarts and team_time >= pending_restarts[0]:
                 at = pending_restarts.pop(0)
                 router = procs["router"]

@@ -45,3 +45,28 @@ def test_over_mutual_tls_a_router_restart_and_a_partition_the_team_completes(tmp
     for name in ("robot0", "robot1", "router", "observer"):
         tls = json.loads((out / "certs" / f"{name}.json5").read_text())["transport"]["link"]["tls"]
         assert tls["enable_mtls"] is True and tls["connect_certificate"].endswith(f"{name}.pem")
+
+
+@pytest.mark.slow
+def test_a_partition_that_heals_after_the_streams_end_ends_whole(tmp_path: Path) -> None:
+    """Robot 1's link is cut from 30 s of team time until 10 s after the streams end (75 s): the
+    team clock runs on after the streams, the link comes back while the agents linger, and they
+    optimise again with each other. The team ends in one frame with identical team maps and no
+    false closure."""
+    out = tmp_path / "run"
+    res = subprocess.run([sys.executable, "-m", "kimera_multi_py.cli.main", "launch", str(TINY), "--robots", "2",
+                          "--out", str(out), "--rate", "4", "--partition", "0|1@30:85"],
+                         capture_output=True, text=True, timeout=900, cwd=REPO)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())
+    sim = Simulation(load_scenario(TINY, robots=2), seed=0)
+    end = max(p.stamps[-1] for p in sim.plans)
+    links = json.loads((out / "faults.json").read_text())["links"]
+    assert [(e["robot"], e["cut"]) for e in links] == [(1, True), (1, False)]
+    assert links[0]["absent_seen"] and links[1]["team_time_s"] > end  # healed after the streams
+    assert {r: a["status"] for r, a in results["alignment"].items()} == {"0": "root", "1": "aligned"}
+    assert results["map_consensus"]["agree"] and set(results["map_consensus"]["identical_to_robot0"].values()) == {1.0}
+    closures = results["loop_closures"]
+    assert closures["true_accepted_inter"] > 0 and closures["false_accepted_inter"] == 0
+    # in one frame: the team's trajectory error is that of its robots, not of a frame between them
+    assert results["team"]["ate_rmse_m"] <= 1.1 * max(r["ate_rmse_m"] for r in results["robots"])
