@@ -62,3 +62,16 @@ def test_umeyama_recovers_transform(with_scale):
 def test_umeyama_rejects_bad_shapes():
     with pytest.raises(ValueError, match="umeyama"):
         g.umeyama(np.zeros((3, 2)), np.zeros((3, 2)))
+
+
+def test_pair_index_finds_each_key_pair_in_a_table():
+    from kimera_multi_py.core.posegraph import pair_index
+
+    rng = np.random.default_rng(3)
+    table = rng.integers(-2**62, 2**62, size=(50, 2))
+    pick = rng.permutation(50)[:20]
+    query = np.vstack([table[pick], rng.integers(-2**62, 2**62, size=(5, 2)), table[pick[:3]][:, ::-1]])
+    j = pair_index(query[:, 0], query[:, 1], table[:, 0], table[:, 1])
+    expected = {tuple(p): i for i, p in enumerate(table.tolist())}
+    assert j.tolist() == [expected.get(tuple(q), -1) for q in query.tolist()]
+    assert pair_index(query[:, 0], query[:, 1], table[:0, 0], table[:0, 1]).tolist() == [-1] * len(query)

@@ -68,8 +68,10 @@ MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
 FORMAT_VERSION = 8
 READABLE_VERSIONS = (6, 7, 8)  # 6: before people were tracked (loads with an empty tracker); 7: map tree kept current
-ADDED_FIELDS: dict[str, tuple[str, ...]] = {"kimera_multi_py.agent.params.AgentParams": ("people", "max_view_angle"),
-                                             "kimera_multi_py.agent.closures.LoopClosureStats": ("rejected_view_angle",)}
+ADDED_FIELDS: dict[str, tuple[str, ...]] = {
+    "kimera_multi_py.agent.params.AgentParams": ("people", "max_view_angle"),
+    "kimera_multi_py.agent.closures.LoopClosureStats": ("rejected_view_angle",),
+}
 _HEADER = struct.Struct("<IIQQQI")
 _ZLIB = 1
 

@@ -205,3 +205,18 @@ def chain_odometry(where: str, robot: np.ndarray, edge_i: np.ndarray, edge_j: np
         if not seen[idx].all():
             log.warning("%s: robot %d is split into disconnected pieces", where, r)
     return poses
+
+
+def pair_index(a: np.ndarray, b: np.ndarray, table_a: np.ndarray, table_b: np.ndarray) -> np.ndarray:
+    """For each key pair ``(a[i], b[i])``, the index ``j`` of the same pair ``(table_a[j],
+    table_b[j])`` in a table, or -1: one sort and one binary search, no loop over pairs."""
+    def pairs(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        xy = np.stack([np.asarray(x, dtype=np.int64).ravel(), np.asarray(y, dtype=np.int64).ravel()], axis=1)
+        return np.ascontiguousarray(xy).view([("a", "<i8"), ("b", "<i8")]).ravel()
+
+    query, table = pairs(a, b), pairs(table_a, table_b)
+    if len(table) == 0 or len(query) == 0:
+        return np.full(len(query), -1, dtype=np.int64)
+    order = np.argsort(table, kind="stable")
+    pos = np.minimum(np.searchsorted(table[order], query), len(table) - 1)
+    return np.where(table[order][pos] == query, order[pos], -1).astype(np.int64)

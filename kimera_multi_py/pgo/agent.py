@@ -47,6 +47,7 @@ import numpy as np
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.pgo import EdgeVeto, GncWeights, PgoCommand, PgoStatus, PublicPoses
 from kimera_multi_py.core.geometry import to_gtsam
+from kimera_multi_py.core.posegraph import pair_index
 from kimera_multi_py.pgo.factors import between, neighbour_factor, neighbour_parts, to_values
 from kimera_multi_py.pgo.frame_decision import FrameDecision
 from kimera_multi_py.pgo.initialisation import Initialisation
@@ -215,10 +216,8 @@ class PgoAgent:
         if msg.peer != self.robot:
             return
         lg = self.local
-        vetoed = {(int(a), int(b)) for a, b in zip(msg.keys_b, msg.keys_a, strict=True)}
-        mask = np.array([(int(a), int(b)) in vetoed for a, b in zip(lg.keys[lg.inter_own], lg.inter_peer_key,
-                                                                    strict=True)], dtype=bool)
-        self.state.bar(mask & (lg.inter_peer == msg.robot))
+        vetoed = pair_index(lg.keys[lg.inter_own], lg.inter_peer_key, msg.keys_b, msg.keys_a) >= 0
+        self.state.bar(vetoed & (lg.inter_peer == msg.robot))
 
     def _status(self, rnd: int) -> PgoStatus:
         rel = float(self.rel_change) if np.isfinite(self.rel_change) else 1e300

@@ -27,7 +27,7 @@ import numpy as np
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.pgo import GncWeights
 from kimera_multi_py.core.geometry import to_gtsam
-from kimera_multi_py.core.posegraph import PoseGraph
+from kimera_multi_py.core.posegraph import PoseGraph, pair_index
 from kimera_multi_py.core.robust import GncSchedule, tls_threshold
 from kimera_multi_py.pgo.factors import residuals_sq
 from kimera_multi_py.pgo.local_graph import LocalGraph
@@ -64,13 +64,9 @@ class RobustWeights:
             return
         if msg.peer != self.robot:
             return
-        own_keys = self.local.keys[self.local.inter_own]
-        lookup = {(int(a), int(b)): w
-                  for a, b, w in zip(msg.keys_b, msg.keys_a, msg.weights, strict=True)}
-        for e, (a, b) in enumerate(zip(own_keys, self.local.inter_peer_key, strict=False)):
-            w = lookup.get((int(a), int(b)))
-            if w is not None:
-                self.state.inter_weights[e] = float(w)
+        j = pair_index(self.local.keys[self.local.inter_own], self.local.inter_peer_key, msg.keys_b, msg.keys_a)
+        found = j >= 0
+        self.state.inter_weights[found] = np.asarray(msg.weights, dtype=float)[j[found]]
         self.state.hold_bars()
 
     # ---------------------------------------------------------------- weight updates
