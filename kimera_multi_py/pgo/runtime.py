@@ -143,9 +143,10 @@ async def run_team(agents: Sequence[PgoAgent], buses: Sequence[Bus], max_rounds:
                    stream: PoseStreamParams | None = None) -> RunStats:
     """Run every agent on its own bus until all stop or ``max_rounds``.
 
-    ``start_round`` lets a robot join late: it sits out (silent) until that round. ``stream``:
-    public poses travel as a :mod:`.pose_stream` (keyframes and float32 deltas); None: every
-    :class:`PublicPoses` in full.
+    ``round_timeout``: wall seconds a round waits over a real transport; on the in-process network
+    a wait ends when the team is quiet instead (module doc) and it is not used. ``start_round``
+    lets a robot join late: it sits out (silent) until that round. ``stream``: public poses travel
+    as a :mod:`.pose_stream` (keyframes and float32 deltas); None: every :class:`PublicPoses` in full.
     """
     t0 = time.perf_counter()
     stats = RunStats()
