@@ -82,7 +82,8 @@ class _Quiet:
                 if loop.time() > cap:
                     log.warning("robot %d: no message and no quiet team within %.0f s", robot, QUIET_CAP)
                     return None
-                await asyncio.sleep(0 if not self.network.in_flight else QUIET_POLL)
+                # on a custom clock nothing moves by itself: no wall-clock poll
+                await asyncio.sleep(QUIET_POLL if self.network.in_flight and not self.network.simulated else 0)
         finally:
             del self.waiting[robot]
 
