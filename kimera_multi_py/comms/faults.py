@@ -61,7 +61,8 @@ class Faults:
     reorder: float = 0.0
     """Probability that a message is held back by ``reorder_delay`` (overtaken by later ones)."""
     delay: float = 0.0
-    """Delay of every message (s)."""
+    """Delay of every message (s: on the loop's clock wall time, on a custom clock the network's
+    event time, :mod:`kimera_multi_py.comms.deliveries`)."""
     jitter: float = 0.0
     """Uniform +- this added to each delay (s)."""
     reorder_delay: float = 0.005
