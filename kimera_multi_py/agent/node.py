@@ -72,7 +72,8 @@ class NodeParams:
     """The node's own knobs (the agent's and the solver's are separate)."""
 
     query_timeout: float = 2.0
-    """Wall seconds a constellation query waits for its reply."""
+    """Wall seconds a constellation query waits for its reply (in the simulation its wait ends when
+    the reply can no longer arrive, on the simulated clock)."""
     state_period: float = 5.0
     """Clock seconds between AgentState messages (the tick's ``wall`` clock)."""
     resend_period: float = 5.0

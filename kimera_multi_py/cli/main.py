@@ -53,7 +53,8 @@ def sim(
                                                                           "traffic; default unlimited.")] = None,
     drop: Annotated[float | None, typer.Option("--drop", help="Loopback: drop this fraction of messages.")] = None,
     delay: Annotated[float | None, typer.Option("--delay", help="Loopback: delay every message by MS milliseconds "
-                                                                "(wall time; the simulated clock waits).")] = None,
+                                                                "(on the simulation's event time: it orders "
+                                                                "deliveries and costs no wall time).")] = None,
     jitter: Annotated[float | None, typer.Option("--jitter", help="Loopback: add uniform +-MS ms to each "
                                                                   "delay.")] = None,
     partition: Annotated[list[str] | None, typer.Option("--partition", help="Loopback: 'A,B|C@T0:T1' cuts robots "

@@ -1,7 +1,8 @@
-"""Fault schedules for the loopback network, as users write them on the command line.
+"""Fault schedules for the loopback network, and as users write them on the command line.
 
-The loopback network (:mod:`kimera_multi_py.comms.loopback`) already drops, delays, duplicates
-and partitions messages per link. This module turns the CLI's fault flags into its
+The loopback network (:mod:`kimera_multi_py.comms.loopback`) drops, delays, duplicates and
+partitions messages per link as a :class:`Faults` says, and counts what it did in
+:class:`FaultStats`. This module defines them, turns the CLI's fault flags into a
 :class:`Faults`, and tracks which links a partition schedule cuts at a given time, so that a
 runtime can show the cut to the robots the way a Zenoh session would (the peer's presence
 token vanishes when the link goes, and comes back when it heals).
@@ -19,10 +20,83 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Iterable, Sequence
+from dataclasses import dataclass, fields
 from itertools import combinations
 
-from kimera_multi_py.comms.loopback import Faults, Partition
 from kimera_multi_py.core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Partition:
+    """Between ``start`` and ``end`` (network clock, s), robots in different ``groups`` are cut off.
+
+    Robots listed in no group are unaffected.
+    """
+
+    groups: tuple[frozenset[int], ...]
+    start: float = 0.0
+    end: float = math.inf
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "groups", tuple(frozenset(g) for g in self.groups))
+        if not self.end >= self.start:
+            raise ConfigError("partition", f"end {self.end} before start {self.start}")
+
+    def cuts(self, a: int, b: int, now: float) -> bool:
+        if not self.start <= now < self.end:
+            return False
+        ga = next((i for i, g in enumerate(self.groups) if a in g), None)
+        gb = next((i for i, g in enumerate(self.groups) if b in g), None)
+        return ga is not None and gb is not None and ga != gb
+
+
+@dataclass(frozen=True)
+class Faults:
+    """Per-link fault rates. Probabilities are in [0, 1]; times are seconds."""
+
+    drop: float = 0.0
+    """Probability that a message is lost on a link."""
+    duplicate: float = 0.0
+    """Probability that a message arrives twice."""
+    reorder: float = 0.0
+    """Probability that a message is held back by ``reorder_delay`` (overtaken by later ones)."""
+    delay: float = 0.0
+    """Delay of every message (s: on the loop's clock wall time, on a custom clock the network's
+    event time, :mod:`kimera_multi_py.comms.deliveries`)."""
+    jitter: float = 0.0
+    """Uniform +- this added to each delay (s)."""
+    reorder_delay: float = 0.005
+    """How long a reordered message is held back (s)."""
+    partitions: tuple[Partition, ...] = ()
+    """Windows in which groups of robots are cut off from each other: ``"0,1|2@60:120"`` or
+    ``{groups: [[0, 1], [2]], start: 60, end: 120}``."""
+
+    def __post_init__(self) -> None:
+        for name in ("drop", "duplicate", "reorder"):
+            p = getattr(self, name)
+            if not 0.0 <= p <= 1.0:
+                raise ConfigError(f"faults.{name}", f"probability {p} not in [0, 1]")
+        for name in ("delay", "jitter", "reorder_delay"):
+            t = getattr(self, name)
+            if not (math.isfinite(t) and t >= 0.0):
+                raise ConfigError(f"faults.{name}", f"time {t} must be finite and >= 0")
+        object.__setattr__(self, "partitions", tuple(self.partitions))
+
+
+@dataclass
+class FaultStats:
+    """What the links did: one ``attempted`` per (message, receiving robot)."""
+
+    attempted: int = 0
+    delivered: int = 0
+    dropped: int = 0
+    partitioned: int = 0
+    duplicated: int = 0
+    reordered: int = 0
+    delayed: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 def parse_partition(spec: str) -> Partition:

@@ -22,6 +22,14 @@ deterministic. On the loop's clock the network pumps itself. A query is answered
 request and reply bytes are charged to their links at the top class, so they delay what follows
 them. A budget replaces the fault delays (``delay``, ``jitter``, ``reorder`` must be 0).
 
+On a custom clock no wait costs wall time (docs/deployment.md, "Faults on the simulated clock").
+Fault delays run on the network's own event time, which never falls behind the clock: a delayed
+delivery waits in a queue until its owner moves on (:meth:`LoopbackNetwork.step` delivers the next
+ones, :meth:`LoopbackNetwork.settle` all), in order of due time. A query's wait ends once its
+reply has arrived or can no longer arrive (request or reply lost, no answer): the deterministic
+equivalent of its timeout, which is not used there. On the loop's clock delays and query timeouts
+are real, as over Zenoh.
+
 Example::
 
     net = LoopbackNetwork(seed=1, faults=Faults(drop=0.1, delay=0.01, jitter=0.005))
@@ -35,94 +43,22 @@ Example::
 from __future__ import annotations
 
 import asyncio
-import heapq
-import itertools
 import logging
 import math
 import random
 from collections.abc import Callable, Collection, Iterable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import BusBase, Handler, Subscription
+from kimera_multi_py.comms.deliveries import Deliveries
+from kimera_multi_py.comms.faults import Faults, FaultStats, Partition
 from kimera_multi_py.comms.link_budget import CONTROL, LinkBudget, LinkQueue, priority_of
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.stream import DEFAULT_QUEUE_SIZE, Stream
 from kimera_multi_py.core.errors import ConfigError, MessageError
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Partition:
-    """Between ``start`` and ``end`` (network clock, s), robots in different ``groups`` are cut off.
-
-    Robots listed in no group are unaffected.
-    """
-
-    groups: tuple[frozenset[int], ...]
-    start: float = 0.0
-    end: float = math.inf
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "groups", tuple(frozenset(g) for g in self.groups))
-        if not self.end >= self.start:
-            raise ConfigError("partition", f"end {self.end} before start {self.start}")
-
-    def cuts(self, a: int, b: int, now: float) -> bool:
-        if not self.start <= now < self.end:
-            return False
-        ga = next((i for i, g in enumerate(self.groups) if a in g), None)
-        gb = next((i for i, g in enumerate(self.groups) if b in g), None)
-        return ga is not None and gb is not None and ga != gb
-
-
-@dataclass(frozen=True)
-class Faults:
-    """Per-link fault rates. Probabilities are in [0, 1]; times are seconds."""
-
-    drop: float = 0.0
-    """Probability that a message is lost on a link."""
-    duplicate: float = 0.0
-    """Probability that a message arrives twice."""
-    reorder: float = 0.0
-    """Probability that a message is held back by ``reorder_delay`` (overtaken by later ones)."""
-    delay: float = 0.0
-    """Delay of every message (s)."""
-    jitter: float = 0.0
-    """Uniform +- this added to each delay (s)."""
-    reorder_delay: float = 0.005
-    """How long a reordered message is held back (s)."""
-    partitions: tuple[Partition, ...] = ()
-    """Windows in which groups of robots are cut off from each other: ``"0,1|2@60:120"`` or
-    ``{groups: [[0, 1], [2]], start: 60, end: 120}``."""
-
-    def __post_init__(self) -> None:
-        for name in ("drop", "duplicate", "reorder"):
-            p = getattr(self, name)
-            if not 0.0 <= p <= 1.0:
-                raise ConfigError(f"faults.{name}", f"probability {p} not in [0, 1]")
-        for name in ("delay", "jitter", "reorder_delay"):
-            t = getattr(self, name)
-            if not (math.isfinite(t) and t >= 0.0):
-                raise ConfigError(f"faults.{name}", f"time {t} must be finite and >= 0")
-        object.__setattr__(self, "partitions", tuple(self.partitions))
-
-
-@dataclass
-class FaultStats:
-    """What the links did: one ``attempted`` per (message, receiving robot)."""
-
-    attempted: int = 0
-    delivered: int = 0
-    dropped: int = 0
-    partitioned: int = 0
-    duplicated: int = 0
-    reordered: int = 0
-    delayed: int = 0
-
-    def as_dict(self) -> dict[str, int]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
 @dataclass
@@ -136,14 +72,6 @@ class _Served:
         if not self.closed:
             self.closed = True
             self.bus.network._served.remove(self)
-
-
-@dataclass
-class _Flight:
-    """Deliveries scheduled but not yet done, so tests can wait for a quiet network."""
-
-    count: int = 0
-    idle: asyncio.Event = field(default_factory=asyncio.Event)
 
 
 class LoopbackNetwork:
@@ -176,11 +104,7 @@ class LoopbackNetwork:
         self._served: list[_Served] = []
         self._alive: set[tuple[str, int]] = set()
         self._partitions: list[Partition] = list(self.faults.partitions)
-        self._flight = _Flight()
-        self._flight.idle.set()
-        self._heap: list[tuple[float, int, Callable[[], object]]] = []
-        self._order = itertools.count()
-        self._tick: float | None = None
+        self.deliveries = Deliveries(clock)  # what fault delays postponed
         self._subs_changed = asyncio.Event()
         self._pump_due: float | None = None  # the pending pump timer's time (the loop's clock, a budget)
 
@@ -193,6 +117,11 @@ class LoopbackNetwork:
         bus = LoopbackBus(self, team, robot)
         self._buses[(team, robot)] = bus
         return bus
+
+    @property
+    def simulated(self) -> bool:
+        """On a custom clock: delays wait for the owner, and no wait costs wall time (module doc)."""
+        return self.deliveries.simulated
 
     def now(self) -> float:
         """Network time in seconds: the custom clock, or loop time since first use."""
@@ -224,25 +153,32 @@ class LoopbackNetwork:
     @property
     def in_flight(self) -> int:
         """Deliveries scheduled and not yet done."""
-        return self._flight.count
+        return self.deliveries.count
 
     async def settle(self, timeout: float = 10.0) -> None:
         """Wait until no delayed delivery or query is in flight (and, on the loop's clock, every
-        budgeted link is idle; on a custom clock budgeted links wait for :meth:`pump`)."""
+        budgeted link is idle; on a custom clock budgeted links wait for :meth:`pump`). On a custom
+        clock the delayed deliveries are made at once, in order of due time (``timeout``: wall s,
+        against a bug)."""
 
         async def quiet() -> None:
             while True:
-                await self._flight.idle.wait()
-                nxt = self.next_delivery() if self._clock is None else None
+                await self.deliveries.idle.wait()
+                nxt = self.next_delivery()
                 if nxt is None:
                     return
                 await asyncio.sleep(max(0.0, nxt - self.now()))
                 self.pump()
 
         try:
-            await asyncio.wait_for(quiet(), timeout)
+            await asyncio.wait_for(self.deliveries.drain() if self.simulated else quiet(), timeout)
         except TimeoutError:
-            raise TimeoutError(f"{self._flight.count} deliveries still in flight") from None
+            raise TimeoutError(f"{self.in_flight} deliveries still in flight") from None
+
+    def step(self) -> int:
+        """On a custom clock: make the delayed deliveries due first and return how many (0: none
+        waits; on the loop's clock they are timed)."""
+        return self.deliveries.step()
 
     # links ----------------------------------------------------------------------------
     def _link_delays(self, src: int, dst: int) -> list[float]:
@@ -273,34 +209,6 @@ class LoopbackNetwork:
             delays.append(d)
         self.stats.delivered += 1
         return delays
-
-    def _after(self, delay: float, fn: Callable[[], object]) -> None:
-        """Run ``fn`` after ``delay`` s. Deliveries run in (due time, schedule order) order, and
-        every delivery scheduled in one event-loop step shares that step's start time, so the
-        order does not depend on how fast the publishing code runs."""
-        if delay <= 0:
-            fn()
-            return
-        loop = asyncio.get_running_loop()
-        if self._tick is None:
-            self._tick = loop.time()
-            loop.call_soon(self._end_tick)
-        due = self._tick + delay
-        self._flight.count += 1
-        self._flight.idle.clear()
-        heapq.heappush(self._heap, (due, next(self._order), fn))
-        loop.call_at(due, self._pump, due)
-
-    def _end_tick(self) -> None:
-        self._tick = None
-
-    def _pump(self, until: float) -> None:
-        while self._heap and self._heap[0][0] <= until:
-            _, _, fn = heapq.heappop(self._heap)
-            self._flight.count -= 1
-            if self._flight.count == 0:
-                self._flight.idle.set()
-            fn()
 
     # link budget ----------------------------------------------------------------------
     def _link(self, src: int, dst: int) -> LinkQueue:
@@ -368,7 +276,7 @@ class LoopbackNetwork:
                     self._enqueue(sender.robot, robot, key, (subs, key, data), len(data), priority_of(key))
                     continue
                 # (mypy cannot infer lambdas whose parameters bind defaults)
-                self._after(d, lambda subs=subs: [s.push((key, data)) for s in subs])  # type: ignore[misc]
+                self.deliveries.after(d, lambda subs=subs: [s.push((key, data)) for s in subs])  # type: ignore[misc]
 
     def _set_alive(self, bus: LoopbackBus, alive: bool) -> None:
         ident = (bus.team, bus.robot)
@@ -450,37 +358,65 @@ class LoopbackBus(BusBase):
             if s.bus.team == self.team and keys.intersects(s.key_expr, selector)
         ]
         loop = asyncio.get_running_loop()
-        futures = []
+        futures: list[asyncio.Future[list[Message] | None]] = []
         for served in targets:
             if request is not None:
                 self.counters.count_sent(selector, len(request))
-            fut: asyncio.Future[list[Message]] = loop.create_future()
+            fut: asyncio.Future[list[Message] | None] = loop.create_future()
             futures.append(fut)
             delays = net._link_delays(self.robot, served.bus.robot)[:1]
             if delays and net.budget is not None and served.bus.robot != self.robot:
                 net._enqueue(self.robot, served.bus.robot, selector, None, len(request or b""), CONTROL)
+            if not delays:
+                self._lost(fut)
             for d in delays:
-                net._after(d, lambda s=served, f=fut: loop.create_task(  # type: ignore[misc]
-                    self._answer(s, selector, request, f)))
+                net.deliveries.after(d, lambda s=served, f=fut: self._start_answer(s, selector, request, f))  # type: ignore[misc]
         if not futures:
             return []
-        done, _ = await asyncio.wait(futures, timeout=timeout)
+        if net.simulated:
+            await net.deliveries.until_done(futures)
+            done = {f for f in futures if f.done()}
+        else:
+            done, _ = await asyncio.wait(futures, timeout=timeout)
         replies: list[Message] = []
         for fut in futures:
             if fut in done:
-                replies.extend(fut.result())
+                replies.extend(fut.result() or [])
             else:
                 fut.cancel()
         return replies
 
+    def _lost(self, fut: asyncio.Future[list[Message] | None]) -> None:
+        """A query's request or reply was lost: on a custom clock its wait ends now (None: no
+        reply), on the loop's clock it ends at its timeout."""
+        if self.network.simulated and not fut.done():
+            fut.set_result(None)
+
+    def _start_answer(self, served: _Served, selector: str, request: bytes | None,
+                      fut: asyncio.Future[list[Message] | None]) -> None:
+        self.network.deliveries.answering += 1
+        asyncio.get_running_loop().create_task(self._answer(served, selector, request, fut))
+
     async def _answer(
-        self, served: _Served, selector: str, request: bytes | None, fut: asyncio.Future
+        self, served: _Served, selector: str, request: bytes | None, fut: asyncio.Future[list[Message] | None]
     ) -> None:
         """Run ``served``'s handler for one query and route the replies back with link faults."""
+        on_its_way = False
+        try:
+            on_its_way = await self._reply(served, selector, request, fut)
+        finally:
+            self.network.deliveries.answering -= 1
+            if not on_its_way:
+                self._lost(fut)
+
+    async def _reply(
+        self, served: _Served, selector: str, request: bytes | None, fut: asyncio.Future[list[Message] | None]
+    ) -> bool:
+        """Answer, and send the reply back over the link; whether a reply is on its way."""
         server, net = served.bus, self.network
         answered = await server.answer(served, selector, request)
         if answered is None:
-            return
+            return False
         reply_key, replies = answered
         good: list[Message] = []
         nbytes = 0
@@ -499,7 +435,8 @@ class LoopbackBus(BusBase):
         if delays and net.budget is not None and server.robot != self.robot:
             net._enqueue(server.robot, self.robot, reply_key, None, nbytes, CONTROL)
         for d in delays:
-            net._after(d, lambda: fut.done() or fut.set_result(good))  # type: ignore[func-returns-value]
+            net.deliveries.after(d, lambda: fut.done() or fut.set_result(good))  # type: ignore[func-returns-value]
+        return bool(delays)
 
     async def announce(self) -> None:
         self._check_open()

@@ -10,7 +10,9 @@ On the in-process network (:class:`LoopbackNetwork`) a timeout is not a wall-clo
 gives up waiting when the whole team is quiet (every running robot waits, nothing is queued for
 them and no delivery is in flight), which is exactly when a lost message can no longer arrive. A
 lossy run then costs the rounds its losses cost and no wall time, and it is deterministic for a
-seed; ``round_timeout`` is not used there (:data:`QUIET_CAP` bounds one wait, against a bug).
+seed; ``round_timeout`` is not used there (:data:`QUIET_CAP` bounds one wait, against a bug). On a
+network with a custom clock, delayed deliveries are made then too, in order of due time, instead
+of being waited for (:mod:`kimera_multi_py.comms.deliveries`).
 """
 
 from __future__ import annotations
@@ -54,8 +56,11 @@ class _Quiet:
         self.expired: set[int] = set()
 
     def _quiet(self) -> bool:
-        return (not self.network.in_flight and set(self.waiting) == self.running
-                and all(sub.pending() == 0 for sub in self.waiting.values()))
+        return not self.network.in_flight and self._waiting_on_delays()
+
+    def _waiting_on_delays(self) -> bool:
+        """Every running robot waits with nothing queued: only delayed deliveries can come."""
+        return set(self.waiting) == self.running and all(sub.pending() == 0 for sub in self.waiting.values())
 
     async def recv(self, robot: int, sub: Subscription) -> Message | None:
         """The next message for ``robot``, or ``None`` once the team is quiet (a timeout)."""
@@ -72,10 +77,13 @@ class _Quiet:
                 if self._quiet():  # every waiting robot times out together
                     self.expired.update(r for r in self.waiting if r != robot)
                     return None
+                if self._waiting_on_delays() and self.network.step():
+                    continue  # on a custom clock: the next delayed deliveries, no wall time
                 if loop.time() > cap:
                     log.warning("robot %d: no message and no quiet team within %.0f s", robot, QUIET_CAP)
                     return None
-                await asyncio.sleep(0 if not self.network.in_flight else QUIET_POLL)
+                # on a custom clock nothing moves by itself: no wall-clock poll
+                await asyncio.sleep(QUIET_POLL if self.network.in_flight and not self.network.simulated else 0)
         finally:
             del self.waiting[robot]
 
@@ -136,9 +144,10 @@ async def run_team(agents: Sequence[PgoAgent], buses: Sequence[Bus], max_rounds:
                    stream: PoseStreamParams | None = None) -> RunStats:
     """Run every agent on its own bus until all stop or ``max_rounds``.
 
-    ``start_round`` lets a robot join late: it sits out (silent) until that round. ``stream``:
-    public poses travel as a :mod:`.pose_stream` (keyframes and float32 deltas); None: every
-    :class:`PublicPoses` in full.
+    ``round_timeout``: wall seconds a round waits over a real transport; on the in-process network
+    a wait ends when the team is quiet instead (module doc) and it is not used. ``start_round``
+    lets a robot join late: it sits out (silent) until that round. ``stream``: public poses travel
+    as a :mod:`.pose_stream` (keyframes and float32 deltas); None: every :class:`PublicPoses` in full.
     """
     t0 = time.perf_counter()
     stats = RunStats()

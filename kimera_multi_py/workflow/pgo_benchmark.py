@@ -206,6 +206,8 @@ def run_pgo(inputs: Sequence[str | Path], robots: int | None = None,
     ``method`` picks the distributed solver (:data:`METHODS`; default :data:`DEFAULT_METHOD`
     unless ``params`` is given, whose ``method`` then holds). ``stream``: public poses as a
     pose stream (:mod:`kimera_multi_py.pgo.pose_stream`); None sends them in full.
+    ``round_timeout``: wall seconds a round waits over Zenoh (default 2); over loopback a round's
+    wait ends when the team is quiet, and it is not used (:mod:`kimera_multi_py.pgo.runtime`).
     """
     graph = _inject(load_graph(inputs, robots), outliers, seed)
     params = params or PgoParams(method=cast(Method, DEFAULT_METHOD))

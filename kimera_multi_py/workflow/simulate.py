@@ -17,8 +17,9 @@ and closed by the team's leader) and outputs, exactly as in ``kimera-multi agent
   graph on its own schedule and publishes corrected poses back.
 
 The clock is simulated: keyframes arrive in stamp order, and after each one the nodes run until
-the network is quiet. Over loopback a PGO round's wait ends when nothing more can arrive, so a
-seed always gives the same results, whatever the machine's load.
+the network is quiet. Over loopback no wait is on the wall clock (a round's or a query's ends when
+nothing more can arrive; delays run on :mod:`~kimera_multi_py.comms.deliveries`' event time), so a
+seed always gives the same results, whatever the machine's load and however lossy the links.
 
 Parameters come from a :class:`~kimera_multi_py.team.config.KimeraConfig`; the run folder gets
 ``config.yaml``, all the run ran with (docs/outputs.md): ``sim --config`` with it repeats the run.
@@ -460,7 +461,7 @@ class SimRunner:
                 continue
             await asyncio.sleep(0)
             if net is not None and net.in_flight:
-                await net.settle()
+                net.step()  # the next delayed deliveries, on the network's event time (no wall time)
                 continue
             if any(n._sub is not None and n._sub.pending() for n in nodes):
                 continue

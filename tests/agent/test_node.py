@@ -25,7 +25,7 @@ def _run_free(sim, period=20.0):
     """Every node runs its own loop (``AgentNode.run``) on wall-clock timers; nothing steps them."""
     async def main():
         net = LoopbackNetwork(team="t0", seed=0)
-        schedule = ScheduleParams(period=period, round_timeout=0.2, final_grace=0.2)
+        schedule = ScheduleParams(period=period, round_timeout=None, final_grace=0.2)  # rounds wait for statuses
         nodes = [AgentNode(Agent(r, None, agent_params(sim.cfg)), net.bus(r), PgoParams(robust=True, max_rounds=200),
                            schedule, NodeParams()) for r in range(sim.num_robots)]
         for n in nodes:

@@ -52,8 +52,8 @@ def test_two_robot_files_without_inter_robot_edges(pgo_data: Path) -> None:
 
 
 def test_converges_with_ten_percent_message_drop(pgo_data: Path) -> None:
-    res = run_pgo([pgo(pgo_data, "smallGrid3D")], robots=4, drop=0.1, seed=3,
-                  max_rounds=300, round_timeout=0.05)
+    # over loopback a round's wait ends when the team is quiet (no wall-clock round timeout)
+    res = run_pgo([pgo(pgo_data, "smallGrid3D")], robots=4, drop=0.1, seed=3, max_rounds=300)
     assert res.dropped > 0  # messages really were lost (the network's own count)
     assert abs(res.relative_gap) <= 1e-4
 

@@ -86,7 +86,7 @@ def test_gn_pcg_matches_centralized(pgo_data: Path, name: str, robots: int) -> N
 
 def test_gn_pcg_survives_message_loss(pgo_data: Path) -> None:
     res = run_pgo([pgo(pgo_data, "tinyGrid3D")], robots=3, drop=0.1, seed=3, max_rounds=600,
-                  round_timeout=0.02, params=PgoParams(method="gn_pcg"))
+                  params=PgoParams(method="gn_pcg"))
     assert res.dropped > 0
     assert abs(res.relative_gap) <= 1e-6
 
@@ -190,7 +190,7 @@ def test_robust_gn_pcg_survives_message_loss(pgo_data: Path) -> None:
     """Robust mode over a lossy network: the owners' start weights are resent until they
     arrive, and every robot still takes the same GNC steps (the same inlier set as gtsam's)."""
     res = run_pgo([pgo(pgo_data, "tinyGrid3D")], robots=3, robust=True, outliers=0.3, drop=0.1,
-                  seed=3, max_rounds=900, round_timeout=0.02, params=PgoParams(method="gn_pcg"))
+                  seed=3, max_rounds=900, params=PgoParams(method="gn_pcg"))
     assert res.dropped > 0 and res.outliers > 0
     assert res.robust_eval is not None
     assert res.robust_eval.inlier_jaccard == 1.0 and abs(res.robust_eval.tls_gap) <= 1e-6

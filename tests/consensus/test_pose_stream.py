@@ -144,8 +144,7 @@ def test_fuzzed_deltas_are_refused_and_counted_never_crash() -> None:
 @pytest.mark.parametrize("drop", [0.0, 0.1])
 def test_the_stream_reaches_the_same_optimum_for_fewer_bytes(pgo_data: Path, drop: float) -> None:
     """Distributed PGO with full public poses and with the stream, against the centralised optimum."""
-    kw = dict(robots=4, max_rounds=300, drop=drop, seed=3, round_timeout=0.05) if drop else dict(robots=5,
-                                                                                                  max_rounds=300)
+    kw = dict(robots=4, max_rounds=300, drop=drop, seed=3) if drop else dict(robots=5, max_rounds=300)
     full = run_pgo([pgo_data / "smallGrid3D.g2o"], **kw)  # type: ignore[arg-type]
     stream = run_pgo([pgo_data / "smallGrid3D.g2o"], stream=P, **kw)  # type: ignore[arg-type]
     assert abs(full.relative_gap) <= 1e-4 and abs(stream.relative_gap) <= 1e-4

@@ -6,19 +6,10 @@ import re
 
 import pytest
 
-from kimera_multi_py.sim import load_scenario
 from kimera_multi_py.team.config import KimeraConfig
 from kimera_multi_py.workflow.simulate import SimRunner
 
-from .helpers import TINY
-
-
-def short_tiny():
-    """tiny with each robot touring two rooms instead of three (about half the keyframes)."""
-    cfg = load_scenario(TINY)
-    cfg.robots[0].route = ["room_a", "room_b"]
-    cfg.robots[1].route = ["room_b", "room_a"]
-    return cfg
+from .helpers import short_tiny
 
 
 def budgeted(kbps: float, policy: str = "priority") -> dict:
