@@ -39,6 +39,7 @@ import numpy as np
 from kimera_multi_py.agent.agent import Agent
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Closeable, PresenceEvent, Subscription
+from kimera_multi_py.comms.closure_stream import ClosureInbox, ClosureOutbox
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.closures import (
     KeyframeDescriptor,
@@ -154,8 +155,8 @@ class AgentNode:
         self._sub: Subscription | None = None
         self._serve: Closeable | None = None
         self._presence: Stream[PresenceEvent] | None = None
-        self._unacked: dict[int, LoopClosures] = {}  # peer -> newest closures batch not acknowledged
-        self._sent_at: dict[int, float] = {}
+        self.closures_out = ClosureOutbox(self.params.compact_wire)  # our batches until acknowledged
+        self.closures_in = ClosureInbox()  # peers' batches to us, expanded
         self._state_at = -math.inf
         self._peer_stamp = 0.0
         self.epochs_seen = 0
@@ -224,9 +225,8 @@ class AgentNode:
                 await self._query(msg)
                 continue
             self._count_closures(msg)
-            if isinstance(msg, LoopClosures) and msg.peer != self.robot:
-                self._unacked[msg.peer] = msg
-                self._sent_at.pop(msg.peer, None)  # the re-send timer starts at the next tick
+            if isinstance(msg, LoopClosures):
+                msg = self.closures_out.send(msg)
             if isinstance(msg, KeyframeDescriptor) and self.params.descriptor_repeats > 0:
                 for old in self._recent_descriptors:
                     await self._publish(old)
@@ -267,13 +267,17 @@ class AgentNode:
     async def _dispatch(self, msg: Message) -> None:
         if msg.robot == self.robot:
             return
+        if isinstance(msg, LoopClosures) and msg.peer == self.robot:
+            try:
+                msg = self.closures_in.expand(msg)
+            except KimeraMultiError as exc:
+                self._refuse("LoopClosures", exc)
+                return
         self._count_closures(msg)
         if isinstance(msg, AgentState):
             self._peer_stamp = max(self._peer_stamp, msg.stamp)
         if isinstance(msg, LoopClosuresAck) and msg.peer == self.robot:
-            pending = self._unacked.get(msg.robot)
-            if pending is not None and msg.batch >= pending.batch:
-                del self._unacked[msg.robot]
+            self.closures_out.acked(msg.robot, msg.batch)
         if isinstance(msg, PEOPLE_MESSAGES):
             if self.people is not None:
                 try:
@@ -317,10 +321,8 @@ class AgentNode:
             await self._publish(KeyframeDescriptor(robot=self.robot, keyframe=k, stamp=c.stamp, kind="objects",
                                                    descriptor=c.descriptor))
         if event.robot in self.agent.closures and event.robot != self.robot:
-            latest = self.agent.closures_message(event.robot)
-            self._unacked[event.robot] = latest
-            self._sent_at.pop(event.robot, None)
-            await self._publish(latest)
+            self.closures_out.forget(event.robot)
+            await self._publish(self.closures_out.send(self.agent.closures_message(event.robot)))
         await self._publish_state()
         await self._reask(event.robot, appeared=True)
 
@@ -357,10 +359,7 @@ class AgentNode:
         if wall - self._state_at >= self.params.state_period:
             self._state_at = wall
             out.append(self._state())
-        for peer, msg in sorted(self._unacked.items()):
-            if wall - self._sent_at.setdefault(peer, wall) >= self.params.resend_period:
-                self._sent_at[peer] = wall
-                out.append(msg)
+        out += self.closures_out.due(wall, self.params.resend_period)
         if wall - self._reask_at >= self.params.resend_period:
             self._reask_at = wall
             for peer in sorted(self.alive() - {self.robot}):
