@@ -30,16 +30,16 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
-from typing import Literal
 
 import networkx as nx
 import numpy as np
 
 from kimera_multi_py.agent.agent import Agent
+from kimera_multi_py.agent.params import NodeParams as NodeParams  # re-exported: the node's knobs live with the agent's
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Closeable, PresenceEvent, Subscription
 from kimera_multi_py.comms.closure_stream import ClosureInbox, ClosureOutbox
+from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.closures import (
     KeyframeDescriptor,
@@ -67,39 +67,7 @@ from kimera_multi_py.pgo.team import ScheduleParams, TeamPgo
 log = logging.getLogger(__name__)
 
 MAP_MODES = ("off", "roam", "exact", "laplacian")
-
-@dataclass
-class NodeParams:
-    """The node's own knobs (the agent's and the solver's are separate)."""
-
-    query_timeout: float = 2.0
-    """Wall seconds a constellation query waits for its reply."""
-    state_period: float = 5.0
-    """Clock seconds between AgentState messages (the tick's ``wall`` clock)."""
-    resend_period: float = 5.0
-    """Clock seconds between re-sends of unacknowledged closures."""
-    server: int | None = None
-    """Centralised mode: the server's id (then no team PGO). Set from the run's mode."""
-    map_consensus: Literal["off", "roam", "exact", "laplacian"] = "exact"
-    """Map consensus mode: off, roam, exact or laplacian (docs/algorithms/map_consensus.md)."""
-    descriptor_repeats: int = 1
-    """Lossy links: every descriptor goes out again with the next this many times (duplicates are ignored)."""
-    query_retries: int = 2
-    """Lossy links: a constellation query that gets no reply is asked again this many times."""
-    query_reasks: int = 3
-    """A query still unanswered after its retries is asked again, up to this many times, every
-    ``resend_period`` while its target is present; and whenever the target (re)appears."""
-    compact_wire: bool = True
-    """Compact encodings: verification clouds at the closure registration's resolution, packed
-    small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`);
-    map evidence as palette rows, the growing submap held between versions (map consensus
-    ``palette_rows`` and ``hold``). False: the full-size formats (to measure what compaction saves)."""
-    link_budget: float | None = None
-    """kB/s per peer link, a token bucket in the bus with PGO and closure traffic first, then
-    objects, then map evidence (docs/deployment.md, "Link budget"); null: unlimited."""
-    link_policy: Literal["priority", "fifo"] = "priority"
-    """Under a link budget: by priority class (the default) or first in, first out (a baseline)."""
-
+MAX_FETCHED = 512  # peer keyframes kept for verification against more places of ours (compact: ~6 kB each)
 
 class AgentNode:
     """One robot on a Bus (see the module docstring).
@@ -156,7 +124,10 @@ class AgentNode:
         self._serve: Closeable | None = None
         self._presence: Stream[PresenceEvent] | None = None
         self.closures_out = ClosureOutbox(self.params.compact_wire)  # our batches until acknowledged
+        if isinstance(codec := getattr(bus, "codec", None), Codec):  # compressed tables (comms.wire.zipped)
+            codec.compress = self.params.compact_wire
         self.closures_in = ClosureInbox()  # peers' batches to us, expanded
+        self._fetched: dict[tuple[int, int], LoopClosureReply] = {}  # (peer, keyframe) -> its reply
         self._state_at = -math.inf
         self._peer_stamp = 0.0
         self.epochs_seen = 0
@@ -239,7 +210,10 @@ class AgentNode:
     async def _query(self, msg: LoopClosureRequest) -> None:
         key = keys.keyframe_key(self.bus.team, msg.target, msg.keyframe)
         replies: list[Message] = []
-        for attempt in range(1 + max(self.params.query_retries, 0)):
+        fetched = self._fetched.get((msg.target, msg.keyframe))
+        if fetched is not None:  # fetched already, for another place of ours: it travels once
+            replies = [dataclasses.replace(fetched, request_id=msg.request_id)]
+        for attempt in range(0 if replies else 1 + max(self.params.query_retries, 0)):
             try:
                 replies = await self.bus.query(key, msg, timeout=self.params.query_timeout)
             except (KimeraMultiError, TimeoutError) as exc:
@@ -251,6 +225,10 @@ class AgentNode:
                 break
             self.queries_retried += 1
         for reply in replies:
+            if fetched is None and isinstance(reply, LoopClosureReply) and reply.found and self.params.compact_wire:
+                while len(self._fetched) >= MAX_FETCHED:
+                    del self._fetched[next(iter(self._fetched))]
+                self._fetched[(reply.robot, reply.keyframe)] = reply
             await self.send(self._handle_agent(reply))
 
     def _handle_agent(self, msg: Message) -> list[Message]:

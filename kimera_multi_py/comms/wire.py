@@ -1,8 +1,14 @@
-"""The array and packing layer under the codec: numpy arrays as msgpack ext type 1, and one
-msgpack Packer per thread. Both the codec and the large-message path build on it
-(docs/outputs.md describes the wire format).
+"""The array and packing layer under the codec: numpy arrays as msgpack ext type 1, compressed
+envelopes as msgpack ext type 2, and one msgpack Packer per thread. Both the codec and the
+large-message path build on it (docs/outputs.md describes the wire format).
 
-    u8 dtype code | u8 ndim | ndim x u32 little-endian dims | raw little-endian C-order bytes
+    ext 1: u8 dtype code | u8 ndim | ndim x u32 little-endian dims | raw little-endian C-order bytes
+    ext 2: u8 compressor (comms.compression) | u32 little-endian size | the compressed msgpack
+           envelope of that size (never itself compressed)
+
+A compressed envelope is a msgpack value like any other, so it stands alone as a payload or as
+one element of a batch; :func:`_ext_hook` inflates it (never beyond its stated size, at most
+:data:`MAX_ZIPPED_BYTES`) and reads the envelope inside.
 """
 
 from __future__ import annotations
@@ -15,10 +21,14 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from kimera_multi_py.comms import compression
 from kimera_multi_py.core.errors import MessageError
 
 EXT_NDARRAY = 1
+EXT_ZIPPED = 2
 MAX_NDIM = 8
+MAX_ZIPPED_BYTES = 64 * 1024 * 1024  # the codec's message size limit
+_ZHEAD = struct.Struct("<BI")
 
 _DTYPES: dict[int, np.dtype] = {
     1: np.dtype("<f8"),
@@ -101,9 +111,45 @@ def _ext_hook(code: int, data: bytes) -> Any:
             n = _U32.unpack_from(data, 2)[0]
             if n * dt.itemsize == len(data) - 6:
                 return _frombuffer(data, dt, n, 6)
+    if code == EXT_ZIPPED:
+        return _unzip(data)
     if code != EXT_NDARRAY:
         raise CodecError("ext", f"unknown ext type {code}")
     return _unpack_array(data)  # the reference checks, for everything else
+
+
+def _inner_hook(code: int, data: bytes) -> Any:
+    """The ext hook inside a compressed envelope: arrays only."""
+    if code != EXT_NDARRAY:
+        raise CodecError("ext", f"ext type {code} inside a compressed envelope")
+    return _ext_hook(code, data)
+
+
+def _unzip(data: bytes) -> Any:
+    """The envelope inside a compressed one (ext type 2); :class:`CodecError` if it is corrupt."""
+    if len(data) < _ZHEAD.size:
+        raise CodecError("payload", "truncated compressed envelope")
+    method, size = _ZHEAD.unpack_from(data)
+    if size > MAX_ZIPPED_BYTES:
+        raise CodecError("size", f"compressed envelope of {size} bytes exceeds the limit of {MAX_ZIPPED_BYTES}")
+    try:
+        raw = compression.decompress(data[_ZHEAD.size:], method, size, "envelope")
+    except MessageError as exc:
+        raise CodecError("payload", str(exc)) from exc
+    try:
+        return msgpack.unpackb(raw, raw=False, ext_hook=_inner_hook, strict_map_key=True)
+    except MessageError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - msgpack raises many types on hostile input
+        raise CodecError("payload", f"compressed envelope is not valid msgpack ({type(exc).__name__})") from exc
+
+
+def zipped(data: bytes, level: int = 3) -> bytes:
+    """The encoded envelope ``data`` as a compressed one (ext type 2) if that is smaller, else itself."""
+    z = compression.compress(data, level=level)
+    if len(z) + _ZHEAD.size + 6 >= len(data):
+        return data
+    return _packb(msgpack.ExtType(EXT_ZIPPED, _ZHEAD.pack(compression.DEFAULT, len(data)) + z))
 
 
 _frombuffer = np.frombuffer

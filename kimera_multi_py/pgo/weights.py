@@ -79,7 +79,6 @@ class RobustWeights:
     def update(self, rnd: int) -> tuple[list[Message], bool]:
         """The ordered weight update at round ``rnd``: the messages to send, and whether the
         weights changed (False while the team's ``μ₀`` is being agreed)."""
-        lg = self.local
         p = self.params
         if p.gnc_team_mu and self.gnc.steps == 0 and self.robot not in self.mu_proposals:
             return self._propose_mu(rnd), False

@@ -62,6 +62,13 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         Heartbeat, Ping, KeyframeOdometry, PgoEpoch, AgentState, PoseDeltas, PeopleUpdate, EdgeVeto,
     )
 }
+# the types whose envelopes the codec compresses (wire.zipped): tables of keys, poses, weights,
+# descriptors and objects, which repeat field names and small integers; not the map evidence nor
+# the verification clouds (compressed inside already), nor the small lock-step messages
+ZIPPED_TYPES = (PublicPoses, PoseDeltas, GncWeights, EdgeVeto, FrameLandmarks, KeyframeDescriptor, LoopClosures,
+                ObjectUpdate, PeopleUpdate, SubmapPoses, MapVersions, PgoEpoch, AgentState)
+for _cls in ZIPPED_TYPES:
+    _cls.ZIP = True
 if set(MESSAGE_TYPES.values()) != set(Message.__subclasses__()):  # a type defined but not listed
     raise ImportError(f"message types not in MESSAGE_TYPES: "
                       f"{sorted(c.__name__ for c in set(Message.__subclasses__()) - set(MESSAGE_TYPES.values()))}")
