@@ -6,6 +6,10 @@ large-message path build on it (docs/outputs.md describes the wire format).
     ext 2: u8 compressor (comms.compression) | u32 little-endian size | the compressed msgpack
            envelope of that size (never itself compressed)
 
+The compressor is zstd, or for envelopes of a few dozen bytes raw deflate primed with
+:data:`SCHEMA_DICT` (every message type's envelope with placeholder values, made from the message
+registry, so every robot of one schema version holds the same), whichever is smaller.
+
 A compressed envelope is a msgpack value like any other, so it stands alone as a payload or as
 one element of a batch; :func:`_ext_hook` inflates it (never beyond its stated size, at most
 :data:`MAX_ZIPPED_BYTES`) and reads the envelope inside.
@@ -133,7 +137,7 @@ def _unzip(data: bytes) -> Any:
     if size > MAX_ZIPPED_BYTES:
         raise CodecError("size", f"compressed envelope of {size} bytes exceeds the limit of {MAX_ZIPPED_BYTES}")
     try:
-        raw = compression.decompress(data[_ZHEAD.size:], method, size, "envelope")
+        raw = compression.decompress(data[_ZHEAD.size:], method, size, "envelope", SCHEMA_DICT)
     except MessageError as exc:
         raise CodecError("payload", str(exc)) from exc
     try:
@@ -146,10 +150,36 @@ def _unzip(data: bytes) -> Any:
 
 def zipped(data: bytes, level: int = 3) -> bytes:
     """The encoded envelope ``data`` as a compressed one (ext type 2) if that is smaller, else itself."""
-    z = compression.compress(data, level=level)
-    if len(z) + _ZHEAD.size + 6 >= len(data):
+    method, z = compression.DEFAULT, compression.compress(data, level=level)
+    if len(data) <= SMALL_ENVELOPE:
+        zd = compression.compress(data, compression.DEFLATE_DICT, zdict=SCHEMA_DICT)
+        if len(zd) < len(z):
+            method, z = compression.DEFLATE_DICT, zd
+    if len(z) + _ZHEAD.size + 3 >= len(data):
         return data
-    return _packb(msgpack.ExtType(EXT_ZIPPED, _ZHEAD.pack(compression.DEFAULT, len(data)) + z))
+    return _packb(msgpack.ExtType(EXT_ZIPPED, _ZHEAD.pack(method, len(data)) + z))
+
+
+SMALL_ENVELOPE = 2048  # envelopes up to this size also try deflate with the schema dictionary
+_LAST = ("LoopClosureRequest", "LoopClosuresAck", "PoseDeltas", "PgoCommand", "PgoStatus")  # the most frequent
+
+
+def _schema_dict() -> bytes:
+    """Every message type's envelope with placeholder values (empty arrays of the field's dtype),
+    the most frequent types last (nearest to the data in deflate's window)."""
+    from kimera_multi_py.comms.messages import MESSAGE_TYPES, SCHEMA_VERSION
+    from kimera_multi_py.comms.messages.fields import Array, Bool, Float, Int
+
+    def placeholder(spec: Any) -> Any:
+        if isinstance(spec, Array):
+            return ext_of(np.zeros((0,) * len(spec.shape), spec.dtype))
+        return 0 if isinstance(spec, Int) else 0.0 if isinstance(spec, Float) else False if isinstance(spec, Bool) \
+            else ""
+
+    names = sorted(MESSAGE_TYPES, key=lambda n: _LAST.index(n) if n in _LAST else -1)
+    return b"".join(_packb({"v": SCHEMA_VERSION, "type": name, "team": "", "src": 0, "seq": 0, "stamp": 0.0,
+                            "body": {f: placeholder(s) for f, s in MESSAGE_TYPES[name].SPECS.items()}})
+                    for name in names)
 
 
 _frombuffer = np.frombuffer
@@ -193,3 +223,6 @@ def _packb(obj: Any) -> bytes:
 
 
 _local = threading.local()
+
+
+SCHEMA_DICT = _schema_dict()

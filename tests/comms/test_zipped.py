@@ -15,8 +15,9 @@ from kimera_multi_py.comms.codec import Codec, batch_header, decode, decode_batc
 from kimera_multi_py.comms.messages import MESSAGE_TYPES, ZIPPED_TYPES
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.maps import ObjectUpdate
-from kimera_multi_py.comms.messages.pgo import GncWeights, PublicPoses
-from kimera_multi_py.comms.wire import EXT_ZIPPED, zipped
+from kimera_multi_py.comms.messages.closures import LoopClosuresAck
+from kimera_multi_py.comms.messages.pgo import GncWeights, PgoCommand, PgoStatus, PublicPoses
+from kimera_multi_py.comms.wire import EXT_ZIPPED, SCHEMA_DICT, zipped
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.posegraph import robot_key
 from tests.support.fuzz import mutate
@@ -99,9 +100,32 @@ def test_corrupt_compressed_envelopes_are_refused() -> None:
         assert isinstance(item, MessageError), what
 
 
+def test_small_envelopes_shrink_with_the_schema_dictionary() -> None:
+    """A status, a command, an ack: mostly field names, which the dictionary both ends hold."""
+    tx, rx = Codec("office", 1, range(3)), Codec("office", 0, range(3))
+    for msg in _small():
+        data = tx.encode(msg)
+        tx.compress = False
+        plain = tx.encode(msg)
+        tx.compress = True
+        obj = msgpack.unpackb(data, ext_hook=lambda c, d: msgpack.ExtType(c, d))
+        assert obj.data[0] == compression.DEFLATE_DICT and len(data) < 0.7 * len(plain)
+        assert rx.decode(data).msg == msg
+    # without the dictionary the same bytes do not inflate to the envelope
+    z = compression.compress(plain, compression.DEFLATE_DICT, zdict=SCHEMA_DICT)
+    with pytest.raises(MessageError):
+        assert compression.decompress(z, compression.DEFLATE_DICT, len(plain), "test") == plain
+
+
+def _small() -> list[Message]:
+    return [PgoStatus(robot=1, round=3_000_017, ready=False, cost=123.456789, rel_change=0.00123),
+            PgoCommand(robot=1, round=3_000_020, command="stop", active=np.zeros(0, np.int64)),
+            LoopClosuresAck(robot=1, peer=0, batch=12)]
+
+
 def test_fuzzed_compressed_envelopes_are_refused_or_whole_never_crash() -> None:
     tx = Codec("t0", 0, range(3))
-    seeds = [tx.encode(m) for m in _tables()]
+    seeds = [tx.encode(m) for m in _tables()] + [Codec("t0", 1, range(3)).encode(m) for m in _small()]
     assert all(_is_zipped(d) for d in seeds)
     rng = random.Random(0)
     refused = whole = 0

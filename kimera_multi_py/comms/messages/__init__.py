@@ -63,10 +63,12 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
     )
 }
 # the types whose envelopes the codec compresses (wire.zipped): tables of keys, poses, weights,
-# descriptors and objects, which repeat field names and small integers; not the map evidence nor
-# the verification clouds (compressed inside already), nor the small lock-step messages
+# descriptors and objects, which repeat field names and small integers, and the small messages
+# sent by the thousand, which are mostly field names; not the map evidence nor the verification
+# clouds (compressed inside already)
 ZIPPED_TYPES = (PublicPoses, PoseDeltas, GncWeights, EdgeVeto, FrameLandmarks, KeyframeDescriptor, LoopClosures,
-                ObjectUpdate, PeopleUpdate, SubmapPoses, MapVersions, PgoEpoch, AgentState)
+                ObjectUpdate, PeopleUpdate, SubmapPoses, MapVersions, PgoEpoch, AgentState, PgoStatus, PgoCommand,
+                LoopClosuresAck, LoopClosureRequest)
 for _cls in ZIPPED_TYPES:
     _cls.ZIP = True
 if set(MESSAGE_TYPES.values()) != set(Message.__subclasses__()):  # a type defined but not listed
