@@ -14,8 +14,8 @@ from kimera_multi_py.comms import compression
 from kimera_multi_py.comms.codec import Codec, batch_header, decode, decode_batch
 from kimera_multi_py.comms.messages import MESSAGE_TYPES, ZIPPED_TYPES
 from kimera_multi_py.comms.messages.base import Message
-from kimera_multi_py.comms.messages.maps import ObjectUpdate
 from kimera_multi_py.comms.messages.closures import LoopClosuresAck
+from kimera_multi_py.comms.messages.maps import ObjectUpdate
 from kimera_multi_py.comms.messages.pgo import GncWeights, PgoCommand, PgoStatus, PublicPoses
 from kimera_multi_py.comms.wire import EXT_ZIPPED, SCHEMA_DICT, zipped
 from kimera_multi_py.core.errors import MessageError
