@@ -89,6 +89,8 @@ class AgentNode:
         self.complete = False  # the team's final optimisation reached us
         self.pgo: TeamPgo | None = None
         self.pgo_params = pgo_params or team_params()
+        if not self.params.compact_wire:  # the full-size format: every GNC weight at every update
+            self.pgo_params = dataclasses.replace(self.pgo_params, weights_full_every=1)
         if self.params.server is None:
             self.pgo = TeamPgo(agent.robot, self.pgo_params,
                                self.schedule, agent.local_graph, agent.apply_poses,

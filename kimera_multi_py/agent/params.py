@@ -164,7 +164,10 @@ class NodeParams:
     """Compact encodings: verification clouds at the closure registration's resolution, packed
     small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`);
     map evidence as palette rows, the growing submap held between versions (map consensus
-    ``palette_rows`` and ``hold``). False: the full-size formats (to measure what compaction saves)."""
+    ``palette_rows`` and ``hold``); closure batches against the acknowledged one
+    (:mod:`kimera_multi_py.comms.closure_stream`); a fetched peer keyframe kept and fetched once;
+    GNC weights when they change (``weights_full_every``); compressed envelopes
+    (:mod:`kimera_multi_py.comms.wire`). False: the full-size formats (to measure what compaction saves)."""
     link_budget: float | None = None
     """kB/s per peer link, a token bucket in the bus with PGO and closure traffic first, then
     objects, then map evidence (docs/deployment.md, "Link budget"); null: unlimited."""
