@@ -30,15 +30,16 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
-from typing import Literal
 
 import networkx as nx
 import numpy as np
 
 from kimera_multi_py.agent.agent import Agent
+from kimera_multi_py.agent.params import NodeParams as NodeParams  # re-exported: the node's knobs live with the agent's
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Closeable, PresenceEvent, Subscription
+from kimera_multi_py.comms.closure_stream import ClosureInbox, ClosureOutbox
+from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.closures import (
     KeyframeDescriptor,
@@ -66,40 +67,7 @@ from kimera_multi_py.pgo.team import ScheduleParams, TeamPgo
 log = logging.getLogger(__name__)
 
 MAP_MODES = ("off", "roam", "exact", "laplacian")
-
-@dataclass
-class NodeParams:
-    """The node's own knobs (the agent's and the solver's are separate)."""
-
-    query_timeout: float = 2.0
-    """Wall seconds a constellation query waits for its reply (in the simulation its wait ends when
-    the reply can no longer arrive, on the simulated clock)."""
-    state_period: float = 5.0
-    """Clock seconds between AgentState messages (the tick's ``wall`` clock)."""
-    resend_period: float = 5.0
-    """Clock seconds between re-sends of unacknowledged closures."""
-    server: int | None = None
-    """Centralised mode: the server's id (then no team PGO). Set from the run's mode."""
-    map_consensus: Literal["off", "roam", "exact", "laplacian"] = "exact"
-    """Map consensus mode: off, roam, exact or laplacian (docs/algorithms/map_consensus.md)."""
-    descriptor_repeats: int = 1
-    """Lossy links: every descriptor goes out again with the next this many times (duplicates are ignored)."""
-    query_retries: int = 2
-    """Lossy links: a constellation query that gets no reply is asked again this many times."""
-    query_reasks: int = 3
-    """A query still unanswered after its retries is asked again, up to this many times, every
-    ``resend_period`` while its target is present; and whenever the target (re)appears."""
-    compact_wire: bool = True
-    """Compact encodings: verification clouds at the closure registration's resolution, packed
-    small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`);
-    map evidence as palette rows, the growing submap held between versions (map consensus
-    ``palette_rows`` and ``hold``). False: the full-size formats (to measure what compaction saves)."""
-    link_budget: float | None = None
-    """kB/s per peer link, a token bucket in the bus with PGO and closure traffic first, then
-    objects, then map evidence (docs/deployment.md, "Link budget"); null: unlimited."""
-    link_policy: Literal["priority", "fifo"] = "priority"
-    """Under a link budget: by priority class (the default) or first in, first out (a baseline)."""
-
+MAX_FETCHED = 512  # peer keyframes kept for verification against more places of ours (compact: ~6 kB each)
 
 class AgentNode:
     """One robot on a Bus (see the module docstring).
@@ -121,6 +89,8 @@ class AgentNode:
         self.complete = False  # the team's final optimisation reached us
         self.pgo: TeamPgo | None = None
         self.pgo_params = pgo_params or team_params()
+        if not self.params.compact_wire:  # the full-size format: every GNC weight at every update
+            self.pgo_params = dataclasses.replace(self.pgo_params, weights_full_every=1)
         if self.params.server is None:
             self.pgo = TeamPgo(agent.robot, self.pgo_params,
                                self.schedule, agent.local_graph, agent.apply_poses,
@@ -155,8 +125,11 @@ class AgentNode:
         self._sub: Subscription | None = None
         self._serve: Closeable | None = None
         self._presence: Stream[PresenceEvent] | None = None
-        self._unacked: dict[int, LoopClosures] = {}  # peer -> newest closures batch not acknowledged
-        self._sent_at: dict[int, float] = {}
+        self.closures_out = ClosureOutbox(self.params.compact_wire)  # our batches until acknowledged
+        if isinstance(codec := getattr(bus, "codec", None), Codec):  # compressed tables (comms.wire.zipped)
+            codec.compress = self.params.compact_wire
+        self.closures_in = ClosureInbox()  # peers' batches to us, expanded
+        self._fetched: dict[tuple[int, int], LoopClosureReply] = {}  # (peer, keyframe) -> its reply
         self._state_at = -math.inf
         self._peer_stamp = 0.0
         self.epochs_seen = 0
@@ -225,9 +198,8 @@ class AgentNode:
                 await self._query(msg)
                 continue
             self._count_closures(msg)
-            if isinstance(msg, LoopClosures) and msg.peer != self.robot:
-                self._unacked[msg.peer] = msg
-                self._sent_at.pop(msg.peer, None)  # the re-send timer starts at the next tick
+            if isinstance(msg, LoopClosures):
+                msg = self.closures_out.send(msg)
             if isinstance(msg, KeyframeDescriptor) and self.params.descriptor_repeats > 0:
                 for old in self._recent_descriptors:
                     await self._publish(old)
@@ -240,7 +212,10 @@ class AgentNode:
     async def _query(self, msg: LoopClosureRequest) -> None:
         key = keys.keyframe_key(self.bus.team, msg.target, msg.keyframe)
         replies: list[Message] = []
-        for attempt in range(1 + max(self.params.query_retries, 0)):
+        fetched = self._fetched.get((msg.target, msg.keyframe))
+        if fetched is not None:  # fetched already, for another place of ours: it travels once
+            replies = [dataclasses.replace(fetched, request_id=msg.request_id)]
+        for attempt in range(0 if replies else 1 + max(self.params.query_retries, 0)):
             try:
                 replies = await self.bus.query(key, msg, timeout=self.params.query_timeout)
             except (KimeraMultiError, TimeoutError) as exc:
@@ -252,6 +227,10 @@ class AgentNode:
                 break
             self.queries_retried += 1
         for reply in replies:
+            if fetched is None and isinstance(reply, LoopClosureReply) and reply.found and self.params.compact_wire:
+                while len(self._fetched) >= MAX_FETCHED:
+                    del self._fetched[next(iter(self._fetched))]
+                self._fetched[(reply.robot, reply.keyframe)] = reply
             await self.send(self._handle_agent(reply))
 
     def _handle_agent(self, msg: Message) -> list[Message]:
@@ -268,13 +247,17 @@ class AgentNode:
     async def _dispatch(self, msg: Message) -> None:
         if msg.robot == self.robot:
             return
+        if isinstance(msg, LoopClosures) and msg.peer == self.robot:
+            try:
+                msg = self.closures_in.expand(msg)
+            except KimeraMultiError as exc:
+                self._refuse("LoopClosures", exc)
+                return
         self._count_closures(msg)
         if isinstance(msg, AgentState):
             self._peer_stamp = max(self._peer_stamp, msg.stamp)
         if isinstance(msg, LoopClosuresAck) and msg.peer == self.robot:
-            pending = self._unacked.get(msg.robot)
-            if pending is not None and msg.batch >= pending.batch:
-                del self._unacked[msg.robot]
+            self.closures_out.acked(msg.robot, msg.batch)
         if isinstance(msg, PEOPLE_MESSAGES):
             if self.people is not None:
                 try:
@@ -318,10 +301,8 @@ class AgentNode:
             await self._publish(KeyframeDescriptor(robot=self.robot, keyframe=k, stamp=c.stamp, kind="objects",
                                                    descriptor=c.descriptor))
         if event.robot in self.agent.closures and event.robot != self.robot:
-            latest = self.agent.closures_message(event.robot)
-            self._unacked[event.robot] = latest
-            self._sent_at.pop(event.robot, None)
-            await self._publish(latest)
+            self.closures_out.forget(event.robot)
+            await self._publish(self.closures_out.send(self.agent.closures_message(event.robot)))
         await self._publish_state()
         await self._reask(event.robot, appeared=True)
 
@@ -358,10 +339,7 @@ class AgentNode:
         if wall - self._state_at >= self.params.state_period:
             self._state_at = wall
             out.append(self._state())
-        for peer, msg in sorted(self._unacked.items()):
-            if wall - self._sent_at.setdefault(peer, wall) >= self.params.resend_period:
-                self._sent_at[peer] = wall
-                out.append(msg)
+        out += self.closures_out.due(wall, self.params.resend_period)
         if wall - self._reask_at >= self.params.resend_period:
             self._reask_at = wall
             for peer in sorted(self.alive() - {self.robot}):

@@ -143,3 +143,40 @@ class AgentParams:
         per_m = 1.0 / np.sqrt(self.keyframe_distance)
         return PcmNoise(closure_rot=self.closure_sigmas[0], closure_trans=self.closure_sigmas[1],
                         odom_rot_per_m=self.odom_sigmas[0] * per_m, odom_trans_per_m=self.odom_sigmas[1] * per_m)
+
+
+@dataclass
+class NodeParams:
+    """The node's own knobs (the agent's and the solver's are separate)."""
+
+    query_timeout: float = 2.0
+    """Wall seconds a constellation query waits for its reply (in the simulation its wait ends when
+    the reply can no longer arrive, on the simulated clock)."""
+    state_period: float = 5.0
+    """Clock seconds between AgentState messages (the tick's ``wall`` clock)."""
+    resend_period: float = 5.0
+    """Clock seconds between re-sends of unacknowledged closures."""
+    server: int | None = None
+    """Centralised mode: the server's id (then no team PGO). Set from the run's mode."""
+    map_consensus: Literal["off", "roam", "exact", "laplacian"] = "exact"
+    """Map consensus mode: off, roam, exact or laplacian (docs/algorithms/map_consensus.md)."""
+    descriptor_repeats: int = 1
+    """Lossy links: every descriptor goes out again with the next this many times (duplicates are ignored)."""
+    query_retries: int = 2
+    """Lossy links: a constellation query that gets no reply is asked again this many times."""
+    query_reasks: int = 3
+    """A query still unanswered after its retries is asked again, up to this many times, every
+    ``resend_period`` while its target is present; and whenever the target (re)appears."""
+    compact_wire: bool = True
+    """Compact encodings: verification clouds at the closure registration's resolution, packed
+    small; public poses as float32 deltas of the poses that moved (:mod:`kimera_multi_py.pgo.pose_stream`);
+    map evidence as palette rows, the growing submap held between versions (map consensus
+    ``palette_rows`` and ``hold``); closure batches against the acknowledged one
+    (:mod:`kimera_multi_py.comms.closure_stream`); a fetched peer keyframe kept and fetched once;
+    GNC weights when they change (``weights_full_every``); compressed envelopes
+    (:mod:`kimera_multi_py.comms.wire`). False: the full-size formats (to measure what compaction saves)."""
+    link_budget: float | None = None
+    """kB/s per peer link, a token bucket in the bus with PGO and closure traffic first, then
+    objects, then map evidence (docs/deployment.md, "Link budget"); null: unlimited."""
+    link_policy: Literal["priority", "fifo"] = "priority"
+    """Under a link budget: by priority class (the default) or first in, first out (a baseline)."""

@@ -42,6 +42,7 @@ from kimera_multi_py.comms.wire import (
     _ext_hook,
     _packb,
     ext_of,
+    zipped,
 )
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.ids import MAX_ROBOT_ID
@@ -50,6 +51,7 @@ MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 MAX_BATCH = 4096
 LARGE_BYTES = 64 * 1024  # from this size on, encode/decode with comms.largemsg (fewer copies)
 LARGE_BATCH_BYTES = 16 * 1024  # columnar batches with this many array bytes: encode with largemsg
+ZIP_MIN_BYTES = 48  # envelopes of a type marked ZIP from this size on travel compressed (wire.zipped)
 ENVELOPE_FIELDS = ("v", "type", "team", "src", "seq", "stamp", "body")
 _N_FIELDS = len(ENVELOPE_FIELDS)
 _isfinite = math.isfinite
@@ -368,6 +370,7 @@ class Codec:
         self.robot = robot
         self.robots = frozenset(robots) if robots is not None else None
         self.max_bytes = max_bytes
+        self.compress = True  # compress the envelopes of types marked ZIP (False: the plain format)
         self._seq = count()  # next() on a C iterator is atomic: thread-safe without a lock
 
     def next_seq(self) -> int:
@@ -388,6 +391,8 @@ class Codec:
             data = largemsg.pack({"v": SCHEMA_VERSION, "type": msg.TYPE, "team": self.team,
                                   "src": self.robot, "seq": next(self._seq), "stamp": time.time(),
                                   "body": msg.to_wire()})
+        if self.compress and msg.ZIP and len(data) >= ZIP_MIN_BYTES:
+            data = zipped(data)
         if len(data) > self.max_bytes:
             raise CodecError("size", f"{len(data)} bytes exceeds the limit of {self.max_bytes}")
         return data
@@ -413,6 +418,8 @@ class Codec:
         # stacked columns of a burst are big: largemsg copies them once, the Packer three times
         big = sum(c.nbytes for c in body["cols"].values() if c.__class__ is np.ndarray)
         data = largemsg.pack(env) if big >= LARGE_BATCH_BYTES else _packb(env)
+        if self.compress and msgs[0].ZIP and len(data) >= ZIP_MIN_BYTES:
+            data = zipped(data)
         if len(data) > self.max_bytes:
             raise CodecError("size", f"{len(data)} bytes exceeds the limit of {self.max_bytes}")
         return data

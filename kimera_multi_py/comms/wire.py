@@ -1,8 +1,18 @@
-"""The array and packing layer under the codec: numpy arrays as msgpack ext type 1, and one
-msgpack Packer per thread. Both the codec and the large-message path build on it
-(docs/outputs.md describes the wire format).
+"""The array and packing layer under the codec: numpy arrays as msgpack ext type 1, compressed
+envelopes as msgpack ext type 2, and one msgpack Packer per thread. Both the codec and the
+large-message path build on it (docs/outputs.md describes the wire format).
 
-    u8 dtype code | u8 ndim | ndim x u32 little-endian dims | raw little-endian C-order bytes
+    ext 1: u8 dtype code | u8 ndim | ndim x u32 little-endian dims | raw little-endian C-order bytes
+    ext 2: u8 compressor (comms.compression) | u32 little-endian size | the compressed msgpack
+           envelope of that size (never itself compressed)
+
+The compressor is zstd, or for envelopes of a few dozen bytes raw deflate primed with
+:data:`SCHEMA_DICT` (every message type's envelope with placeholder values, made from the message
+registry, so every robot of one schema version holds the same), whichever is smaller.
+
+A compressed envelope is a msgpack value like any other, so it stands alone as a payload or as
+one element of a batch; :func:`_ext_hook` inflates it (never beyond its stated size, at most
+:data:`MAX_ZIPPED_BYTES`) and reads the envelope inside.
 """
 
 from __future__ import annotations
@@ -15,10 +25,14 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from kimera_multi_py.comms import compression
 from kimera_multi_py.core.errors import MessageError
 
 EXT_NDARRAY = 1
+EXT_ZIPPED = 2
 MAX_NDIM = 8
+MAX_ZIPPED_BYTES = 64 * 1024 * 1024  # the codec's message size limit
+_ZHEAD = struct.Struct("<BI")
 
 _DTYPES: dict[int, np.dtype] = {
     1: np.dtype("<f8"),
@@ -101,9 +115,71 @@ def _ext_hook(code: int, data: bytes) -> Any:
             n = _U32.unpack_from(data, 2)[0]
             if n * dt.itemsize == len(data) - 6:
                 return _frombuffer(data, dt, n, 6)
+    if code == EXT_ZIPPED:
+        return _unzip(data)
     if code != EXT_NDARRAY:
         raise CodecError("ext", f"unknown ext type {code}")
     return _unpack_array(data)  # the reference checks, for everything else
+
+
+def _inner_hook(code: int, data: bytes) -> Any:
+    """The ext hook inside a compressed envelope: arrays only."""
+    if code != EXT_NDARRAY:
+        raise CodecError("ext", f"ext type {code} inside a compressed envelope")
+    return _ext_hook(code, data)
+
+
+def _unzip(data: bytes) -> Any:
+    """The envelope inside a compressed one (ext type 2); :class:`CodecError` if it is corrupt."""
+    if len(data) < _ZHEAD.size:
+        raise CodecError("payload", "truncated compressed envelope")
+    method, size = _ZHEAD.unpack_from(data)
+    if size > MAX_ZIPPED_BYTES:
+        raise CodecError("size", f"compressed envelope of {size} bytes exceeds the limit of {MAX_ZIPPED_BYTES}")
+    try:
+        raw = compression.decompress(data[_ZHEAD.size:], method, size, "envelope", SCHEMA_DICT)
+    except MessageError as exc:
+        raise CodecError("payload", str(exc)) from exc
+    try:
+        return msgpack.unpackb(raw, raw=False, ext_hook=_inner_hook, strict_map_key=True)
+    except MessageError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - msgpack raises many types on hostile input
+        raise CodecError("payload", f"compressed envelope is not valid msgpack ({type(exc).__name__})") from exc
+
+
+def zipped(data: bytes, level: int = 3) -> bytes:
+    """The encoded envelope ``data`` as a compressed one (ext type 2) if that is smaller, else itself."""
+    method, z = compression.DEFAULT, compression.compress(data, level=level)
+    if len(data) <= SMALL_ENVELOPE:
+        zd = compression.compress(data, compression.DEFLATE_DICT, zdict=SCHEMA_DICT)
+        if len(zd) < len(z):
+            method, z = compression.DEFLATE_DICT, zd
+    if len(z) + _ZHEAD.size + 3 >= len(data):
+        return data
+    return _packb(msgpack.ExtType(EXT_ZIPPED, _ZHEAD.pack(method, len(data)) + z))
+
+
+SMALL_ENVELOPE = 2048  # envelopes up to this size also try deflate with the schema dictionary
+_LAST = ("LoopClosureRequest", "LoopClosuresAck", "PoseDeltas", "PgoCommand", "PgoStatus")  # the most frequent
+
+
+def _schema_dict() -> bytes:
+    """Every message type's envelope with placeholder values (empty arrays of the field's dtype),
+    the most frequent types last (nearest to the data in deflate's window)."""
+    from kimera_multi_py.comms.messages import MESSAGE_TYPES, SCHEMA_VERSION
+    from kimera_multi_py.comms.messages.fields import Array, Bool, Float, Int
+
+    def placeholder(spec: Any) -> Any:
+        if isinstance(spec, Array):
+            return ext_of(np.zeros((0,) * len(spec.shape), spec.dtype))
+        return 0 if isinstance(spec, Int) else 0.0 if isinstance(spec, Float) else False if isinstance(spec, Bool) \
+            else ""
+
+    names = sorted(MESSAGE_TYPES, key=lambda n: _LAST.index(n) if n in _LAST else -1)
+    return b"".join(_packb({"v": SCHEMA_VERSION, "type": name, "team": "", "src": 0, "seq": 0, "stamp": 0.0,
+                            "body": {f: placeholder(s) for f, s in MESSAGE_TYPES[name].SPECS.items()}})
+                    for name in names)
 
 
 _frombuffer = np.frombuffer
@@ -147,3 +223,6 @@ def _packb(obj: Any) -> bytes:
 
 
 _local = threading.local()
+
+
+SCHEMA_DICT = _schema_dict()

@@ -8,7 +8,10 @@ correction moves every robot's copy of the objects exactly, and only a changed t
 
 Tables spread by flooding: a robot publishes a table (its own, or a neighbour's newer one) once
 per version, and every ``refresh_every`` periods all it holds again, which recovers lost messages
-and partitions. A table is small (about 130 B per object), so this costs little beside the map.
+and partitions; but not a table that every neighbour (the source aside) said it holds: every
+table a robot sends lists the newest version of each source it holds (``held_sources``,
+``held_versions``), so in a team whose robots all hear each other a table mostly travels once,
+from its source. A table is small (about 130 B per object), so this costs little beside the map.
 
 The team object map (:meth:`ObjectExchange.team_objects`) fuses every held table whose source's
 poses are in the robot's frame with :func:`~kimera_multi_py.mapping.object_fusion.fuse_objects`:
@@ -19,6 +22,7 @@ table, exactly as the others see them.
 
 from __future__ import annotations
 
+import dataclasses
 from collections import Counter
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -96,6 +100,7 @@ class ObjectExchange:
         self.rounds = 0
         self._version = 0
         self._published: dict[int, int] = {}  # source -> version last published
+        self.peer_holds: dict[int, dict[int, int]] = {}  # neighbour -> source -> newest version it holds
         self._next = -np.inf
 
     def set_neighbours(self, ids: Iterable[int]) -> None:
@@ -109,6 +114,8 @@ class ObjectExchange:
         if not isinstance(message, self.MESSAGE):
             return
         msg: Any = message
+        if msg.robot != self.robot:
+            self.peer_holds[msg.robot] = dict(zip(msg.held_sources.tolist(), msg.held_versions.tolist(), strict=True))
         if msg.robot == self.robot or msg.source == self.robot:
             return
         if msg.robot not in self.neighbours:
@@ -153,12 +160,18 @@ class ObjectExchange:
         if not self.neighbours:
             return []
         refresh = self.rounds % self.refresh_every == 0
+        held = sorted((src, t.version) for src, t in self.tables.items())
+        sources, versions = np.array([s for s, _ in held], np.int32), np.array([v for _, v in held], np.int64)
         out: list[Message] = []
         for src, t in sorted(self.tables.items()):
-            if refresh or t.version > self._published.get(src, 0):
-                out.append(self._relay(t))
-                self._published[src] = t.version
+            if (refresh or t.version > self._published.get(src, 0)) and not self._all_hold(src, t.version):
+                out.append(dataclasses.replace(self._relay(t), held_sources=sources, held_versions=versions))
+            self._published[src] = t.version
         return out
+
+    def _all_hold(self, src: int, version: int) -> bool:
+        """Every neighbour but the source said it holds ``src``'s table ``version`` or newer."""
+        return all(self.peer_holds.get(nb, {}).get(src, -1) >= version for nb in self.neighbours if nb != src)
 
     def team_objects(self, min_sightings: int = 1) -> list[dict[str, Any]]:
         """The team object map in the robot's frame: every held table whose source's submap poses

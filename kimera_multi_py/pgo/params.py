@@ -72,6 +72,10 @@ class PgoParams:
     """Momentum restart every this many updates (besides on a cost rise)."""
     resend_interval: int = 5
     """Rounds between re-publications of unchanged public poses (message loss)."""
+    weights_full_every: int = 4
+    """An inter-robot edge's owner sends the GNC weights that changed since it last sent them to
+    the peer, and every one of them at each this many-th weight update (message loss); 1: every
+    weight at every update."""
     robust: bool = False
     """GNC with a truncated least-squares cost on the loop closures."""
     inlier_probability: float = 0.999

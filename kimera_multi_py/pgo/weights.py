@@ -49,6 +49,8 @@ class RobustWeights:
         self.last_round = 0  # round of the last weight update
         self.mu_proposals: dict[int, float] = {}  # robot -> proposed μ₀ (team-wide GNC)
         self.rechecks = 0
+        self.sends = 0  # weight updates sent
+        self.sent = np.full(len(local.inter_peer), np.nan)  # the weight last sent of each inter-robot edge
 
     # ---------------------------------------------------------------- messages in
     def order(self, rnd: int) -> None:
@@ -73,7 +75,6 @@ class RobustWeights:
     def update(self, rnd: int) -> tuple[list[Message], bool]:
         """The ordered weight update at round ``rnd``: the messages to send, and whether the
         weights changed (False while the team's ``μ₀`` is being agreed)."""
-        lg = self.local
         p = self.params
         if p.gnc_team_mu and self.gnc.steps == 0 and self.robot not in self.mu_proposals:
             return self._propose_mu(rnd), False
@@ -96,16 +97,28 @@ class RobustWeights:
         self.state.intra_weights[loop] = w[: len(loop)]
         self.state.inter_weights[inter] = w[len(loop):]
         self.state.hold_bars()
+        return self._weight_messages(rnd, inter), True
+
+    def _weight_messages(self, rnd: int, inter: np.ndarray) -> list[Message]:
+        """The weights of the owned edges ``inter`` for their peers: those that changed since they
+        were last sent, every one at each ``weights_full_every``-th update; none unchanged."""
+        lg = self.local
+        w = self.state.inter_weights
+        full = self.sends % max(self.params.weights_full_every, 1) == 0
+        self.sends += 1
+        changed = np.asarray(w[inter] != self.sent[inter])  # NaN: never sent
+        self.sent[inter] = w[inter]
         out: list[Message] = []
         for peer in lg.neighbours:
-            sel = inter[lg.inter_peer[inter] == peer]
+            mine = lg.inter_peer[inter] == peer
+            sel = inter[mine if full else mine & changed]
             if len(sel) == 0:
                 continue
             out.append(GncWeights(robot=self.robot, peer=int(peer), round=rnd,
                                   keys_a=lg.keys[lg.inter_own[sel]],
                                   keys_b=lg.inter_peer_key[sel],
-                                  weights=self.state.inter_weights[sel], mu=self.gnc.mu))
-        return out, True
+                                  weights=w[sel], mu=self.gnc.mu))
+        return out
 
     def _robust_r2(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Squared residuals of the robust edges this robot decides (its loop closures and the

@@ -21,11 +21,12 @@ import numpy as np
 from kimera_multi_py.alignment.server_frames import FrameScreen, MapRule, screen_frames
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.bus import Bus, Subscription
+from kimera_multi_py.comms.closure_stream import ClosureInbox
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.closures import KeyframeOdometry, LoopClosures
 from kimera_multi_py.comms.messages.pgo import PublicPoses
 from kimera_multi_py.comms.messages.team import AgentState, PgoEpoch
-from kimera_multi_py.core.errors import KimeraMultiError
+from kimera_multi_py.core.errors import KimeraMultiError, MessageError
 from kimera_multi_py.core.ids import SERVER_ID as SERVER_ID  # re-exported: the server's id
 from kimera_multi_py.core.posegraph import PoseGraph, robot_key, split_key
 from kimera_multi_py.core.robust import correlated_votes
@@ -206,6 +207,7 @@ class ServerNode:
         self._final: PgoEpoch | None = None
         self.maps: MapConsensus | None = None  # the team map: every robot's evidence, fused here
         self.objects: ObjectExchange | None = None  # every robot's object table, relayed and fused here
+        self.closures_in = ClosureInbox()  # the robots' closure batches, expanded
 
     def fuse_maps(self, local: SubmapMap, mode: str = "exact", params: MapConsensusParams | None = None,
                   keyframes_per_submap: int = 10, pgo: PgoParams | None = None) -> None:
@@ -263,8 +265,8 @@ class ServerNode:
                         log.warning("server refused %s from robot %d: %s", type(msg).__name__, msg.robot, exc)
                 continue
             try:
-                self.server.handle(msg)
-            except ValueError as exc:
+                self.server.handle(self.closures_in.expand(msg) if isinstance(msg, LoopClosures) else msg)
+            except (ValueError, MessageError) as exc:
                 self.server.stats.refused += 1
                 log.warning("server refused %s from robot %d: %s", type(msg).__name__, msg.robot, exc)
         return n

@@ -246,3 +246,32 @@ def test_the_front_end_sends_the_same_messages_whatever_the_back_end_estimates()
         assert not np.allclose(np.array(still.agents[r].poses), np.array(moved.agents[r].poses), atol=0.05)
     assert sum(a.stats.candidates for a in still.agents.values()) > 0 and still.agents[0].closures.get(1)
     assert still.sent == moved.sent
+
+
+
+@pytest.mark.parametrize("compact", [True, False])
+def test_a_peer_keyframe_travels_once_however_many_places_it_is_verified_against(office, compact):
+    """The node keeps the peer keyframes it fetched (compact wire): asked again for another place
+    of ours, it answers from there, the very reply the peer would send."""
+    async def main():
+        net = LoopbackNetwork(team="t0", seed=0, robots=[0, 2])
+        agents = [Agent(r, (0, 2), AgentParams()) for r in (0, 2)]
+        nodes = [AgentNode(a, net.bus(a.robot), params=NodeParams(compact_wire=compact)) for a in agents]
+        for n in nodes:
+            await n.start()
+        for kf, _ in zip(office.keyframes(2), range(30), strict=False):
+            await nodes[1].process_keyframe(keyframe_input(kf))
+        k = sorted(agents[1].constellations)[-1]
+        for rid in (1, 2, 3):
+            await nodes[0]._query(LoopClosureRequest(robot=0, target=2, request_id=rid, keyframe=k, query_keyframe=rid))
+        for n in nodes:
+            await n.close()
+        return nodes, k
+
+    nodes, k = asyncio.run(main())
+    asked, answered = (n.bus.counters.sent["keyframe"].messages for n in nodes)
+    assert (asked, answered) == ((1, 1) if compact else (3, 3))
+    if compact:
+        kept = nodes[0]._fetched[(2, k)]
+        assert kept.found and kept.request_id == 1 and kept.num_points > 0
+    assert sum(n.errors.total() for n in nodes) == 0

@@ -210,6 +210,7 @@ def test_batch_round_trip_and_single_payloads() -> None:
 def test_batch_blames_only_the_bad_envelopes() -> None:
     """Each element is validated as decode() validates it alone; the others still arrive."""
     c = Codec("t0", 1, ROBOTS)
+    c.compress = False  # the plain envelope, to break an array in it
     good = [c.encode(Heartbeat(robot=1, keyframes=i)) for i in range(3)]
     foreign = Codec("t1", 1).encode(Heartbeat(robot=1, keyframes=9))
     blob = bytearray(c.encode(PublicPoses(robot=1, round=0, keys=[1], poses=np.eye(4)[None])))

@@ -147,6 +147,7 @@ def test_pack_envelopes_byte_identical(msg: Message) -> None:
 
 def test_pack_matches_codec_encode() -> None:
     c = Codec("t0", 1)
+    c.compress = False  # largemsg packs the plain envelope (the codec may compress it after)
     for msg in MESSAGES:
         if msg.robot != 1:
             continue

@@ -244,7 +244,8 @@ async def test_counters_agree_between_sender_and_receiver() -> None:
     for k in range(5):
         await a.publish(a.key(keys.HEARTBEAT), Heartbeat(robot=0, keyframes=k))
     await a.publish(a.key(keys.PUBLIC_POSES),
-                    PublicPoses(robot=0, round=0, keys=np.arange(10), poses=np.zeros((10, 4, 4))))
+                    PublicPoses(robot=0, round=0, keys=np.arange(10),
+                                poses=np.random.default_rng(0).normal(size=(10, 4, 4))))
     assert len(await drain(sub)) == 6
     sa, sb = a.counters.snapshot(), b.counters.snapshot()
     assert sa["sent"] == sb["received"]

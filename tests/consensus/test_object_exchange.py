@@ -150,3 +150,34 @@ def test_fusion_is_independent_of_row_order() -> None:
                                                                           np.ones(12))
     comp = object_groups(cls, lo, hi)
     assert comp[0] == 0 and set(comp.tolist()) == set(range(comp.max() + 1))
+
+
+def _team(holds: bool) -> tuple[list[Robot], int]:
+    """Three robots that all hear each other, a PGO move half-way; the messages sent. ``holds``
+    False: the robots forget what their neighbours said they hold (every table is relayed)."""
+    robots = [Robot(0, [((1.0, 1.0), CHAIR)], np.eye(4), 0), Robot(1, [((3.0, 1.0), TABLE)], np.eye(4), 1),
+              Robot(2, [((6.0, 2.0), CHAIR)], np.eye(4), 2)]
+    sent = 0
+    steps = [r.ex.step for r in robots]
+    for r, step in zip(robots, steps, strict=True):
+        def counted(now: float, r: Robot = r, step=step) -> list:
+            nonlocal sent
+            if not holds:
+                r.ex.peer_holds.clear()
+            out = step(now)
+            sent += len(out)
+            return out
+        r.ex.step = counted  # type: ignore[method-assign]
+    t = run(robots, {(0, 1), (1, 2), (0, 2)}, 5)
+    robots[1].move(make_pose(np.eye(3), [0.5, 0.0, 0.0]))
+    run(robots, {(0, 1), (1, 2), (0, 2)}, 7, t0=t)
+    return robots, sent
+
+
+def test_a_table_every_neighbour_holds_is_not_sent_again() -> None:
+    (with_holds, fewer), (without, more) = _team(True), _team(False)
+    assert fewer < more / 2
+    for a, b in zip(with_holds, without, strict=True):
+        assert sorted(a.ex.tables) == sorted(b.ex.tables) == [0, 1, 2]
+        assert all(a.ex.tables[s].version == b.ex.tables[s].version for s in a.ex.tables)
+        assert a.ex.team_objects() == b.ex.team_objects()

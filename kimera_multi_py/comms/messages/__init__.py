@@ -49,7 +49,7 @@ from kimera_multi_py.comms.messages.pgo import (
 from kimera_multi_py.comms.messages.team import AgentState, Heartbeat, PgoEpoch, Ping
 from kimera_multi_py.core.errors import MessageError
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 # every message type by its wire name, in the order they were first defined (samples and
 # tests iterate it)
@@ -62,6 +62,15 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         Heartbeat, Ping, KeyframeOdometry, PgoEpoch, AgentState, PoseDeltas, PeopleUpdate, EdgeVeto,
     )
 }
+# the types whose envelopes the codec compresses (wire.zipped): tables of keys, poses, weights,
+# descriptors and objects, which repeat field names and small integers, and the small messages
+# sent by the thousand, which are mostly field names; not the map evidence nor the verification
+# clouds (compressed inside already)
+ZIPPED_TYPES = (PublicPoses, PoseDeltas, GncWeights, EdgeVeto, FrameLandmarks, KeyframeDescriptor, LoopClosures,
+                ObjectUpdate, PeopleUpdate, SubmapPoses, MapVersions, PgoEpoch, AgentState, PgoStatus, PgoCommand,
+                LoopClosuresAck, LoopClosureRequest)
+for _cls in ZIPPED_TYPES:
+    _cls.ZIP = True
 if set(MESSAGE_TYPES.values()) != set(Message.__subclasses__()):  # a type defined but not listed
     raise ImportError(f"message types not in MESSAGE_TYPES: "
                       f"{sorted(c.__name__ for c in set(Message.__subclasses__()) - set(MESSAGE_TYPES.values()))}")

@@ -51,6 +51,7 @@ class Message:
 
     TYPE: ClassVar[str] = ""
     TOPIC: ClassVar[str] = ""
+    ZIP: ClassVar[bool] = False  # the codec compresses this type's envelopes (comms.wire.zipped)
     SPECS: ClassVar[dict[str, Spec]] = {}
     if TYPE_CHECKING:  # every registered subclass is a dataclass (see :func:`message`)
         __dataclass_fields__: ClassVar[dict[str, dataclasses.Field[Any]]]

@@ -12,6 +12,7 @@ from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.clouds import MAX_POINTS, unpack_cloud
 from kimera_multi_py.comms.messages.base import Message, message
 from kimera_multi_py.comms.messages.fields import (
+    Array,
     Bool,
     Float,
     Int,
@@ -75,8 +76,12 @@ class LoopClosureReply(Message):
 class LoopClosures(Message):
     """Verified inter-robot loop closures, sent until ``peer`` acknowledges ``batch``.
 
-    Closure ``i``: relative pose ``poses[i]`` = T(keys_a[i] -> keys_b[i]) with diagonal
-    noise ``sigmas[i]`` (rotation rad x3, then translation m x3) and ``inliers[i]`` support.
+    The batch holds every closure the sender accepts with ``peer`` now: closure ``i`` joins
+    ``keys_a[i]`` and ``keys_b[i]``. Its relative pose T(keys_a[i] -> keys_b[i]), diagonal noise
+    (rotation rad x3, then translation m x3) and inlier support travel in ``poses``, ``sigmas``
+    and ``inliers`` for the closures marked in ``fresh`` (1; empty: all of them), in order; the
+    others are batch ``base``'s, which ``peer`` acknowledged (``base`` -1: none;
+    :mod:`kimera_multi_py.comms.closure_stream` expands such a batch).
     """
 
     robot: int = robot_id()
@@ -84,9 +89,11 @@ class LoopClosures(Message):
     batch: int = count()
     keys_a: np.ndarray = arr("int64", "n")
     keys_b: np.ndarray = arr("int64", "n")
-    poses: np.ndarray = arr("float64", "n", 4, 4)
-    sigmas: np.ndarray = arr("float64", "n", 6, lo=0.0)
-    inliers: np.ndarray = arr("int32", "n", lo=0)
+    poses: np.ndarray = arr("float64", "m", 4, 4)
+    sigmas: np.ndarray = arr("float64", "m", 6, lo=0.0)
+    inliers: np.ndarray = arr("int32", "m", lo=0)
+    base: int = spec_field(Int(-1), default=-1)
+    fresh: np.ndarray = spec_field(Array("uint8", ("f",), lo=0, hi=1), factory=lambda: np.zeros(0, np.uint8))
 
 
 @message("LoopClosuresAck", keys.LOOP_CLOSURES_ACK)

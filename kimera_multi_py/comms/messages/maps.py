@@ -11,6 +11,7 @@ from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.messages.base import Message, message
 from kimera_multi_py.comms.messages.fields import (
     MAX_ROBOT_ID,
+    Array,
     Bool,
     Float,
     Int,
@@ -139,7 +140,9 @@ class ObjectUpdate(Message):
     correction moves it with the submap and the table itself need not travel again. Per object:
     id (the source's landmark id), MAP class, class posterior ``probs`` (n, C), box centre
     ``centroids`` and axis-aligned half extents ``extents`` (reference frame), and sightings.
-    ``frame`` is the sender's frame when sent. Relayed unchanged except for ``robot``.
+    ``frame`` is the sender's frame when sent. Relayed unchanged except for ``robot`` and
+    ``held_sources`` / ``held_versions``: the newest version of each source's table the sender
+    holds (so its neighbours need not send it what it has).
     """
 
     robot: int = robot_id()
@@ -153,6 +156,9 @@ class ObjectUpdate(Message):
     centroids: np.ndarray = arr("float64", "n", 3)
     extents: np.ndarray = arr("float64", "n", 3, lo=0.0)
     sightings: np.ndarray = arr("int32", "n", lo=0)
+    held_sources: np.ndarray = spec_field(Array("int32", ("h",), lo=0, hi=MAX_ROBOT_ID),
+                                          factory=lambda: np.zeros(0, np.int32))
+    held_versions: np.ndarray = spec_field(Array("int64", ("h",), lo=0), factory=lambda: np.zeros(0, np.int64))
 
 
 @message("PeopleUpdate", keys.PEOPLE)
@@ -172,3 +178,6 @@ class PeopleUpdate(Message):
     stamps: np.ndarray = arr("float64", "n", lo=0.0)
     submaps: np.ndarray = arr("int64", "n", lo=0)
     positions: np.ndarray = arr("float64", "n", 3)
+    held_sources: np.ndarray = spec_field(Array("int32", ("h",), lo=0, hi=MAX_ROBOT_ID),
+                                          factory=lambda: np.zeros(0, np.int32))
+    held_versions: np.ndarray = spec_field(Array("int64", ("h",), lo=0), factory=lambda: np.zeros(0, np.int64))
