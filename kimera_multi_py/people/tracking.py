@@ -53,6 +53,10 @@ class PeopleParams:
     max_height: float = 2.4
     min_purity: float = 0.5
     """Share of the points in a detection's voxels that must be its own."""
+    view_span: float = 0.9
+    """A cluster spanning this share of the view's elevation angles is cut off by the view, not flat."""
+    link_angle: float = 0.05
+    """Far away, points are linked within this angle (rad) x their range (about two ray spacings)."""
     depth_offset: float = 0.2
     """How far behind the visible points a person's axis lies (m), along the view ray."""
     meas_sigma: float = 0.15
@@ -168,7 +172,7 @@ class PeopleTracker:
         dets = detect_people(points, labels, self.dynamic_classes, sensor, radius=p.radius, min_core=p.min_core,
                              min_points=p.min_points, max_width=p.max_width, min_height=p.min_height,
                              max_height=p.max_height, depth_offset=p.depth_offset, min_purity=p.min_purity,
-                             dropped=self.dropped)
+                             view_span=p.view_span, link_angle=p.link_angle, dropped=self.dropped)
         self.step(index, stamp, submap, dets)
         return dets
 

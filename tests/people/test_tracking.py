@@ -232,3 +232,4 @@ def test_a_person_who_turned_back_out_of_sight_keeps_their_id_and_a_passer_by_do
         for (xy, tid) in zip(rec.refs[:, :2], rec.tracks.tolist(), strict=True):
             names.setdefault(int(abs(xy[1]) > 0.5), set()).add(tid)  # 0: A's line, 1: B's
     assert len(names[0]) == 1 and len(names[1]) == 1 and names[0] != names[1]
+
