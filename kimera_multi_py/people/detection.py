@@ -17,7 +17,11 @@ the view, not flat: a person right in front of the camera fills the image but sh
 centimetres of height; ``min_height`` does not apply to it. The others are dropped and counted by
 reason. A camera sees only the near side of a person, so the centroid is pushed away from the sensor
 by ``depth_offset`` (for an upright cylinder of radius r seen from the side, the visible points'
-mean lies ``pi r / 4`` in front of its axis).
+mean lies ``pi r / 4`` in front of its axis). When the side of the image cuts a person off (the
+cluster reaches within ``edge_angle`` of the keyframe's widest azimuth), the visible points lean
+towards the middle of the image and their mean is biased by up to r; the axis is then the centre
+of the circle of radius r that best fits the body's waist, started r behind the silhouette on the
+uncut side.
 """
 
 from __future__ import annotations
@@ -57,7 +61,7 @@ def detect_people(points: np.ndarray, labels: np.ndarray, dynamic_classes: Itera
                   sensor: np.ndarray | None = None, *, radius: float = 0.3, min_core: int = 3,
                   min_points: int = 10, max_width: float = 1.2, min_height: float = 0.25,
                   max_height: float = 2.4, depth_offset: float = 0.2, min_purity: float = 0.5,
-                  view_span: float = 0.9, link_angle: float = 0.05,
+                  view_span: float = 0.9, link_angle: float = 0.05, edge_angle: float = 0.03,
                   dropped: Counter[str] | None = None) -> PersonDetections:
     """Person detections among ``points`` (n, 3, world frame) whose ``labels`` are in
     ``dynamic_classes``; ``sensor`` is the sensor's position (for the depth offset; none: no
@@ -104,11 +108,15 @@ def detect_people(points: np.ndarray, labels: np.ndarray, dynamic_classes: Itera
     if (n := int(impure.sum())):
         dropped["impure"] += n
     good = ~(small | wide | flat | tall | impure)
-    centroid, ext, sizes = centroid[good], ext[good], sizes[good]
-    if sensor is not None and depth_offset > 0 and len(centroid):
-        ray = centroid[:, :2] - np.asarray(sensor, dtype=np.float64).reshape(3)[None, :2]
+    if sensor is not None and depth_offset > 0 and good.any():
+        sxy = np.asarray(sensor, dtype=np.float64).reshape(3)[:2]
+        ray = centroid[:, :2] - sxy
         norm = np.linalg.norm(ray, axis=1, keepdims=True)
-        centroid[:, :2] += depth_offset * ray / np.maximum(norm, 1e-9)
+        axis = centroid[:, :2] + depth_offset * ray / np.maximum(norm, 1e-9)
+        if edge_angle > 0:
+            axis = _behind_silhouette(pts[finite][:, :2], P, starts, sxy, axis, 4 * depth_offset / np.pi, edge_angle)
+        centroid[:, :2] = axis
+    centroid, ext, sizes = centroid[good], ext[good], sizes[good]
     return PersonDetections(centroid, ext, sizes.astype(np.int64))
 
 
@@ -144,3 +152,48 @@ def _neighbours(P: np.ndarray, sensor: np.ndarray | None, radius: float, link_an
     pairs = cKDTree(P).query_pairs(reach, output_type="ndarray")
     d = np.linalg.norm(P[pairs[:, 0]] - P[pairs[:, 1]], axis=1)
     return pairs[d <= np.maximum(radius, link_angle * 0.5 * (rng[pairs[:, 0]] + rng[pairs[:, 1]]))]
+
+
+def _behind_silhouette(scan: np.ndarray, P: np.ndarray, starts: np.ndarray, sensor: np.ndarray, axis: np.ndarray,
+                       radius: float, edge: float) -> np.ndarray:
+    """Axes (n, 2) of the clusters (``P`` sorted by cluster, from ``starts``) that the side of the
+    image cuts (their azimuth from ``sensor`` within ``edge`` of the keyframe's widest, ``scan``):
+    the centre of the circle of ``radius`` that best fits the cluster's waist (the middle half of
+    its height, where the body is widest), started a radius behind the silhouette on the uncut
+    side (if the fit lands in front of the visible points, the centroid rule stands: a short arc
+    fits a circle on either side). The others keep ``axis``."""
+    def azimuth(X: np.ndarray, ref: float) -> np.ndarray:
+        d = X[:, :2] - sensor
+        return np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - ref)))
+
+    d = scan - sensor
+    ref = float(np.arctan2(d[:, 1].sum(), d[:, 0].sum()))  # the view's middle
+    view = azimuth(scan, ref)
+    az = azimuth(P, ref)
+    lo, hi = np.minimum.reduceat(az, starts), np.maximum.reduceat(az, starts)
+    out = axis.copy()
+    ends = np.append(starts[1:], len(P))
+    for c, (a, b) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True)):  # per cluster, not per point
+        cut_hi, cut_lo = hi[c] >= view.max() - edge, lo[c] <= view.min() + edge
+        if cut_hi == cut_lo:  # whole, or wider than the view: the centroid rule holds
+            continue
+        z = P[a:b, 2]
+        mid = np.abs(z - 0.5 * (z.min() + z.max())) <= 0.25 * np.ptp(z)
+        Q, qa = P[a:b][mid, :2], az[a:b][mid]
+        if len(Q) < 3:
+            continue
+        k = int(np.argmin(qa) if cut_hi else np.argmax(qa))  # where the waist's silhouette grazes a ray
+        g = (Q[k] - sensor) / max(float(np.linalg.norm(Q[k] - sensor)), 1e-9)
+        n = np.array([-g[1], g[0]])  # towards larger azimuth
+        x = Q[k] + radius * (n if cut_hi else -n)
+        for _ in range(10):  # Gauss-Newton on sum (|q - x| - radius)^2
+            e = Q - x
+            dist = np.maximum(np.linalg.norm(e, axis=1), 1e-9)
+            step = np.linalg.lstsq(-e / dist[:, None], -(dist - radius), rcond=None)[0]
+            x = x + step
+            if np.linalg.norm(step) < 1e-4:
+                break
+        # a short arc fits a circle on either side of it: the body's axis lies behind what is seen
+        if np.linalg.norm(x - sensor) > np.median(np.linalg.norm(Q - sensor, axis=1)):
+            out[c] = x
+    return out

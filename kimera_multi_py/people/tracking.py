@@ -57,6 +57,8 @@ class PeopleParams:
     """A cluster spanning this share of the view's elevation angles is cut off by the view, not flat."""
     link_angle: float = 0.05
     """Far away, points are linked within this angle (rad) x their range (about two ray spacings)."""
+    edge_angle: float = 0.03
+    """A detection within this angle (rad) of the image's side edge is cut off by it (0: never)."""
     depth_offset: float = 0.2
     """How far behind the visible points a person's axis lies (m), along the view ray."""
     meas_sigma: float = 0.15
@@ -176,7 +178,8 @@ class PeopleTracker:
         dets = detect_people(points, labels, self.dynamic_classes, sensor, radius=p.radius, min_core=p.min_core,
                              min_points=p.min_points, max_width=p.max_width, min_height=p.min_height,
                              max_height=p.max_height, depth_offset=p.depth_offset, min_purity=p.min_purity,
-                             view_span=p.view_span, link_angle=p.link_angle, dropped=self.dropped)
+                             view_span=p.view_span, link_angle=p.link_angle, edge_angle=p.edge_angle,
+                             dropped=self.dropped)
         self.step(index, stamp, submap, dets)
         return dets
 

@@ -102,3 +102,23 @@ def test_a_far_person_seen_as_a_sliver_one_ray_wide_is_detected():
     assert abs(det.centroids[0, 0] - 7.5) < 0.2
     # linked within ``radius`` alone (link_angle 0), the column has no core point: nothing
     assert len(detect_people(pts, labels, [HUMAN], sensor, link_angle=0.0)) == 0
+
+
+def test_a_person_the_side_of_the_image_cuts_is_placed_behind_their_silhouette():
+    """A person 2 m away at the image's right edge shows only their left part: the visible points
+    lean towards the middle of the image and their mean, pushed back by ``depth_offset``, misses
+    the person's axis by 0.2 m. The axis lies a radius behind the silhouette that
+    is in view, at right angles to the ray that grazes it."""
+    sensor = np.array([0.0, 0.0, 1.0])
+    bearing = np.deg2rad(-50.0)  # the image spans -45..45 degrees
+    centre = 2.0 * np.array([np.cos(bearing), np.sin(bearing)])
+    pts, labels = scan(sensor, centre, radius=0.25)
+    assert (labels == HUMAN).sum() >= 20
+    cut = detect_people(pts, labels, [HUMAN], sensor, edge_angle=0.0)
+    assert len(cut) == 1 and np.hypot(*(cut.centroids[0, :2] - centre)) > 0.15
+    d = detect_people(pts, labels, [HUMAN], sensor)
+    assert len(d) == 1 and np.hypot(*(d.centroids[0, :2] - centre)) < 0.08
+    # a person in the middle of the image keeps the centroid rule
+    whole = detect_people(*scan(sensor, [2.0, 0.0]), [HUMAN], sensor)
+    np.testing.assert_allclose(whole.centroids, detect_people(*scan(sensor, [2.0, 0.0]), [HUMAN], sensor,
+                                                             edge_angle=0.0).centroids)
