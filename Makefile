@@ -67,6 +67,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/team_robustness.py --quick --json
 	$(BIN)/python benchmarks/bandwidth.py --json
 	$(BIN)/python benchmarks/people_tracking.py --json
+	$(BIN)/python benchmarks/people_tracking.py --scenario sims/office.toml --json
 	@if [ -d "$(DATASETS)/pgo" ]; then \
 		echo "$(BIN)/python benchmarks/pgo.py --json --data $(DATASETS)/pgo"; \
 		$(BIN)/python benchmarks/pgo.py --json --data "$(DATASETS)/pgo"; \

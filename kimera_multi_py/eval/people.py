@@ -3,7 +3,7 @@
 Visibility
     A true person is in view of a keyframe when at least ``min_hits`` of the sensor's rays reach
     them first (the rays of the sensor's pattern that pass near the person are cast against the
-    world and every person).
+    world and every person; a ray that stops at another person in front of them does not count).
 Detection
     Per keyframe, detections (estimate frame, placed in the world through ``T_world_team``) and
     the true people are matched by ``scipy.optimize.linear_sum_assignment`` within ``match_distance``
@@ -67,8 +67,12 @@ def people_in_view(sim: Simulation, pose: np.ndarray, stamp: float, min_hits: in
     owner, ray = np.nonzero(near)
     if len(ray) == 0:
         return np.zeros(0, dtype=np.int64)
-    _, labels = sim.world.raycast(t, dirs[ray], sim.sensor.max_range, humans)
-    hits = np.bincount(owner[labels == _HUMAN], minlength=len(humans))
+    ranges, labels = sim.world.raycast(t, dirs[ray], sim.sensor.max_range, humans)
+    # the ray stops at this person, not at another one in front of them: horizontally, the hit lies
+    # no nearer than the person's near side (the closest approach to their axis less their radius)
+    flat = np.sqrt(norm2[0, ray])  # horizontal length per unit of range
+    at = ranges * flat >= s[owner, ray] * flat - humans.half[owner, 0] - 0.05
+    hits = np.bincount(owner[(labels == _HUMAN) & at], minlength=len(humans))
     return np.flatnonzero(hits >= min_hits)
 
 

@@ -37,15 +37,16 @@ class Detection:
         return len(self.points)
 
 
-def _core_clusters(P: np.ndarray, radius: float, min_core: int) -> np.ndarray:
+def _core_clusters(P: np.ndarray, radius: float, min_core: int, pairs: np.ndarray | None = None) -> np.ndarray:
     """Cluster id per point (-1 for noise): single linkage over *core* points only.
 
     A core point has at least ``min_core`` neighbours within ``radius``; other points join
     the cluster of a core neighbour. Isolated mislabelled points therefore cannot chain two
-    objects together (DBSCAN's rule).
+    objects together (DBSCAN's rule). ``pairs`` (m, 2), when given, are the neighbours instead.
     """
     n = len(P)
-    pairs = cKDTree(P).query_pairs(radius, output_type="ndarray")
+    if pairs is None:
+        pairs = cKDTree(P).query_pairs(radius, output_type="ndarray")
     degree = np.bincount(pairs.ravel(), minlength=n)
     core = degree >= min_core
     both = core[pairs[:, 0]] & core[pairs[:, 1]]

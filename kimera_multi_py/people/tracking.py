@@ -53,6 +53,12 @@ class PeopleParams:
     max_height: float = 2.4
     min_purity: float = 0.5
     """Share of the points in a detection's voxels that must be its own."""
+    view_span: float = 0.9
+    """A cluster spanning this share of the view's elevation angles is cut off by the view, not flat."""
+    link_angle: float = 0.05
+    """Far away, points are linked within this angle (rad) x their range (about two ray spacings)."""
+    edge_angle: float = 0.03
+    """A detection within this angle (rad) of the image's side edge is cut off by it (0: never)."""
     depth_offset: float = 0.2
     """How far behind the visible points a person's axis lies (m), along the view ray."""
     meas_sigma: float = 0.15
@@ -85,6 +91,10 @@ class PeopleParams:
     """Below this speed (m/s) a track has no direction to have turned back from."""
     turn_cos: float = 0.7
     """Turned back: the young track heads at least this much (cosine) against the lost one."""
+    line_seconds: float = 5.0
+    """Turned back: a lost track's line is fitted to its samples of its last seconds seen."""
+    line_min_length: float = 1.0
+    """... when they stretch along about this length (m); otherwise its velocity gives the line."""
 
 
 @dataclass
@@ -168,6 +178,7 @@ class PeopleTracker:
         dets = detect_people(points, labels, self.dynamic_classes, sensor, radius=p.radius, min_core=p.min_core,
                              min_points=p.min_points, max_width=p.max_width, min_height=p.min_height,
                              max_height=p.max_height, depth_offset=p.depth_offset, min_purity=p.min_purity,
+                             view_span=p.view_span, link_angle=p.link_angle, edge_angle=p.edge_angle,
                              dropped=self.dropped)
         self.step(index, stamp, submap, dets)
         return dets
@@ -302,14 +313,31 @@ class PeopleTracker:
         v1, v2 = float(np.linalg.norm(old.x[2:])), float(np.linalg.norm(new.x[2:]))
         if min(v1, v2) < p.reacquire_min_speed:
             return None
-        u = old.x[2:] / v1
+        u, on = self._line(old)
         if float(u @ new.x[2:]) / v2 > -p.turn_cos:
             return None
-        e = p0 - old.x[:2]
-        side = abs(float(e @ np.array([-u[1], u[0]]))) / p.reacquire_lateral
-        ahead = float(e @ u)
+        side = abs(float((p0 - on) @ np.array([-u[1], u[0]]))) / p.reacquire_lateral
+        ahead = float((p0 - old.x[:2]) @ u)
         turn = (t0 - old.last_seen + ahead / v2) / (1.0 / v1 + 1.0 / v2)  # how far on they turned
         return side if side <= 1.0 and turn >= max(ahead, 0.0) - p.max_gate else None
+
+    def _line(self, t: Track) -> tuple[np.ndarray, np.ndarray]:
+        """The line a track walked before it was lost: the unit direction (along its velocity) and a
+        point. It is fitted to the samples of its last ``line_seconds`` (principal axis, when they
+        span ``line_min_length``): the filter's velocity swings by several degrees from one
+        detection to the next, which puts its line half a metre off five metres on."""
+        p = self.params
+        u = t.x[2:] / max(float(np.linalg.norm(t.x[2:])), 1e-9)
+        keep = np.asarray(t.stamps) >= t.last_seen - p.line_seconds
+        if keep.sum() < 3:
+            return u, t.x[:2]
+        xy = self.positions(t)[keep, :2]
+        mean = xy.mean(axis=0)
+        vt = np.linalg.svd(xy - mean, full_matrices=False)[2]
+        if np.ptp((xy - mean) @ vt[0]) < p.line_min_length:  # too short a stretch (standing, a step or two)
+            return u, t.x[:2]
+        d = vt[0] if float(vt[0] @ u) >= 0 else -vt[0]
+        return d, mean
 
     def _continue(self, old: Track, new: Track, owner: np.ndarray) -> None:
         """``old`` takes over ``new`` (which began after ``old`` was last seen): its samples, state and id."""

@@ -232,3 +232,24 @@ def test_a_person_who_turned_back_out_of_sight_keeps_their_id_and_a_passer_by_do
         for (xy, tid) in zip(rec.refs[:, :2], rec.tracks.tolist(), strict=True):
             names.setdefault(int(abs(xy[1]) > 0.5), set()).add(tid)  # 0: A's line, 1: B's
     assert len(names[0]) == 1 and len(names[1]) == 1 and names[0] != names[1]
+
+
+
+def test_a_person_who_turned_back_is_judged_against_the_line_they_walked_not_the_last_velocity():
+    """A walks east along y = 0; the last two detections before A goes out of sight lie 0.1 m to
+    either side (detection noise), so the filter's heading swings by several degrees. A walks on to
+    the end, turns back and is seen again 4 m further on than where they were lost, on their line.
+    The line of the last velocity passes more than half a metre off there (as for a passer-by in the
+    next lane: no); the line fitted to A's last seconds of samples passes through (A, one id)."""
+    tr = PeopleTracker((HUMAN,), PeopleParams(confirm_hits=2))
+    tr.set_submap_pose(0, np.eye(4))
+
+    def a(t):  # east at 0.8 m/s to x = 10 (t = 12.5), then back west; out of sight for 5 < t < 15
+        if 5.0 < t < 15.0:
+            return None
+        x = 0.8 * t if t <= 12.5 else 10.0 - 0.8 * (t - 12.5)
+        return np.array([x, {4.0: -0.1, 5.0: 0.1}.get(float(t), 0.0)])
+
+    walk(tr, {0: a}, np.arange(0.0, 20.01, 1.0))
+    assert tr.reacquired == 1
+    assert len({int(i) for rec in tr.log for i in rec.tracks}) == 1  # the log names one person
