@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from functools import lru_cache
 from itertools import count
@@ -371,6 +371,9 @@ class Codec:
         self.robots = frozenset(robots) if robots is not None else None
         self.max_bytes = max_bytes
         self.compress = True  # compress the envelopes of types marked ZIP (False: the plain format)
+        # the envelopes' stamps: a simulation gives its own clock, so that compressed sizes (which
+        # depend on the stamp's bytes) repeat from run to run
+        self.clock: Callable[[], float] = time.time
         self._seq = count()  # next() on a C iterator is atomic: thread-safe without a lock
 
     def next_seq(self) -> int:
@@ -385,11 +388,11 @@ class Codec:
         # the team was checked once in __init__ and seq comes from our own counter
         if msg.size_hint() < LARGE_BYTES:
             data = _packb({"v": SCHEMA_VERSION, "type": msg.TYPE, "team": self.team,
-                           "src": self.robot, "seq": next(self._seq), "stamp": time.time(),
+                           "src": self.robot, "seq": next(self._seq), "stamp": self.clock(),
                            "body": msg._wire_body(ext_of)})
         else:  # the same bytes, with one copy of the arrays instead of three
             data = largemsg.pack({"v": SCHEMA_VERSION, "type": msg.TYPE, "team": self.team,
-                                  "src": self.robot, "seq": next(self._seq), "stamp": time.time(),
+                                  "src": self.robot, "seq": next(self._seq), "stamp": self.clock(),
                                   "body": msg.to_wire()})
         if self.compress and msg.ZIP and len(data) >= ZIP_MIN_BYTES:
             data = zipped(data)
@@ -414,7 +417,7 @@ class Codec:
         for _ in range(len(msgs) - 1):  # messages get seq0, seq0 + 1, ... (one sender thread)
             next(seq)
         env = {"v": SCHEMA_VERSION, "type": BATCH_TYPE, "team": self.team,
-               "src": robot, "seq": seq0, "stamp": time.time(), "body": body}
+               "src": robot, "seq": seq0, "stamp": self.clock(), "body": body}
         # stacked columns of a burst are big: largemsg copies them once, the Packer three times
         big = sum(c.nbytes for c in body["cols"].values() if c.__class__ is np.ndarray)
         data = largemsg.pack(env) if big >= LARGE_BATCH_BYTES else _packb(env)

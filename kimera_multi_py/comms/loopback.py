@@ -299,6 +299,8 @@ class LoopbackBus(BusBase):
     def __init__(self, network: LoopbackNetwork, team: str, robot: int) -> None:
         super().__init__(team, robot, network.robots, network.queue_size)
         self.network = network
+        if network._clock is not None:  # stamps on the simulated clock: the same bytes every run
+            self.codec.clock = network._clock
         self._subs: list[Subscription] = []
         self._announced = False
         # presence already announced by others

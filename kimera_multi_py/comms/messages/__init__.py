@@ -68,7 +68,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 # clouds (compressed inside already)
 ZIPPED_TYPES = (PublicPoses, PoseDeltas, GncWeights, EdgeVeto, FrameLandmarks, KeyframeDescriptor, LoopClosures,
                 ObjectUpdate, PeopleUpdate, SubmapPoses, MapVersions, PgoEpoch, AgentState, PgoStatus, PgoCommand,
-                LoopClosuresAck, LoopClosureRequest)
+                LoopClosuresAck, LoopClosureRequest, PcgState)
 for _cls in ZIPPED_TYPES:
     _cls.ZIP = True
 if set(MESSAGE_TYPES.values()) != set(Message.__subclasses__()):  # a type defined but not listed
