@@ -28,29 +28,39 @@ import numpy as np
 
 from kimera_multi_py.comms.messages.closures import LoopClosures
 from kimera_multi_py.core.errors import MessageError
+from kimera_multi_py.core.posegraph import pair_index
 
 HISTORY = 16  # batches kept per (sender, peer) pair, and per peer by the sender
 
 
 @dataclass
 class _Batch:
-    """One batch's closures: key pair -> row, and the rows' values."""
+    """One batch's closures: their key pairs and values, row by row."""
 
-    rows: dict[tuple[int, int], int]
+    keys_a: np.ndarray
+    keys_b: np.ndarray
     poses: np.ndarray
     sigmas: np.ndarray
     inliers: np.ndarray
 
     @staticmethod
     def of(msg: LoopClosures) -> _Batch:
-        rows = {(a, b): i for i, (a, b) in enumerate(zip(msg.keys_a.tolist(), msg.keys_b.tolist(), strict=True))}
-        return _Batch(rows, np.asarray(msg.poses), np.asarray(msg.sigmas), np.asarray(msg.inliers))
+        return _Batch(np.asarray(msg.keys_a), np.asarray(msg.keys_b), np.asarray(msg.poses), np.asarray(msg.sigmas),
+                      np.asarray(msg.inliers))
 
-    def same(self, pair: tuple[int, int], msg: LoopClosures, i: int) -> bool:
-        j = self.rows.get(pair)
-        return j is not None and bool(np.array_equal(self.poses[j], msg.poses[i])
-                                      and np.array_equal(self.sigmas[j], msg.sigmas[i])
-                                      and self.inliers[j] == msg.inliers[i])
+    def rows(self, keys_a: np.ndarray, keys_b: np.ndarray) -> np.ndarray:
+        """The row of each key pair here, or -1 (one sorted search, :func:`pair_index`)."""
+        return pair_index(keys_a, keys_b, self.keys_a, self.keys_b)
+
+    def same(self, msg: LoopClosures) -> np.ndarray:
+        """Per closure of ``msg``: held here with the very same values."""
+        j = self.rows(msg.keys_a, msg.keys_b)
+        held = j >= 0
+        if not held.any():
+            return held
+        k = np.where(held, j, 0)
+        return (held & np.all(self.poses[k] == msg.poses, axis=(1, 2)) & np.all(self.sigmas[k] == msg.sigmas, axis=1)
+                & (self.inliers[k] == msg.inliers))
 
 
 def _keep(store: dict[int, _Batch], batch: int, content: _Batch) -> None:
@@ -69,8 +79,7 @@ def compact(full: LoopClosures, acked: tuple[int, _Batch] | None) -> LoopClosure
     if acked is None or full.robot == full.peer or not len(full.keys_a):
         return full
     base, held = acked
-    pairs = zip(full.keys_a.tolist(), full.keys_b.tolist(), strict=True)
-    fresh = np.array([not held.same(p, full, i) for i, p in enumerate(pairs)], dtype=bool)
+    fresh = ~held.same(full)
     if fresh.all():
         return full
     return LoopClosures(robot=full.robot, peer=full.peer, batch=full.batch, keys_a=full.keys_a,
@@ -143,11 +152,9 @@ class ClosureInbox:
             held = store.get(msg.base)
             if held is None:
                 raise MessageError(f"LoopClosures: batch {msg.batch} against batch {msg.base}, not held here")
-            pairs = list(zip(msg.keys_a[~fresh].tolist(), msg.keys_b[~fresh].tolist(), strict=True))
-            rows = [held.rows.get(p, -1) for p in pairs]
-            if min(rows) < 0:
+            rows_a = held.rows(msg.keys_a[~fresh], msg.keys_b[~fresh])
+            if rows_a.min() < 0:
                 raise MessageError(f"LoopClosures: batch {msg.batch} keeps a closure batch {msg.base} lacks")
-            rows_a = np.array(rows, dtype=np.intp)
             poses = np.empty((n, 4, 4))
             sigmas = np.empty((n, 6))
             inliers = np.empty(n, dtype=np.int32)
