@@ -65,3 +65,22 @@ def test_cell_states_follow_the_occupancy_logodds() -> None:
     st = cell_states(codes, values, 0.1, threshold=1.0)
     assert st.state.tolist() == [1, -1]
     assert np.allclose(st.centres[:, 0], [0.05, 1.05])
+
+
+def test_a_frame_near_the_truth_is_refined_even_when_gicp_stops_at_its_cap(monkeypatch) -> None:
+    """A hypothesis a few decimetres off (closures at one place, seen from far away) is refined
+    by registration; that GICP stops at its iteration cap without reporting convergence (which
+    varies between builds) must not leave the true frame refuted. One room off stays refuted."""
+    from kimera_multi_py.alignment import map_check
+    from kimera_multi_py.mapping.registration import ScanRegistration
+
+    monkeypatch.setattr(map_check, "_REGISTRATION",
+                        ScanRegistration(voxel=0.2, max_correspondence=(1.0, 0.5, 0.25), max_iterations=1))
+    a = seen(ROW, _path(0.5, 9.0))
+    b = seen(ROW, _path(1.0, 15.0))  # both saw the dead end of the corridor
+    off = make_pose(so3_exp(np.array([0.02, 0.0, -0.1])), np.array([0.6, 0.3, -0.3]))
+    assert map_agreement(a, b, off).refutes(*LIMITS)
+    refined = map_check.refined_agreement(a, b, off)
+    assert not refined.refutes(*LIMITS), refined
+    for dx in (ROOM, -ROOM, 2 * ROOM):
+        assert map_check.refined_agreement(a, b, shift(dx) @ off).refutes(*LIMITS), dx

@@ -137,14 +137,7 @@ def test_closures_alone_take_the_alias_one_room_off(seed: int) -> None:
     assert verdicts["outvoted"]["places"] == 1
 
 
-# floor 1: on one machine the maps' comparison in the true frame ended with 909 conflicting cells
-# (ratio 0.041, against the rule's 0.005), so the robot stayed out (safe, not the expected
-# alignment); on another, with the same code, it passed: the comparison's registration of the
-# two maps ends differently there (numpy 2.4.6, scipy 1.17.1, small_gicp 1.0.1 where it failed)
-_EDGE = pytest.mark.xfail(reason="floor 1: the true frame's map comparison differs between installs", strict=False)
-
-
-@pytest.mark.parametrize("seed", [pytest.param(s, marks=_EDGE) if s == 1 else s for s in SEEDS])
+@pytest.mark.parametrize("seed", SEEDS)
 def test_the_maps_refute_the_alias_and_the_robot_aligns_to_the_truth(seed: int) -> None:
     """Refuted by the maps, the alias's closures stay out at both ends for the whole epoch, even
     where GNC alone would take them back (as many aliased closures as true ones)."""
