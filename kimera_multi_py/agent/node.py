@@ -144,6 +144,12 @@ class AgentNode:
     def robot(self) -> int:
         return self.agent.robot
 
+    @property
+    def settled(self) -> bool:
+        """The team's final optimisation reached this robot and its safety net has looked at the
+        frame it left it in (which may send the team into another final epoch)."""
+        return self.complete and self._frame_check_at is None
+
     def alive(self) -> frozenset[int]:
         """The agents present (the server is not a PGO member)."""
         return frozenset(r for r in self.bus.peers() if r <= MAX_AGENT_ID)
@@ -367,6 +373,10 @@ class AgentNode:
         if self._frame_check_at is not None and wall >= self._frame_check_at and self.pgo is not None:
             self._frame_check_at = None
             if self.pgo.last_pgo is not None and self._safety_net(self.pgo.last_pgo):
+                if self.complete and self.pgo.reopen(self.robot):
+                    # out of the team frame after the final epoch: the team decides again, with
+                    # the leader told by this state (no longer complete)
+                    self.complete = False
                 out.append(self._state())
         out.extend(self._map_step(wall))  # on the tick's clock: it goes on after the streams end
         for m in out:

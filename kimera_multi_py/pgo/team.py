@@ -10,11 +10,12 @@ messages to publish. The node (:mod:`kimera_multi_py.agent.node`) moves them.
   carry their robot graphs: the closure messages may have been lost on the way to the leader),
   at most every ``closure_interval`` s, and once more (``final``) when every robot it knows has
   ended its stream (again if closures were accepted, or robots joined, after that epoch opened:
-  they would never be optimised otherwise). Every member then builds a fresh :class:`PgoAgent` from
-  its robot's current graph (warm-started from the current estimate, which is in the team frame
-  once aligned) and runs rounds until the leader's ``stop``; the result is applied to the
-  robot's poses. The robot's graph is the persistent state: it grows with every keyframe and
-  closure between epochs.
+  they would never be optimised otherwise; and when a member's safety net took it out of the team
+  frame after the final epoch, at most :data:`MAX_REOPEN` times per robot). Every member then
+  builds a fresh :class:`PgoAgent` from its robot's current graph (warm-started from the
+  current estimate, which is in the team frame once aligned) and runs rounds until the leader's
+  ``stop``; the result is applied to the robot's poses. The robot's graph is the persistent
+  state: it grows with every keyframe and closure between epochs.
 * **Rounds.** A member runs round ``r`` once every robot it depends on (its neighbours; the
   epoch's leader waits for all members) reported round ``r − 1``, or when the wait times out:
   after ``round_timeout`` wall seconds in a process, or when the runtime says nothing more can
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections import Counter
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 
@@ -57,6 +59,7 @@ log = logging.getLogger(__name__)
 
 EPOCH_ROUNDS = 1_000_000
 EPOCH_RESEND = 25  # the leader repeats an epoch's opening every this many rounds
+MAX_REOPEN = 2  # final epochs run again for one robot that left the team frame after the final one
 _PGO_MESSAGES = (PublicPoses, PoseDeltas, PgoStatus, PgoCommand, GncWeights, EdgeVeto)
 
 
@@ -149,6 +152,7 @@ class TeamPgo:
         self._finished_since: float | None = None
         self._absent_since: dict[int, float] = {}
         self._final_members: frozenset[int] = frozenset()
+        self._reopened: Counter[int] = Counter()  # robot -> final epochs run again for it
         self._now = 0.0
         self._epoch_msg: PgoEpoch | None = None  # the last epoch this robot opened
         self.history: list[tuple[int, tuple[int, ...], bool, float]] = []  # completed: epoch, members, final, began
@@ -163,6 +167,11 @@ class TeamPgo:
                 # a robot joined, or met us again (a partition that healed late), after the
                 # final epoch: optimise again, with it
                 self.final_done = False
+            elif (self.final_done and msg.robot in self._final_members and msg.finished and not msg.complete
+                  and msg.epoch >= self.completed and msg.robot in alive):
+                # a member that completed the final epoch and is no longer complete: its safety
+                # net took it out of the team frame (or it restarted): the team decides again
+                self.reopen(msg.robot)
             return
         if isinstance(msg, PgoEpoch):
             if msg.epoch > self.epoch or (self.session is None and msg.epoch > self.completed
@@ -191,6 +200,17 @@ class TeamPgo:
             self._absorb(s, dataclasses.replace(msg, round=rnd))
         elif epoch > self.epoch and len(self._future) < 10_000:
             self._future.append(msg)
+
+    def reopen(self, robot: int) -> bool:
+        """After the final epoch, run it again because of ``robot`` (its safety net took it out of
+        the team frame, or it restarted), at most :data:`MAX_REOPEN` times per robot so that a
+        robot the maps keep refuting cannot keep the team busy. Returns whether it was reopened."""
+        if not self.final_done or self._reopened[robot] >= MAX_REOPEN:
+            return False
+        self._reopened[robot] += 1
+        self.final_done = False
+        log.info("robot %d: the final epoch runs again for robot %d", self.robot, robot, extra={"robot": self.robot})
+        return True
 
     def _absorb(self, s: Session, msg: Message) -> None:
         if isinstance(msg, PgoStatus):

@@ -191,8 +191,9 @@ async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: flo
     def team() -> set[int]:
         return set(range(robots)) if robots else maps.heard()
 
-    def busy() -> bool:  # an epoch still running (robots that met late run another final one)
-        return node.pgo is not None and node.pgo.busy
+    def busy() -> bool:  # an epoch still running (robots that met late run another final one),
+        # or the safety net's look at the final frame still to come (it may ask for another)
+        return (node.pgo is not None and node.pgo.busy) or not node.settled
 
     quiet_since: float | None = None
     while time.monotonic() - t0 < cap:

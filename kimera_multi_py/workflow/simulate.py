@@ -34,7 +34,7 @@ import math
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -53,7 +53,7 @@ from kimera_multi_py.comms.team import TRANSPORTS, open_buses
 from kimera_multi_py.core.errors import ConfigError
 from kimera_multi_py.core.geometry import transform_points
 from kimera_multi_py.core.ids import SERVER_ID
-from kimera_multi_py.eval.accuracy import ScanRecord, TeamMaps, accuracy_results, start_team_maps
+from kimera_multi_py.eval.accuracy import TeamMaps, accuracy_results, start_team_maps
 from kimera_multi_py.eval.map_metrics import TeamMapReport
 from kimera_multi_py.eval.people import people_results
 from kimera_multi_py.eval.phi_records import PhiRecords
@@ -77,30 +77,13 @@ from kimera_multi_py.team.config import DEFAULT_SCENARIO, KimeraConfig
 from kimera_multi_py.viz.rerun_viz import NullViz, Viz
 from kimera_multi_py.workflow.sim_links import DRAIN_S, SimLinks
 from kimera_multi_py.workflow.sim_results import map_consensus_results, write_run
+from kimera_multi_py.workflow.sim_track import Track
 from kimera_multi_py.workflow.sim_viz import log_team
 
 MODES = ("odometry", "distributed", "centralized")
 MAP_SETTLE_S = 15.0  # sim seconds the team keeps exchanging maps after its final optimisation
 PHI_EVERY_S = 10.0  # sim seconds between two records of the team maps' disagreement
 Progress = Callable[[int, int], None]
-
-
-@dataclass
-class _Track:
-    """One robot's estimated (own odometry frame) and true (world) keyframe poses."""
-
-    stamps: list[float] = field(default_factory=list)
-    est: list[np.ndarray] = field(default_factory=list)
-    true: list[np.ndarray] = field(default_factory=list)
-    scans: list[ScanRecord] = field(default_factory=list)  # for the team map (evaluation only)
-
-    def add(self, kf: Keyframe) -> np.ndarray:
-        pose = kf.odometry.copy() if not self.est else self.est[-1] @ kf.odometry
-        self.scans.append(ScanRecord(kf.scan.points().astype(np.float32), kf.scan.labels, kf.scan.max_range))
-        self.stamps.append(kf.stamp)
-        self.est.append(pose)
-        self.true.append(kf.true_pose)
-        return pose
 
 
 class _SimClock:
@@ -186,7 +169,7 @@ class SimRunner:
             for r, t in table.items():
                 if not 0 <= r < self.sim.num_robots or not (math.isfinite(t) and t >= 0):
                     raise ConfigError(what, f"robot {r} at {t} s: needs a robot of the team and a time >= 0")
-        self.tracks: list[_Track] = []
+        self.tracks: list[Track] = []
         self.nodes: list[AgentNode] = []
         self.server: ServerNode | None = None
         self.outcomes: list[RobotOutcome] = []
@@ -234,7 +217,7 @@ class SimRunner:
         return results
 
     def _spawn_agents(self) -> None:
-        self.tracks = [_Track() for _ in range(self.sim.num_robots)]
+        self.tracks = [Track() for _ in range(self.sim.num_robots)]
         self.viz.log_world(self.sim.world)
 
     def _step(self, done: int, kf: Keyframe, est: np.ndarray) -> None:
@@ -301,25 +284,25 @@ class SimRunner:
                 if node in nodes:
                     await node.finish_stream()
             end = self.links.streams_end = self.clock.t
-            while not all(n.complete for n in nodes):
-                if not await self._settle(nodes, buses):
-                    # quiet but not done: time passes (a robot that left is waited for a while)
-                    if self.clock.t - end > 10 * self.schedule.absent_timeout + (DRAIN_S if self.links.active
-                                                                                 else 0.0):
-                        raise RuntimeError("the team stopped before its final optimisation")  # a bug
+            waiting_from = end
+            while True:
+                await self._until_complete(nodes, buses, waiting_from, end)
+                settle_end = self.clock.t + MAP_SETTLE_S
+                # map consensus relays what is still missing (under a budget: until the links
+                # drain); a safety net that takes a robot out of the frame the final epoch left it
+                # in sends the team into another final epoch, and the wait begins again
+                while all(n.complete for n in nodes) and (
+                        self.clock.t < settle_end or any(not n.settled for n in nodes if isinstance(n, AgentNode))
+                        or (self.links.active and self.clock.t - end < DRAIN_S
+                            and not self.links.note_complete(self.clock.t, nodes))):
                     await self._links_until(self.clock.t + 1.0, nodes, buses)
                     self.clock.t += 1.0
                     self._show_partitions(buses)
-                self.links.note_complete(self.clock.t, nodes)
-            settle_end = self.clock.t + MAP_SETTLE_S
-            # map consensus relays what is still missing (under a budget: until the links drain)
-            while self.clock.t < settle_end or (self.links.active and self.clock.t - end < DRAIN_S
-                                                and not self.links.note_complete(self.clock.t, nodes)):
-                await self._links_until(self.clock.t + 1.0, nodes, buses)
-                self.clock.t += 1.0
-                self._show_partitions(buses)
-                await self._settle(nodes, buses)
-                self.links.note_complete(self.clock.t, nodes)
+                    await self._settle(nodes, buses)
+                    self.links.note_complete(self.clock.t, nodes)
+                if all(n.complete for n in nodes):
+                    break
+                waiting_from = self.clock.t
             self._record_phi(force=True)
             self._add_phi(finish=True)
             self._log_team()
@@ -328,6 +311,20 @@ class SimRunner:
             for node in nodes:
                 await node.close()
         self.viz.close()
+
+    async def _until_complete(self, nodes: list[AgentNode | ServerNode], buses: list[Bus], since: float,
+                              end: float) -> None:
+        """Run the team on the simulated clock until every node's final optimisation is done."""
+        while not all(n.complete for n in nodes):
+            if not await self._settle(nodes, buses):
+                # quiet but not done: time passes (a robot that left is waited for a while)
+                if self.clock.t - since > 10 * self.schedule.absent_timeout + (
+                        DRAIN_S if self.links.active and since == end else 0.0):
+                    raise RuntimeError("the team stopped before its final optimisation")  # a bug
+                await self._links_until(self.clock.t + 1.0, nodes, buses)
+                self.clock.t += 1.0
+                self._show_partitions(buses)
+            self.links.note_complete(self.clock.t, nodes)
 
     @asynccontextmanager
     async def _buses(self, ids: list[int]) -> AsyncIterator[list[Bus]]:

@@ -159,3 +159,44 @@ def test_a_robot_met_after_the_final_epoch_gets_another() -> None:
     for t in range(200, 400):  # the leader opens another final epoch, with it
         pgo.tick(50.0, float(t), {2}, finished=True, force=True)
     assert pgo.history[-1][1] == (0, 2) and pgo.history[-1][2]
+
+
+def test_a_member_out_of_the_frame_after_the_final_epoch_gets_it_run_again_a_bounded_number_of_times() -> None:
+    """A member whose safety net took it out of the team frame after the final epoch reports that
+    it is no longer complete; the leader runs the final epoch again so that it can decide afresh,
+    at most MAX_REOPEN times for one robot."""
+    from kimera_multi_py.comms.messages.team import AgentState
+    from kimera_multi_py.pgo.team import MAX_REOPEN, TeamPgo
+
+    sim = Simulation(load_scenario(TINY), seed=0)
+    agent = Agent(0, None, agent_params(sim.cfg))
+    for kf, _ in zip(sim.keyframes(0), range(6), strict=False):
+        agent.process_keyframe(keyframe_input(kf))
+    pgo = TeamPgo(0, PgoParams(max_rounds=50), ScheduleParams(round_timeout=None),
+                  agent.local_graph, agent.apply_poses, lambda: agent.robot_graph, lambda: 0)
+
+    def state(epoch: int, complete: bool) -> AgentState:
+        return AgentState(robot=1, keyframes=10, stamp=40.0, finished=True, epoch=epoch, complete=complete,
+                          closures=0, rounds=0, bytes_sent=0)
+
+    t = 0
+
+    def run() -> list[bool]:
+        nonlocal t
+        for _ in range(200):
+            pgo.tick(10.0, float(t), {1}, finished=True, force=True)
+            t += 1
+        return [h[2] for h in pgo.history]
+
+    pgo.handle(state(0, False), alive={1})
+    assert run() == [True] and pgo.final_done and pgo.history[-1][1] == (0, 1)
+    pgo.handle(state(1, True), alive={1})  # it completed the final epoch too
+    pgo.handle(state(0, False), alive={1})  # an old state, from before the final epoch
+    assert run() == [True]
+    for k in range(MAX_REOPEN):
+        pgo.handle(state(pgo.completed, False), alive={1})  # out of the frame: no longer complete
+        assert not pgo.final_done
+        assert run() == [True] * (k + 2) and pgo.history[-1][1] == (0, 1)
+    pgo.handle(state(pgo.completed, False), alive={1})  # the cap: the team does not run again
+    assert pgo.final_done and run() == [True] * (MAX_REOPEN + 1)
+

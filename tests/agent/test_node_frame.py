@@ -170,3 +170,24 @@ def test_distributed_node_excluded_in_a_later_epoch_is_reported_kept_out():
         await node.close()
 
     asyncio.run(main())
+
+
+def test_the_node_left_out_by_its_safety_net_after_the_final_epoch_is_no_longer_complete(monkeypatch) -> None:
+    """The node's side: its safety net refutes the frame the final epoch left it in, so it asks
+    for the final epoch again (its state says it is not complete) and waits for it."""
+    async def main() -> None:
+        node = await started(1, central=False)
+        reopened: list[int] = []
+        pgo = SimpleNamespace(last_pgo=SimpleNamespace(frame=SimpleNamespace()), completed=3, busy=False,
+                              stats=SimpleNamespace(rounds=0), tick=lambda *a, **k: [], blocked=lambda: False,
+                              reopen=lambda r: reopened.append(r) or True)
+        node.pgo = pgo
+        node.complete = True
+        node._frame_check_at = 0.0
+        monkeypatch.setattr(node, "_safety_net", lambda last: True)
+        assert not node.settled
+        await node.tick(wall=1.0)
+        assert reopened == [1] and not node.complete and node._frame_check_at is None
+        await node.close()
+
+    asyncio.run(main())
