@@ -139,15 +139,72 @@ def octree_cells(tree: SemanticOctree) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Entry:
-    __slots__ = ("T_ref", "T", "codes", "rows", "world", "active")
+    """One record as held: its cells on the reference grid and their rows as a palette.
+
+    A submap's evidence rows repeat (a free cell's row is a multiple of the miss row, and a few
+    hundred distinct rows cover a whole submap), so each cell keeps an index into the record's
+    palette of distinct int16 rows (docs/performance.md). World codes are not kept: they follow
+    from the cells and the pose whenever a change needs them (:func:`map_codes`)."""
+
+    __slots__ = ("T_ref", "T", "codes", "palette", "index", "active", "placed")
 
     def __init__(self, k1: int) -> None:
         self.T_ref: np.ndarray | None = None
         self.T: np.ndarray | None = None
         self.codes = np.zeros(0, np.int64)
-        self.rows = np.zeros((0, k1), np.int16)  # a submap's evidence stays within +-(h_max - h_min)
-        self.world: np.ndarray | None = None  # world codes while the entry is in the map
+        self.palette = np.zeros((0, k1), np.int16)  # a submap's evidence stays within +-(h_max - h_min)
+        self.index = np.zeros(0, np.uint16)  # per cell: its row in the palette
         self.active = False
+        self.placed = False  # its contribution is in the map (at pose T)
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The cells' int16 rows (materialised from the palette)."""
+        return self.palette.take(self.index.astype(np.intp), axis=0)
+
+    def rows_at(self, pos: np.ndarray) -> np.ndarray:
+        """The int16 rows of the cells at positions ``pos``."""
+        return self.palette.take(self.index[pos].astype(np.intp), axis=0)
+
+    def world(self, resolution: float) -> np.ndarray:
+        """The cells' world codes at the record's pose."""
+        assert self.T is not None and self.T_ref is not None
+        return map_codes(self.codes, correction(self.T, self.T_ref), resolution)
+
+    def set_rows(self, codes: np.ndarray, rows: np.ndarray, pos: np.ndarray, known: np.ndarray) -> None:
+        """Set the int16 ``rows`` of sorted unique ``codes`` (``pos``: their insertion points,
+        ``known``: which are held already). The palette ends as exactly the distinct rows the
+        cells hold, so the bytes held depend on the evidence only, not on its history."""
+        m = len(self.palette)
+        uniq, inv = _unique_rows(np.concatenate([self.palette, rows.astype(np.int16)]))
+        index = inv[:m][self.index.astype(np.intp)] if m else np.zeros(0, np.intp)
+        add = inv[m:]
+        index[pos[known]] = add[known]
+        new = ~known
+        if new.any():
+            self.codes = np.insert(self.codes, pos[new], codes[new])
+            index = np.insert(index, pos[new], add[new])
+        used = np.zeros(len(uniq), np.bool_)
+        used[index] = True
+        if not used.all():  # rows no cell holds any more
+            index = (np.cumsum(used) - 1)[index]
+            uniq = uniq[used]
+        self.palette = uniq
+        self.index = index.astype(np.uint16 if len(uniq) <= 1 << 16 else np.uint32)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.codes.nbytes + self.palette.nbytes + self.index.nbytes)
+
+
+def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct rows of a C-contiguous 2-D array (any order) and each row's index among them."""
+    rows = np.ascontiguousarray(rows)
+    if len(rows) == 0:
+        return rows.copy(), np.zeros(0, np.intp)
+    keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).reshape(-1)
+    _, first, inv = np.unique(keys, return_index=True, return_inverse=True)
+    return rows[first], inv.reshape(-1)
 
 
 class EvidenceMap:
@@ -202,20 +259,14 @@ class EvidenceMap:
         known = pos < len(e.codes)
         known[known] = e.codes[pos[known]] == codes[known]
         before = np.zeros_like(rows)
-        before[known] = e.rows[pos[known]]
+        before[known] = e.rows_at(pos[known])
         change = rows - before
-        e.rows[pos[known]] = rows[known]
+        e.set_rows(codes, rows, pos, known)
         new = ~known
-        if new.any():
-            e.codes = np.insert(e.codes, pos[new], codes[new])
-            e.rows = np.insert(e.rows, pos[new], rows[new], axis=0)
-            if e.world is not None:
-                assert e.T is not None and e.T_ref is not None
-                w_new = map_codes(codes[new], correction(e.T, e.T_ref), self.resolution)
-                e.world = np.insert(e.world, pos[new], w_new)
-        if e.world is not None:
-            idx = np.searchsorted(e.codes, codes)
-            self._apply(e.world[idx], change, new.astype(np.int32))
+        if e.placed:
+            assert e.T is not None and e.T_ref is not None
+            self._apply(map_codes(codes, correction(e.T, e.T_ref), self.resolution), change,
+                        new.astype(np.int32))
 
     def set_pose(self, key: Key, T_ref: np.ndarray, T: np.ndarray) -> None:
         """Place a record at pose ``T`` (reference ``T_ref``); moves its contribution exactly."""
@@ -230,18 +281,21 @@ class EvidenceMap:
             T = np.asarray(T, dtype=np.float64)
             if e.T is not None and e.T_ref is not None and np.array_equal(e.T, T) and np.array_equal(e.T_ref, T_ref):
                 continue
-            old = e.world
+            placed, old_T, old_ref = e.placed, e.T, e.T_ref
             e.T_ref, e.T = T_ref.copy(), T.copy()
-            if old is None:
+            if not placed:
                 if e.active:
                     self._deposit(e)
                 continue
             # only the cells that change world cell move: a small correction moves few of them
-            e.world = map_codes(e.codes, correction(T, T_ref), self.resolution)
-            moved = np.flatnonzero(old != e.world)
+            assert old_T is not None and old_ref is not None
+            old = map_codes(e.codes, correction(old_T, old_ref), self.resolution)
+            world = e.world(self.resolution)
+            moved = np.flatnonzero(old != world)
             if len(moved):
-                batch.add(old[moved], e.rows[moved], -1)
-                batch.add(e.world[moved], e.rows[moved], 1)
+                rows = e.rows_at(moved)
+                batch.add(old[moved], rows, -1)
+                batch.add(world[moved], rows, 1)
                 if batch.size >= _BATCH_CELLS:
                     self._apply(*batch.take())
         if batch.size:
@@ -251,18 +305,19 @@ class EvidenceMap:
         """Let a record contribute (its robot is in the team frame) or withdraw it."""
         e = self._entry(key)
         e.active = bool(active)
-        if e.active and e.world is None and e.T is not None:
+        if e.active and not e.placed and e.T is not None:
             self._deposit(e)
-        elif not e.active and e.world is not None:
+        elif not e.active and e.placed:
             self._withdraw(e)
 
     def remove(self, key: Key) -> None:
         e = self.entries.pop(key, None)
-        if e is not None and e.world is not None:
+        if e is not None and e.placed:
             self._withdraw(e)
 
     def record(self, key: Key) -> tuple[np.ndarray, np.ndarray]:
-        """Reference-grid codes and rows held for a record (none for a key not held)."""
+        """Reference-grid codes and int16 rows held for a record (none for a key not held); the
+        rows are a copy."""
         e = self.entries.get(key)
         if e is None:
             return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int16)
@@ -274,10 +329,9 @@ class EvidenceMap:
 
     @property
     def nbytes(self) -> int:
-        """Bytes held: every record's cells, rows and world codes, the fused evidence and the
-        octree view while one is built."""
-        rec = sum(e.codes.nbytes + e.rows.nbytes + (e.world.nbytes if e.world is not None else 0)
-                  for e in self.entries.values())
+        """Bytes held: every record's cells, row palette and palette indices, the fused evidence
+        and the octree view while one is built."""
+        rec = sum(e.nbytes for e in self.entries.values())
         return int(rec + self._fused.nbytes + (self._tree.nbytes if self._tree is not None else 0))
 
     def fused(self, keys: Iterable[Key], at: dict[Key, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -288,12 +342,8 @@ class EvidenceMap:
             e = self.entries.get(key)
             if e is None or e.T is None or e.T_ref is None or not len(e.codes):
                 continue
-            if at is not None and key in at:
-                world = map_codes(e.codes, correction(at[key], e.T_ref), self.resolution)
-            else:
-                world = e.world if e.world is not None else \
-                    map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
-            codes.append(world)
+            T = at[key] if at is not None and key in at else e.T
+            codes.append(map_codes(e.codes, correction(T, e.T_ref), self.resolution))
             rows.append(e.rows)
         if not codes:
             return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int32)
@@ -302,14 +352,12 @@ class EvidenceMap:
 
     # ---- internals -------------------------------------------------------------------------
     def _deposit(self, e: _Entry) -> None:
-        assert e.T is not None and e.T_ref is not None
-        e.world = map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
-        self._apply(e.world, e.rows, np.ones(len(e.codes), np.int32))
+        self._apply(e.world(self.resolution), e.rows, np.ones(len(e.codes), np.int32))
+        e.placed = True
 
     def _withdraw(self, e: _Entry) -> None:
-        assert e.world is not None
-        self._apply(e.world, -e.rows, -np.ones(len(e.codes), np.int32))
-        e.world = None
+        self._apply(e.world(self.resolution), -e.rows.astype(np.int32), -np.ones(len(e.codes), np.int32))
+        e.placed = False
 
     def _apply(self, codes: np.ndarray, rows: np.ndarray, support: np.ndarray) -> None:
         if len(codes) == 0:
