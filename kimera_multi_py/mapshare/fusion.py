@@ -143,10 +143,9 @@ class _Entry:
 
     A submap's evidence rows repeat (a free cell's row is a multiple of the miss row, and a few
     hundred distinct rows cover a whole submap), so each cell keeps an index into the record's
-    palette of distinct int16 rows (docs/performance.md). World codes are not kept: they follow
-    from the cells and the pose whenever a change needs them (:func:`map_codes`)."""
+    palette of distinct int16 rows (docs/performance.md)."""
 
-    __slots__ = ("T_ref", "T", "codes", "palette", "index", "active", "placed")
+    __slots__ = ("T_ref", "T", "codes", "palette", "index", "world", "active")
 
     def __init__(self, k1: int) -> None:
         self.T_ref: np.ndarray | None = None
@@ -154,8 +153,8 @@ class _Entry:
         self.codes = np.zeros(0, np.int64)
         self.palette = np.zeros((0, k1), np.int16)  # a submap's evidence stays within +-(h_max - h_min)
         self.index = np.zeros(0, np.uint16)  # per cell: its row in the palette
+        self.world: np.ndarray | None = None  # world codes while the entry is in the map
         self.active = False
-        self.placed = False  # its contribution is in the map (at pose T)
 
     @property
     def rows(self) -> np.ndarray:
@@ -166,15 +165,12 @@ class _Entry:
         """The int16 rows of the cells at positions ``pos``."""
         return self.palette.take(self.index[pos].astype(np.intp), axis=0)
 
-    def world(self, resolution: float) -> np.ndarray:
-        """The cells' world codes at the record's pose."""
-        assert self.T is not None and self.T_ref is not None
-        return map_codes(self.codes, correction(self.T, self.T_ref), resolution)
-
-    def set_rows(self, codes: np.ndarray, rows: np.ndarray, pos: np.ndarray, known: np.ndarray) -> None:
+    def set_rows(self, codes: np.ndarray, rows: np.ndarray, pos: np.ndarray, known: np.ndarray,
+                 world: np.ndarray | None) -> None:
         """Set the int16 ``rows`` of sorted unique ``codes`` (``pos``: their insertion points,
-        ``known``: which are held already). The palette ends as exactly the distinct rows the
-        cells hold, so the bytes held depend on the evidence only, not on its history."""
+        ``known``: which are held already; ``world``: the world codes of the new ones while the
+        entry is in the map). The palette ends as exactly the distinct rows the cells hold, so
+        the bytes held depend on the evidence only, not on its history."""
         m = len(self.palette)
         uniq, inv = _unique_rows(np.concatenate([self.palette, rows.astype(np.int16)]))
         index = inv[:m][self.index.astype(np.intp)] if m else np.zeros(0, np.intp)
@@ -184,6 +180,9 @@ class _Entry:
         if new.any():
             self.codes = np.insert(self.codes, pos[new], codes[new])
             index = np.insert(index, pos[new], add[new])
+            if self.world is not None:
+                assert world is not None
+                self.world = np.insert(self.world, pos[new], world)
         used = np.zeros(len(uniq), np.bool_)
         used[index] = True
         if not used.all():  # rows no cell holds any more
@@ -194,7 +193,8 @@ class _Entry:
 
     @property
     def nbytes(self) -> int:
-        return int(self.codes.nbytes + self.palette.nbytes + self.index.nbytes)
+        world = self.world.nbytes if self.world is not None else 0
+        return int(self.codes.nbytes + self.palette.nbytes + self.index.nbytes + world)
 
 
 def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -261,12 +261,15 @@ class EvidenceMap:
         before = np.zeros_like(rows)
         before[known] = e.rows_at(pos[known])
         change = rows - before
-        e.set_rows(codes, rows, pos, known)
         new = ~known
-        if e.placed:
+        w_new = None
+        if e.world is not None and new.any():
             assert e.T is not None and e.T_ref is not None
-            self._apply(map_codes(codes, correction(e.T, e.T_ref), self.resolution), change,
-                        new.astype(np.int32))
+            w_new = map_codes(codes[new], correction(e.T, e.T_ref), self.resolution)
+        e.set_rows(codes, rows, pos, known, w_new)
+        if e.world is not None:
+            idx = np.searchsorted(e.codes, codes)
+            self._apply(e.world[idx], change, new.astype(np.int32))
 
     def set_pose(self, key: Key, T_ref: np.ndarray, T: np.ndarray) -> None:
         """Place a record at pose ``T`` (reference ``T_ref``); moves its contribution exactly."""
@@ -281,21 +284,19 @@ class EvidenceMap:
             T = np.asarray(T, dtype=np.float64)
             if e.T is not None and e.T_ref is not None and np.array_equal(e.T, T) and np.array_equal(e.T_ref, T_ref):
                 continue
-            placed, old_T, old_ref = e.placed, e.T, e.T_ref
+            old = e.world
             e.T_ref, e.T = T_ref.copy(), T.copy()
-            if not placed:
+            if old is None:
                 if e.active:
                     self._deposit(e)
                 continue
             # only the cells that change world cell move: a small correction moves few of them
-            assert old_T is not None and old_ref is not None
-            old = map_codes(e.codes, correction(old_T, old_ref), self.resolution)
-            world = e.world(self.resolution)
-            moved = np.flatnonzero(old != world)
+            e.world = map_codes(e.codes, correction(T, T_ref), self.resolution)
+            moved = np.flatnonzero(old != e.world)
             if len(moved):
                 rows = e.rows_at(moved)
                 batch.add(old[moved], rows, -1)
-                batch.add(world[moved], rows, 1)
+                batch.add(e.world[moved], rows, 1)
                 if batch.size >= _BATCH_CELLS:
                     self._apply(*batch.take())
         if batch.size:
@@ -305,14 +306,14 @@ class EvidenceMap:
         """Let a record contribute (its robot is in the team frame) or withdraw it."""
         e = self._entry(key)
         e.active = bool(active)
-        if e.active and not e.placed and e.T is not None:
+        if e.active and e.world is None and e.T is not None:
             self._deposit(e)
-        elif not e.active and e.placed:
+        elif not e.active and e.world is not None:
             self._withdraw(e)
 
     def remove(self, key: Key) -> None:
         e = self.entries.pop(key, None)
-        if e is not None and e.placed:
+        if e is not None and e.world is not None:
             self._withdraw(e)
 
     def record(self, key: Key) -> tuple[np.ndarray, np.ndarray]:
@@ -329,8 +330,8 @@ class EvidenceMap:
 
     @property
     def nbytes(self) -> int:
-        """Bytes held: every record's cells, row palette and palette indices, the fused evidence
-        and the octree view while one is built."""
+        """Bytes held: every record's cells, row palette, palette indices and world codes, the
+        fused evidence and the octree view while one is built."""
         rec = sum(e.nbytes for e in self.entries.values())
         return int(rec + self._fused.nbytes + (self._tree.nbytes if self._tree is not None else 0))
 
@@ -342,8 +343,12 @@ class EvidenceMap:
             e = self.entries.get(key)
             if e is None or e.T is None or e.T_ref is None or not len(e.codes):
                 continue
-            T = at[key] if at is not None and key in at else e.T
-            codes.append(map_codes(e.codes, correction(T, e.T_ref), self.resolution))
+            if at is not None and key in at:
+                world = map_codes(e.codes, correction(at[key], e.T_ref), self.resolution)
+            else:
+                world = e.world if e.world is not None else \
+                    map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
+            codes.append(world)
             rows.append(e.rows)
         if not codes:
             return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int32)
@@ -352,12 +357,14 @@ class EvidenceMap:
 
     # ---- internals -------------------------------------------------------------------------
     def _deposit(self, e: _Entry) -> None:
-        self._apply(e.world(self.resolution), e.rows, np.ones(len(e.codes), np.int32))
-        e.placed = True
+        assert e.T is not None and e.T_ref is not None
+        e.world = map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
+        self._apply(e.world, e.rows, np.ones(len(e.codes), np.int32))
 
     def _withdraw(self, e: _Entry) -> None:
-        self._apply(e.world(self.resolution), -e.rows.astype(np.int32), -np.ones(len(e.codes), np.int32))
-        e.placed = False
+        assert e.world is not None
+        self._apply(e.world, -e.rows.astype(np.int32), -np.ones(len(e.codes), np.int32))
+        e.world = None
 
     def _apply(self, codes: np.ndarray, rows: np.ndarray, support: np.ndarray) -> None:
         if len(codes) == 0:
