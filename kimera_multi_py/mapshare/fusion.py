@@ -89,7 +89,7 @@ def _subset(small: np.ndarray, big: np.ndarray) -> bool:
 def view_rows(tree: SemanticOctree, summed: np.ndarray) -> np.ndarray:
     """``clamp(prior + evidence)`` with column 0 = 0, as int16 rows of the octree view."""
     m = tree.model
-    vals = summed.astype(np.int32) + m.prior_row.astype(np.int32)
+    vals = np.add(summed, m.prior_row, dtype=np.int32)
     np.clip(vals, m.lo, m.hi, out=vals)
     vals[:, 0] = 0
     return vals.astype(np.int16)
@@ -315,6 +315,11 @@ class EvidenceMap:
         e = self.entries.pop(key, None)
         if e is not None and e.world is not None:
             self._withdraw(e)
+
+    def cells(self, key: Key) -> np.ndarray:
+        """Reference-grid codes held for a record (sorted; none for a key not held)."""
+        e = self.entries.get(key)
+        return e.codes if e is not None else np.zeros(0, np.int64)
 
     def record(self, key: Key) -> tuple[np.ndarray, np.ndarray]:
         """Reference-grid codes and int16 rows held for a record (none for a key not held); the
