@@ -354,10 +354,10 @@ class EvidenceMap:
                 world = e.world if e.world is not None else \
                     map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
             codes.append(world)
-            rows.append(e.rows)
+            rows.append(e.palette.astype(np.int32).take(e.index.astype(np.intp), axis=0))
         if not codes:
             return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int32)
-        uniq, summed, _ = _group_sum(np.concatenate(codes), np.concatenate(rows).astype(np.int32))
+        uniq, summed, _ = _group_sum(np.concatenate(codes), np.concatenate(rows))
         return uniq, summed
 
     # ---- internals -------------------------------------------------------------------------
