@@ -221,9 +221,13 @@ class SubmapMap:
                 continue
             s.T = new_pose.copy()
             new_world = self._map_codes(s.codes, s.correction)
-            if len(s.codes):  # old contribution out and new one in
-                batch.add(s.world_codes, s.rows, -1)
-                batch.add(new_world, s.rows, 1)
+            # old contribution out and new one in, for the cells that change world cell (the
+            # others' two terms cancel exactly: leaving them out gives the same sums)
+            moved_cells = np.flatnonzero(s.world_codes != new_world)
+            if len(moved_cells):
+                rows = s.rows[moved_cells]
+                batch.add(s.world_codes[moved_cells], rows, -1)
+                batch.add(new_world[moved_cells], rows, 1)
                 if batch.size >= _BATCH_CELLS:
                     self._apply(*batch.take())
             s.world_codes = new_world

@@ -57,6 +57,7 @@ from kimera_multi_py.mapshare.wire import pack_cells, unpack_cells
 log = logging.getLogger(__name__)
 
 MODES = ("roam", "exact", "laplacian")
+_MARK = np.int32  # dtype of the per-cell version marks
 MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)  # what a MapConsensus handles
 
 
@@ -106,7 +107,7 @@ class _Held:
     with the cells of its record in the team's evidence store (which holds the cells and rows)."""
 
     version: int
-    marks: np.ndarray  # (n,) int64
+    marks: np.ndarray  # (n,) int32 (versions count scans; a larger one is refused)
     got: float  # local time the current version arrived
 
 
@@ -205,6 +206,8 @@ class MapConsensus:
             raise MessageError(f"SubmapEvidence.classes: expected {self.k} classes, got {msg.classes}")
         if msg.base >= msg.version:
             raise MessageError(f"SubmapEvidence: base {msg.base} not below version {msg.version}")
+        if msg.version > np.iinfo(_MARK).max:
+            raise MessageError(f"SubmapEvidence: version {msg.version} out of range")
         if msg.source == self.robot:
             return
         key = (msg.source, msg.submap)
@@ -220,7 +223,7 @@ class MapConsensus:
         rows = np.zeros((len(codes), self.k + 1), np.int32)
         rows[:, 1:] = values
         if h is None:
-            h = self.held[key] = _Held(0, np.zeros(0, np.int64), self._now)
+            h = self.held[key] = _Held(0, np.zeros(0, _MARK), self._now)
         self._merge(key, h, codes, rows, msg.version)
         h.version, h.got = msg.version, self._now
 
@@ -297,7 +300,7 @@ class MapConsensus:
             key = (self.robot, sid)
             h = self.held.get(key)
             if h is None:
-                h = self.held[key] = _Held(0, np.zeros(0, np.int64), self._now)
+                h = self.held[key] = _Held(0, np.zeros(0, _MARK), self._now)
             if sid == newest and self._now - h.got < self.params.hold:
                 continue
             if s.num_scans > h.version:
@@ -331,7 +334,7 @@ class MapConsensus:
         ``version`` into the marks of the cells it changes."""
         if len(codes) == 0:
             return
-        held = self.team.record(key)[0]
+        held = self.team.cells(key)
         pos = np.searchsorted(held, codes)
         known = pos < len(held)
         known[known] = held[pos[known]] == codes[known]

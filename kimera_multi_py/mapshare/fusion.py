@@ -89,7 +89,7 @@ def _subset(small: np.ndarray, big: np.ndarray) -> bool:
 def view_rows(tree: SemanticOctree, summed: np.ndarray) -> np.ndarray:
     """``clamp(prior + evidence)`` with column 0 = 0, as int16 rows of the octree view."""
     m = tree.model
-    vals = summed.astype(np.int32) + m.prior_row.astype(np.int32)
+    vals = np.add(summed, m.prior_row, dtype=np.int32)
     np.clip(vals, m.lo, m.hi, out=vals)
     vals[:, 0] = 0
     return vals.astype(np.int16)
@@ -139,15 +139,72 @@ def octree_cells(tree: SemanticOctree) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Entry:
-    __slots__ = ("T_ref", "T", "codes", "rows", "world", "active")
+    """One record as held: its cells on the reference grid and their rows as a palette.
+
+    A submap's evidence rows repeat (a free cell's row is a multiple of the miss row, and a few
+    hundred distinct rows cover a whole submap), so each cell keeps an index into the record's
+    palette of distinct int16 rows (docs/performance.md)."""
+
+    __slots__ = ("T_ref", "T", "codes", "palette", "index", "world", "active")
 
     def __init__(self, k1: int) -> None:
         self.T_ref: np.ndarray | None = None
         self.T: np.ndarray | None = None
         self.codes = np.zeros(0, np.int64)
-        self.rows = np.zeros((0, k1), np.int16)  # a submap's evidence stays within +-(h_max - h_min)
+        self.palette = np.zeros((0, k1), np.int16)  # a submap's evidence stays within +-(h_max - h_min)
+        self.index = np.zeros(0, np.uint16)  # per cell: its row in the palette
         self.world: np.ndarray | None = None  # world codes while the entry is in the map
         self.active = False
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The cells' int16 rows (materialised from the palette)."""
+        return self.palette.take(self.index.astype(np.intp), axis=0)
+
+    def rows_at(self, pos: np.ndarray) -> np.ndarray:
+        """The int16 rows of the cells at positions ``pos``."""
+        return self.palette.take(self.index[pos].astype(np.intp), axis=0)
+
+    def set_rows(self, codes: np.ndarray, rows: np.ndarray, pos: np.ndarray, known: np.ndarray,
+                 world: np.ndarray | None) -> None:
+        """Set the int16 ``rows`` of sorted unique ``codes`` (``pos``: their insertion points,
+        ``known``: which are held already; ``world``: the world codes of the new ones while the
+        entry is in the map). The palette ends as exactly the distinct rows the cells hold, so
+        the bytes held depend on the evidence only, not on its history."""
+        m = len(self.palette)
+        uniq, inv = _unique_rows(np.concatenate([self.palette, rows.astype(np.int16)]))
+        index = inv[:m][self.index.astype(np.intp)] if m else np.zeros(0, np.intp)
+        add = inv[m:]
+        index[pos[known]] = add[known]
+        new = ~known
+        if new.any():
+            self.codes = np.insert(self.codes, pos[new], codes[new])
+            index = np.insert(index, pos[new], add[new])
+            if self.world is not None:
+                assert world is not None
+                self.world = np.insert(self.world, pos[new], world)
+        used = np.zeros(len(uniq), np.bool_)
+        used[index] = True
+        if not used.all():  # rows no cell holds any more
+            index = (np.cumsum(used) - 1)[index]
+            uniq = uniq[used]
+        self.palette = uniq
+        self.index = index.astype(np.uint16 if len(uniq) <= 1 << 16 else np.uint32)
+
+    @property
+    def nbytes(self) -> int:
+        world = self.world.nbytes if self.world is not None else 0
+        return int(self.codes.nbytes + self.palette.nbytes + self.index.nbytes + world)
+
+
+def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct rows of a C-contiguous 2-D array (any order) and each row's index among them."""
+    rows = np.ascontiguousarray(rows)
+    if len(rows) == 0:
+        return rows.copy(), np.zeros(0, np.intp)
+    keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).reshape(-1)
+    _, first, inv = np.unique(keys, return_index=True, return_inverse=True)
+    return rows[first], inv.reshape(-1)
 
 
 class EvidenceMap:
@@ -202,17 +259,14 @@ class EvidenceMap:
         known = pos < len(e.codes)
         known[known] = e.codes[pos[known]] == codes[known]
         before = np.zeros_like(rows)
-        before[known] = e.rows[pos[known]]
+        before[known] = e.rows_at(pos[known])
         change = rows - before
-        e.rows[pos[known]] = rows[known]
         new = ~known
-        if new.any():
-            e.codes = np.insert(e.codes, pos[new], codes[new])
-            e.rows = np.insert(e.rows, pos[new], rows[new], axis=0)
-            if e.world is not None:
-                assert e.T is not None and e.T_ref is not None
-                w_new = map_codes(codes[new], correction(e.T, e.T_ref), self.resolution)
-                e.world = np.insert(e.world, pos[new], w_new)
+        w_new = None
+        if e.world is not None and new.any():
+            assert e.T is not None and e.T_ref is not None
+            w_new = map_codes(codes[new], correction(e.T, e.T_ref), self.resolution)
+        e.set_rows(codes, rows, pos, known, w_new)
         if e.world is not None:
             idx = np.searchsorted(e.codes, codes)
             self._apply(e.world[idx], change, new.astype(np.int32))
@@ -240,8 +294,9 @@ class EvidenceMap:
             e.world = map_codes(e.codes, correction(T, T_ref), self.resolution)
             moved = np.flatnonzero(old != e.world)
             if len(moved):
-                batch.add(old[moved], e.rows[moved], -1)
-                batch.add(e.world[moved], e.rows[moved], 1)
+                rows = e.rows_at(moved)
+                batch.add(old[moved], rows, -1)
+                batch.add(e.world[moved], rows, 1)
                 if batch.size >= _BATCH_CELLS:
                     self._apply(*batch.take())
         if batch.size:
@@ -261,8 +316,14 @@ class EvidenceMap:
         if e is not None and e.world is not None:
             self._withdraw(e)
 
+    def cells(self, key: Key) -> np.ndarray:
+        """Reference-grid codes held for a record (sorted; none for a key not held)."""
+        e = self.entries.get(key)
+        return e.codes if e is not None else np.zeros(0, np.int64)
+
     def record(self, key: Key) -> tuple[np.ndarray, np.ndarray]:
-        """Reference-grid codes and rows held for a record (none for a key not held)."""
+        """Reference-grid codes and int16 rows held for a record (none for a key not held); the
+        rows are a copy."""
         e = self.entries.get(key)
         if e is None:
             return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int16)
@@ -274,10 +335,9 @@ class EvidenceMap:
 
     @property
     def nbytes(self) -> int:
-        """Bytes held: every record's cells, rows and world codes, the fused evidence and the
-        octree view while one is built."""
-        rec = sum(e.codes.nbytes + e.rows.nbytes + (e.world.nbytes if e.world is not None else 0)
-                  for e in self.entries.values())
+        """Bytes held: every record's cells, row palette, palette indices and world codes, the
+        fused evidence and the octree view while one is built."""
+        rec = sum(e.nbytes for e in self.entries.values())
         return int(rec + self._fused.nbytes + (self._tree.nbytes if self._tree is not None else 0))
 
     def fused(self, keys: Iterable[Key], at: dict[Key, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -294,10 +354,10 @@ class EvidenceMap:
                 world = e.world if e.world is not None else \
                     map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
             codes.append(world)
-            rows.append(e.rows)
+            rows.append(e.palette.astype(np.int32).take(e.index.astype(np.intp), axis=0))
         if not codes:
             return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int32)
-        uniq, summed, _ = _group_sum(np.concatenate(codes), np.concatenate(rows).astype(np.int32))
+        uniq, summed, _ = _group_sum(np.concatenate(codes), np.concatenate(rows))
         return uniq, summed
 
     # ---- internals -------------------------------------------------------------------------
@@ -308,7 +368,7 @@ class EvidenceMap:
 
     def _withdraw(self, e: _Entry) -> None:
         assert e.world is not None
-        self._apply(e.world, -e.rows, -np.ones(len(e.codes), np.int32))
+        self._apply(e.world, -e.rows.astype(np.int32), -np.ones(len(e.codes), np.int32))
         e.world = None
 
     def _apply(self, codes: np.ndarray, rows: np.ndarray, support: np.ndarray) -> None:

@@ -157,6 +157,9 @@ def test_messages_from_non_neighbours_and_bad_content_are_refused() -> None:
     wrong_k = SubmapEvidence(robot=1, source=1, submap=0, base=0, version=1, cells=2, classes=K - 1, payload=cells)
     with pytest.raises(MessageError, match="classes"):
         node.handle(wrong_k)
+    huge = SubmapEvidence(robot=1, source=1, submap=0, base=0, version=2**40, cells=2, classes=K, payload=cells)
+    with pytest.raises(MessageError, match="out of range"):
+        node.handle(huge)
     short = SubmapEvidence(robot=1, source=1, submap=0, base=0, version=1, cells=3, classes=K, payload=cells)
     with pytest.raises(MessageError, match="payload"):
         node.handle(short)

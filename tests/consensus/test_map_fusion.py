@@ -165,14 +165,39 @@ def test_the_evidence_store_does_not_grow_with_re_anchorings() -> None:
     assert same(snapshot(em.octree), snapshot(centralised_team_map(maps)))
 
 
+def test_the_evidence_store_does_not_grow_with_new_versions_of_a_submap() -> None:
+    """Versions of the same cells arriving again and again with other values (as a growing
+    submap's evidence does) leave the store's bytes set by what it holds now: the row palette
+    keeps only the rows some cell holds."""
+    maps, records, em = _placed_store()
+    em.octree  # noqa: B018
+    placed = em.nbytes
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        for rec in records:
+            rows = rec.rows.copy()
+            rows[:, 1:] += rng.integers(-3, 4, size=rows[:, 1:].shape).astype(np.int16)
+            em.set_cells(rec.key, rec.codes, rows)
+    for rec in records:
+        em.set_cells(rec.key, rec.codes, rec.rows)
+    em.octree  # noqa: B018
+    assert em.nbytes == placed
+    assert same(snapshot(em.octree), snapshot(centralised_team_map(maps)))
+
+
 def test_a_robots_map_consensus_holds_each_submap_once() -> None:
-    """The evidence a robot holds of a submap lives in one place (the team store); what the map
-    consensus adds beyond it is a version mark per cell."""
+    """The evidence a robot holds of a submap lives in one place (the team store), as cells, a
+    palette index per cell and the palette of distinct rows; what the map consensus adds beyond
+    it is a version mark per cell."""
     local = robot_map(0)
     mc = MapConsensus(0, local, MapConsensusParams(hold=0.0))  # every submap versioned at once
     mc.step(0.0)
     cells = sum(len(s.codes) for s in local.submaps.values())
-    store = sum(e.codes.nbytes + e.rows.nbytes + e.world.nbytes for e in mc.team.entries.values()
-                if e.world is not None)
-    assert cells > 0 and mc.nbytes - mc.team.nbytes == 8 * cells
-    assert store == cells * (8 + 2 * (K + 1) + 8)  # codes, int16 rows, world codes
+    entries = list(mc.team.entries.values())
+    palettes = sum(e.palette.nbytes for e in entries)
+    assert cells > 0 and mc.nbytes - mc.team.nbytes == 4 * cells  # int32 marks
+    assert sum(e.nbytes for e in entries) == cells * (8 + 2 + 8) + palettes  # codes, index, world codes
+    assert palettes < cells * 2 * (K + 1) / 4  # rows repeat: the palette is far smaller than the rows
+    for sid, s in local.submaps.items():  # and gives back every row
+        codes, rows = mc.team.record((0, sid))
+        assert np.array_equal(codes, s.codes) and np.array_equal(rows, s.rows)
