@@ -18,9 +18,10 @@ is :attr:`MapConsensus.team_map`, the robot's belief about the whole team's spac
     team one hop at a time. A :class:`MapVersions` summary (sent when it changes and every
     ``summary_every`` periods) tells the neighbours what the robot holds and acknowledges what
     it received (:mod:`.acks`); a neighbour re-sends what a summary made after its send arrived
-    still lacks, which recovers lost messages and partitions. The team map is ``clamp(prior + sum T_s dh_s)`` over every held submap whose
-    source is in the robot's frame (:class:`~.fusion.EvidenceMap`): it equals the
-    centralised fusion (:func:`~.fusion.fuse_records`) cell for cell once all has arrived.
+    still lacks, which recovers lost messages and partitions. The team map is
+    ``clamp(prior + sum T_s dh_s)`` over every held submap whose source is in the robot's frame
+    (:class:`~.fusion.EvidenceMap`): it equals the centralised fusion
+    (:func:`~.fusion.fuse_records`) cell for cell once all has arrived.
 ``roam`` (the baseline, :mod:`.roam`)
     ROAM's rule as its code does it; every period the full tree, at most one fusion per period.
 ``laplacian`` (:mod:`.laplacian`)
