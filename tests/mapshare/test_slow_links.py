@@ -69,3 +69,18 @@ def test_lost_evidence_is_sent_again_over_a_slow_link() -> None:
     assert sends[(0, 0, 1, 1)] == 2  # lost in the middle of the stream: sent again
     assert sends[(1, 1, 1, last)] == 2  # lost at its tail: sent again once the acks stood still
     assert_exact(maps, nodes)
+
+
+def test_a_relay_chain_over_slow_links_sends_each_version_once_per_hop() -> None:
+    """Four robots in a line: evidence crosses two relays, each link holding it for several
+    summary periods. Re-sends multiplied along the chain (the rule before sent a version up to
+    16 times here, and the maps were not whole by the end)."""
+    maps, nodes = team(4)
+    line = {0: {1}, 1: {0, 2}, 2: {1, 3}, 3: {2}}
+    net = MapExchange(nodes, links=line, budget=LinkBudget(kbps=1.0))
+    run(net, _grow(maps, net), 100)
+    assert max(q.stats.delay_max for q in net.queues.values()) > 3 * SUMMARY_PERIOD
+    sends = _evidence_sends(net)
+    assert max(sends.values()) == 1
+    assert {k[1] for k in sends if k[0] != k[1]} >= {0, 1, 2, 3}  # relayed: every robot's evidence
+    assert_exact(maps, nodes)
