@@ -16,7 +16,8 @@ lost. So a send also counts as gone through when the neighbour's acknowledgement
 for a while of its summaries since the send (a moving link acknowledges every message it
 delivers): twice the time the neighbour's acknowledgements of our sends have been taking (the
 largest lately, at least ``wait`` seconds), doubled with each send of the same version, a
-back-off for a link that stalls longer than that.
+back-off for a link that stalls longer than that. A robot that restarts numbers on from the highest acknowledgement of
+it that it hears.
 """
 
 from __future__ import annotations
@@ -89,6 +90,8 @@ class Acks:
                 new[stream][r] = prev if prev is not None and prev[0] == a else (a, now)
                 if r == self.robot and (prev is None or prev[0] != a):
                     self._learn(k, stream, a, now)
+                if r == self.robot and a > self._seq[stream]:  # numbered by an earlier run of ours
+                    self._seq[stream] = a
         self._peer[k] = new
 
     def _learn(self, k: int, stream: int, ack: int, now: float) -> None:
