@@ -140,7 +140,7 @@ class MapConsensus:
         self._pose_version = 0
         self._nbr: dict[int, tuple[dict[Key, int], dict[int, int], float]] = {}
         self._nbr_frame: dict[int, int] = {}  # each neighbour's team frame, as its summary said
-        self.acks = Acks(self.robot, wait=self.params.summary_every * self.params.period)
+        self.acks = Acks(self.robot, wait=2.0 * self.params.period)
         self._sent: dict[Key, Send] = {}
         self._sent_poses: dict[int, Send] = {}
         self._summary: tuple[bytes, int] | None = None  # last content, periods since sent
