@@ -16,11 +16,12 @@ is :attr:`MapConsensus.team_map`, the robot's belief about the whole team's spac
     pose table (versioned, with the frame it is in): after a PGO correction only it travels and
     the submaps move exactly. Every robot relays what a neighbour lacks, so evidence crosses the
     team one hop at a time. A :class:`MapVersions` summary (sent when it changes and every
-    ``summary_every`` periods) tells the neighbours what the robot holds; a neighbour re-sends
-    what a summary newer than its last send still lacks, which recovers lost messages and
-    partitions. The team map is ``clamp(prior + sum T_s dh_s)`` over every held submap whose
-    source is in the robot's frame (:class:`~.fusion.EvidenceMap`): it equals the
-    centralised fusion (:func:`~.fusion.fuse_records`) cell for cell once all has arrived.
+    ``summary_every`` periods) tells the neighbours what the robot holds and acknowledges what
+    it received (:mod:`.acks`); a neighbour re-sends what a summary made after its send arrived
+    still lacks, which recovers lost messages and partitions. The team map is
+    ``clamp(prior + sum T_s dh_s)`` over every held submap whose source is in the robot's frame
+    (:class:`~.fusion.EvidenceMap`): it equals the centralised fusion
+    (:func:`~.fusion.fuse_records`) cell for cell once all has arrived.
 ``roam`` (the baseline, :mod:`.roam`)
     ROAM's rule as its code does it; every period the full tree, at most one fusion per period.
 ``laplacian`` (:mod:`.laplacian`)
@@ -49,6 +50,7 @@ from kimera_multi_py.comms.messages.maps import MapState, MapVersions, RoamMap, 
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.mapping.submaps import SubmapMap
+from kimera_multi_py.mapshare.acks import EVIDENCE, POSES, Acks, Send
 from kimera_multi_py.mapshare.fusion import EvidenceMap, Key, octree_cells, view_rows
 from kimera_multi_py.mapshare.laplacian import LaplacianState
 from kimera_multi_py.mapshare.roam import ROAM_NODE_BYTES, RoamFusion
@@ -109,6 +111,7 @@ class _Held:
     version: int
     marks: np.ndarray  # (n,) int32 (versions count scans; a larger one is refused)
     got: float  # local time the current version arrived
+    via: tuple[int, int] = (-1, 0)  # the (sender, seq) of the message that brought it (own: none)
 
 
 class MapConsensus:
@@ -137,12 +140,10 @@ class MapConsensus:
         self._own_table: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._pose_version = 0
         self._nbr: dict[int, tuple[dict[Key, int], dict[int, int], float]] = {}
-        # per neighbour: how long our sends took to show in its summaries (smoothed, s); a summary
-        # that lacks a send younger than twice this is not a loss but a send still on its way
-        self._flight: dict[int, float] = {}
         self._nbr_frame: dict[int, int] = {}  # each neighbour's team frame, as its summary said
-        self._sent: dict[Key, tuple[int, float]] = {}
-        self._sent_poses: dict[int, tuple[int, float]] = {}
+        self.acks = Acks(self.robot, wait=2.0 * self.params.period)
+        self._sent: dict[Key, Send] = {}
+        self._sent_poses: dict[int, Send] = {}
         self._summary: tuple[bytes, int] | None = None  # last content, periods since sent
         # roam / laplacian
         self.roam = RoamFusion(local.template, self.params.roam_weight, self.params.roam_top_k,
@@ -183,8 +184,10 @@ class MapConsensus:
             self.ignored["not_neighbour"] += 1
             return
         if isinstance(msg, SubmapEvidence) and self.mode == "exact":
+            self.acks.received(EVIDENCE, msg.robot, msg.seq)
             self._on_evidence(msg)
         elif isinstance(msg, SubmapPoses) and self.mode == "exact":
+            self.acks.received(POSES, msg.robot, msg.seq)
             self._on_poses(msg)
         elif isinstance(msg, MapVersions) and self.mode == "exact":
             self._on_versions(msg)
@@ -225,7 +228,7 @@ class MapConsensus:
         if h is None:
             h = self.held[key] = _Held(0, np.zeros(0, _MARK), self._now)
         self._merge(key, h, codes, rows, msg.version)
-        h.version, h.got = msg.version, self._now
+        h.version, h.got, h.via = msg.version, self._now, (msg.robot, msg.seq)
 
     def _on_poses(self, msg: SubmapPoses) -> None:
         if msg.source == self.robot:
@@ -254,7 +257,7 @@ class MapConsensus:
         versions = {(int(s), int(m)): int(v) for s, m, v in
                     zip(msg.sources.tolist(), msg.submaps.tolist(), msg.versions.tolist(), strict=True)}
         pose_versions = dict(zip(msg.pose_sources.tolist(), msg.pose_versions.tolist(), strict=True))
-        self._learn_flight(msg.robot, versions, pose_versions)
+        self.acks.on_summary(msg.robot, msg.ack_robots, msg.ack_evidence, msg.ack_poses, self._now)
         self._nbr[msg.robot] = (versions, pose_versions, self._now)
         self._nbr_frame[msg.robot] = int(msg.frame)
 
@@ -343,43 +346,42 @@ class MapConsensus:
             h.marks = np.insert(h.marks, pos[~known], version)
         self.team.set_cells(key, codes, rows)
 
-    def _learn_flight(self, k: int, versions: dict[Key, int], pose_versions: dict[int, int]) -> None:
-        """Time our sends took to show in neighbour ``k``'s summaries: from this summary, the
-        first since each send that holds what was sent (the slowest of them, smoothed)."""
-        last = self._nbr[k][2] if k in self._nbr else -np.inf
-        took = [self._now - t for key, (v, t) in self._sent.items() if t > last and versions.get(key, 0) >= v]
-        took += [self._now - t for src, (v, t) in self._sent_poses.items()
-                 if t > last and pose_versions.get(src, 0) >= v]
-        if took:
-            old = self._flight.get(k)
-            self._flight[k] = max(took) if old is None else 0.7 * old + 0.3 * max(took)
+    def _bases(self, nbrs: list[int], stream: int, source: int, want: int, got: float, via: tuple[int, int],
+               sent: Send | None, reported: Callable[[int], int]) -> list[int]:
+        """The versions of the neighbours that should be sent version ``want`` of a source's data
+        (``stream``), which arrived here at ``got`` in the message ``via`` (sender, seq).
 
-    def _belief(self, k: int, reported: int, summary_time: float, sent: tuple[int, float] | None) -> int:
-        """The version neighbour ``k`` holds as far as we know: its summary, or what we sent since
-        (or before it, while that send may still be on its way: a slow link's queue holds it
-        longer than a summary period, and sending it again would only lengthen the queue)."""
-        if sent is not None and (sent[1] >= summary_time or self._now - sent[1] < 2.0 * self._flight.get(k, 0.0)):
-            return max(reported, sent[0])
-        return reported
-
-    def _bases(self, nbrs: list[int], source: int, want: int, got: float, sent: tuple[int, float] | None,
-               reported: Callable[[int], int]) -> list[int]:
-        """The versions of the neighbours that should be sent version ``want`` of a source's data.
-
-        A robot's own data goes out at once to whoever lacks it; a relay waits until the
-        neighbour's summary, newer than our copy, says it still lacks it (it may have got it
-        from the source directly). Lost messages show up as a newer summary that still lacks
-        what we sent, and are sent again.
+        A neighbour holds what its summary says, or what we sent it while that send has not
+        gone through (:meth:`.acks.Acks.through`: it may wait in a slow link's queue, and sending
+        it again would only lengthen the queue). A robot's own data goes out at once to whoever
+        lacks it; a relay waits for the neighbour's summary, newer than our copy, to say it still
+        lacks it after the copy the neighbour had from the same sender went through (the
+        neighbour may have it from the source directly, its link slower than ours). Lost
+        messages show up as a summary past them that still lacks what was sent, and go again.
         """
         out = []
         for k in nbrs:
             if k == source:
                 continue
             t = self._nbr[k][2] if k in self._nbr else -np.inf
-            have = self._belief(k, reported(k), t, sent)
-            if have < want and (source == self.robot or t > got):
+            have = reported(k)
+            if sent is not None and sent.version > have and k in sent.to and not self.acks.through(
+                    k, stream, self.robot, sent.seq, sent.t, t, sent.count):
+                have = sent.version
+            if have >= want:
+                continue
+            if source == self.robot or (t > got and (via[0] < 0 or not self.acks.hears(k, stream, via[0])
+                                                     or self.acks.through(k, stream, via[0], via[1], got, t))):
                 out.append(have)
         return out
+
+    def _send(self, sent: dict, item: Key | int, stream: int, version: int, nbrs: list[int]) -> int:
+        """Record a send of ``version`` of ``item``; its ``seq``."""
+        old = sent.get(item)
+        seq = self.acks.stamp(stream, self._now)
+        count = old.count + 1 if old is not None and old.version == version else 1
+        sent[item] = Send(version, self._now, seq, frozenset(nbrs), count)
+        return seq
 
     def _reported(self, key: Key) -> Callable[[int], int]:
         return lambda k: self._nbr[k][0].get(key, 0) if k in self._nbr else 0
@@ -391,27 +393,31 @@ class MapConsensus:
         out: list[Message] = []
         nbrs = sorted(self.neighbours)
         for src, (table, got) in sorted(self.poses.items()):
-            sent = self._sent_poses.get(src)
-            if self._bases(nbrs, src, table.version, got, sent, self._reported_poses(src)):
+            via = (table.robot, table.seq) if src != self.robot else (-1, 0)
+            if self._bases(nbrs, POSES, src, table.version, got, via, self._sent_poses.get(src),
+                           self._reported_poses(src)):
+                seq = self._send(self._sent_poses, src, POSES, table.version, nbrs)
                 out.append(SubmapPoses(robot=self.robot, source=table.source, version=table.version,
-                                       frame=table.frame, submaps=table.submaps, T_ref=table.T_ref, T=table.T))
-                self._sent_poses[src] = (table.version, self._now)
+                                       frame=table.frame, submaps=table.submaps, T_ref=table.T_ref, T=table.T,
+                                       seq=seq))
         for key, h in sorted(self.held.items()):
             if h.version == 0:
                 continue
-            bases = self._bases(nbrs, key[0], h.version, h.got, self._sent.get(key), self._reported(key))
+            bases = self._bases(nbrs, EVIDENCE, key[0], h.version, h.got, h.via, self._sent.get(key),
+                                self._reported(key))
             if bases:
                 base = min(bases)
                 sel = h.marks > base
                 codes, rows = self.team.record(key)
+                seq = self._send(self._sent, key, EVIDENCE, h.version, nbrs)
                 out.append(SubmapEvidence(robot=self.robot, source=key[0], submap=key[1], base=base,
                                           version=h.version, cells=int(sel.sum()), classes=self.k,
                                           payload=pack_cells(codes[sel], rows[sel, 1:].astype(np.int16),
-                                                             self.params.palette_rows)))
-                self._sent[key] = (h.version, self._now)
+                                                             self.params.palette_rows), seq=seq))
         summary = self._versions()
-        content = summary.sources.tobytes() + summary.submaps.tobytes() + summary.versions.tobytes() + \
-            summary.pose_sources.tobytes() + summary.pose_versions.tobytes() + bytes([self.frame % 256])
+        content = b"".join(a.tobytes() for a in (
+            summary.sources, summary.submaps, summary.versions, summary.pose_sources, summary.pose_versions,
+            summary.ack_robots, summary.ack_evidence, summary.ack_poses)) + bytes([self.frame % 256])
         if self._summary is None or self._summary[0] != content or self._summary[1] + 1 >= self.params.summary_every:
             self._summary = (content, 0)
             if nbrs:
@@ -423,12 +429,14 @@ class MapConsensus:
     def _versions(self) -> MapVersions:
         keys = sorted(k for k, h in self.held.items() if h.version > 0)
         srcs = sorted(self.poses)
+        ack_robots, ack_evidence, ack_poses = self.acks.fields()
         return MapVersions(
             robot=self.robot, frame=self.frame,
             sources=np.array([k[0] for k in keys], np.int32), submaps=np.array([k[1] for k in keys], np.int64),
             versions=np.array([self.held[k].version for k in keys], np.int64),
             pose_sources=np.array(srcs, np.int32),
-            pose_versions=np.array([self.poses[s][0].version for s in srcs], np.int64))
+            pose_versions=np.array([self.poses[s][0].version for s in srcs], np.int64),
+            ack_robots=ack_robots, ack_evidence=ack_evidence, ack_poses=ack_poses)
 
     def heard(self) -> set[int]:
         """Robots whose evidence, pose table or version summary this robot holds (itself too)."""

@@ -4,7 +4,11 @@ Every :meth:`MapExchange.round` steps each robot, encodes what it publishes with
 (so bytes are wire bytes, counted once per publish, per robot and topic), and delivers it to the
 sender's neighbours of that round, with optional faults: each delivery dropped with probability
 ``drop``, duplicated with probability ``duplicate``, and the round's deliveries shuffled
-(``reorder``). Tests and benchmarks use it; the node runtime uses a real bus instead.
+(``reorder``), or lost when ``lose(sender, receiver, message)`` says so. With a ``budget``
+(:class:`~kimera_multi_py.comms.link_budget.LinkBudget`) every directed link is a
+:class:`~kimera_multi_py.comms.link_budget.LinkQueue` on the rounds' clock: a message arrives in
+the first round at or after its transfer ends, by priority class (docs/deployment.md, "Link
+budget"). Tests and benchmarks use it; the node runtime uses a real bus instead.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 from kimera_multi_py.comms import codec
+from kimera_multi_py.comms.link_budget import LinkBudget, LinkQueue, priority_of
 from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.mapshare.consensus import MapConsensus
 
@@ -37,6 +42,8 @@ class MapExchange:
         reorder: bool = False,
         seed: int = 0,
         team: str = "t0",
+        budget: LinkBudget | None = None,
+        lose: Callable[[int, int, Message], bool] | None = None,
     ) -> None:
         self.nodes = dict(nodes)
         self.links = links if links is not None else full_links(sorted(self.nodes))
@@ -47,6 +54,9 @@ class MapExchange:
         self.messages = 0
         self.dropped = 0
         self._seq: Counter[int] = Counter()
+        self.budget, self.lose = budget, lose
+        self.queues: dict[tuple[int, int], LinkQueue] = {}
+        self.sent: Counter[tuple[type, int, int, int, int]] = Counter()  # (type, sender, source, item, version)
 
     def current_links(self, now: float) -> Links:
         return self.links(now) if callable(self.links) else self.links
@@ -63,12 +73,19 @@ class MapExchange:
                 for j in sorted(links.get(i, set())):
                     if j not in self.nodes:
                         continue
-                    if self.drop and self.rng.random() < self.drop:
+                    if (self.drop and self.rng.random() < self.drop) or (self.lose and self.lose(i, j, msg)):
                         self.dropped += 1
+                        continue
+                    if self.budget is not None:
+                        q = self.queues.setdefault((i, j), LinkQueue(self.budget, now))
+                        q.push((j, data), len(data), priority_of(msg.TOPIC), now)
                         continue
                     deliveries.append((j, data))
                     if self.duplicate and self.rng.random() < self.duplicate:
                         deliveries.append((j, data))
+        if self.queues:
+            done = [(end, key, item) for key, q in sorted(self.queues.items()) for item, end in q.advance(now)]
+            deliveries += [item for _, _, item in sorted(done, key=lambda d: (d[0], d[1]))]
         if self.reorder:
             order = self.rng.permutation(len(deliveries))
             deliveries = [deliveries[k] for k in order]
@@ -79,6 +96,8 @@ class MapExchange:
 
     def _encode(self, i: int, msg: Message, now: float) -> bytes:
         self._seq[i] += 1
+        item = getattr(msg, "submap", getattr(msg, "source", -1))
+        self.sent[(type(msg), i, getattr(msg, "source", -1), item, getattr(msg, "version", 0))] += 1
         data = codec.encode(msg, team=self.team, src=i, seq=self._seq[i], stamp=float(now))
         self.bytes[i][msg.TOPIC] += len(data)
         self.messages += 1

@@ -10,6 +10,7 @@ import numpy as np
 from kimera_multi_py.comms import keys
 from kimera_multi_py.comms.messages.base import Message, message
 from kimera_multi_py.comms.messages.fields import (
+    INT64_MAX,
     MAX_ROBOT_ID,
     Array,
     Bool,
@@ -49,7 +50,8 @@ class SubmapEvidence(Message):
     ``payload`` holds ``cells`` Morton codes on the submap's reference grid and their integer
     evidence (fixed-point log-odds sums) of ``classes`` classes 1..K, losslessly compressed
     (:mod:`kimera_multi_py.mapshare.wire`). A robot at a version in ``[base, version)``
-    applies it; relayed unchanged except for ``robot`` (the sender).
+    applies it; relayed unchanged except for ``robot`` (the sender) and ``seq``. ``seq`` numbers
+    the sender's evidence messages (1, 2, ...; the receivers' summaries acknowledge it).
     """
 
     robot: int = robot_id()
@@ -60,6 +62,7 @@ class SubmapEvidence(Message):
     cells: int = count()
     classes: int = spec_field(Int(1, 255))
     payload: np.ndarray = arr("uint8", "b")
+    seq: int = spec_field(Int(0, INT64_MAX), default=0)
 
 
 @message("SubmapPoses", keys.MAP_POSES)
@@ -67,7 +70,8 @@ class SubmapPoses(Message):
     """Map consensus: where ``source``'s submaps are (version ``version`` of its pose table).
 
     ``frame`` is the root robot of the world frame the poses ``T`` are in; ``T_ref`` are the
-    poses at which each submap's grid was laid down. Relayed unchanged except for ``robot``.
+    poses at which each submap's grid was laid down. Relayed unchanged except for ``robot`` and
+    ``seq`` (the sender's pose-table messages numbered 1, 2, ...).
     """
 
     robot: int = robot_id()
@@ -77,12 +81,16 @@ class SubmapPoses(Message):
     submaps: np.ndarray = arr("int64", "n", lo=0)
     T_ref: np.ndarray = arr("float64", "n", 4, 4)
     T: np.ndarray = arr("float64", "n", 4, 4)
+    seq: int = spec_field(Int(0, INT64_MAX), default=0)
 
 
 @message("MapVersions", keys.MAP_VERSIONS)
 class MapVersions(Message):
     """Map consensus: the versions of every submap and pose table a robot holds (a summary its
-    neighbours answer with what it lacks, which also recovers lost messages)."""
+    neighbours answer with what it lacks, which also recovers lost messages).
+
+    ``ack_robots[i]``'s evidence and pose-table messages received so far: the highest ``seq`` of
+    each (``ack_evidence[i]``, ``ack_poses[i]``; docs/algorithms/map_consensus.md, "Losses")."""
 
     robot: int = robot_id()
     frame: int = robot_id()
@@ -91,6 +99,10 @@ class MapVersions(Message):
     versions: np.ndarray = arr("int64", "m", lo=0)
     pose_sources: np.ndarray = arr("int32", "p", lo=0, hi=MAX_ROBOT_ID)
     pose_versions: np.ndarray = arr("int64", "p", lo=0)
+    ack_robots: np.ndarray = spec_field(Array("int32", ("a",), lo=0, hi=MAX_ROBOT_ID),
+                                        factory=lambda: np.zeros(0, np.int32))
+    ack_evidence: np.ndarray = spec_field(Array("int64", ("a",), lo=0), factory=lambda: np.zeros(0, np.int64))
+    ack_poses: np.ndarray = spec_field(Array("int64", ("a",), lo=0), factory=lambda: np.zeros(0, np.int64))
 
 
 @message("MapState", keys.MAP_STATE)
