@@ -13,7 +13,7 @@ from kimera_multi_py.comms.messages.pgo import PgoStatus
 from kimera_multi_py.comms.messages.team import AgentState, PgoEpoch
 from kimera_multi_py.eval.metrics import ate_rmse
 from kimera_multi_py.pgo.params import PgoParams
-from kimera_multi_py.pgo.team import EPOCH_ROUNDS, ScheduleParams
+from kimera_multi_py.pgo.team import EPOCH_ROUNDS, ScheduleParams, TeamPgo
 from kimera_multi_py.sim import Simulation, load_scenario
 from kimera_multi_py.sim.source import keyframe_input
 from kimera_multi_py.team.build import agent_params
@@ -108,7 +108,6 @@ def test_epoch_tags_keep_other_epochs_out():
 def test_closures_accepted_after_the_final_epoch_get_a_final_epoch_of_their_own():
     """A closure the team accepts once its final epoch opened (verified during it, or answered
     late) is optimised: the leader runs one more final epoch, and only when there is something new."""
-    from kimera_multi_py.pgo.team import TeamPgo
 
     sim = Simulation(load_scenario(TINY), seed=0)
     agent = Agent(0, None, agent_params(sim.cfg))
@@ -130,18 +129,22 @@ def test_closures_accepted_after_the_final_epoch_get_a_final_epoch_of_their_own(
     assert run() == [True, True]
 
 
-def test_a_robot_met_after_the_final_epoch_gets_another() -> None:
-    """A partition that healed after the streams ended: the robot met again was not a member of
-    the final epoch, so the final epoch runs again, with it (and only while it is present)."""
-    from kimera_multi_py.comms.messages.team import AgentState
-    from kimera_multi_py.pgo.team import TeamPgo
-
+def _leader_pgo() -> TeamPgo:
+    """Robot 0's TeamPgo over its first six keyframes of the tiny scenario, no closures."""
     sim = Simulation(load_scenario(TINY), seed=0)
     agent = Agent(0, None, agent_params(sim.cfg))
     for kf, _ in zip(sim.keyframes(0), range(6), strict=False):
         agent.process_keyframe(keyframe_input(kf))
-    pgo = TeamPgo(0, PgoParams(max_rounds=50), ScheduleParams(round_timeout=None),
-                  agent.local_graph, agent.apply_poses, lambda: agent.robot_graph, lambda: 0)
+    return TeamPgo(0, PgoParams(max_rounds=50), ScheduleParams(round_timeout=None),
+                   agent.local_graph, agent.apply_poses, lambda: agent.robot_graph, lambda: 0)
+
+
+def test_a_robot_met_after_the_final_epoch_gets_another() -> None:
+    """A partition that healed after the streams ended: the robot met again was not a member of
+    the final epoch, so the final epoch runs again, with it (and only while it is present)."""
+    from kimera_multi_py.comms.messages.team import AgentState
+
+    pgo = _leader_pgo()
     for t in range(200):
         pgo.tick(10.0, float(t), set(), finished=True, force=True)
     assert [h[2] for h in pgo.history] == [True] and pgo.final_done
@@ -166,14 +169,9 @@ def test_a_member_out_of_the_frame_after_the_final_epoch_gets_it_run_again_a_bou
     it is no longer complete; the leader runs the final epoch again so that it can decide afresh,
     at most MAX_REOPEN times for one robot."""
     from kimera_multi_py.comms.messages.team import AgentState
-    from kimera_multi_py.pgo.team import MAX_REOPEN, TeamPgo
+    from kimera_multi_py.pgo.team import MAX_REOPEN
 
-    sim = Simulation(load_scenario(TINY), seed=0)
-    agent = Agent(0, None, agent_params(sim.cfg))
-    for kf, _ in zip(sim.keyframes(0), range(6), strict=False):
-        agent.process_keyframe(keyframe_input(kf))
-    pgo = TeamPgo(0, PgoParams(max_rounds=50), ScheduleParams(round_timeout=None),
-                  agent.local_graph, agent.apply_poses, lambda: agent.robot_graph, lambda: 0)
+    pgo = _leader_pgo()
 
     def state(epoch: int, complete: bool) -> AgentState:
         return AgentState(robot=1, keyframes=10, stamp=40.0, finished=True, epoch=epoch, complete=complete,
