@@ -180,7 +180,9 @@ async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: flo
     every team robot's last version summary (``mapshare.consensus.MapConsensus.gaps``) and no
     epoch runs, and that has held for ``settle`` s (two state periods: a leader that learns of a
     late closure from a robot's state re-runs the final epoch, and a robot gone by then could
-    never match the new poses), or for ``cap`` s. ``robots``: the team's size (default: every
+    never match the new poses), or for ``cap`` s counted from when no robot present is still
+    streaming (a robot whose stream ended first, or that ran a final epoch alone behind a
+    partition, stays for the team's final epoch). ``robots``: the team's size (default: every
     robot heard of). Returns what ``linger.json`` records: whether the team was whole, the wait,
     and what was missing."""
     maps = node.maps
@@ -195,11 +197,20 @@ async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: flo
         # or the safety net's look at the final frame still to come (it may ask for another)
         return (node.pgo is not None and node.pgo.busy) or not node.settled
 
+    def streaming() -> bool:  # a robot still present feeds its stream: the team's run goes on
+        pgo, alive = node.pgo, node.alive()
+        return pgo is not None and any(not st.finished for r, st in pgo.states.items()
+                                       if r != node.robot and r in alive)
+
     quiet_since: float | None = None
-    while time.monotonic() - t0 < cap:
+    start = t0
+    while time.monotonic() - start < cap:
+        going_on = streaming()
+        if going_on:  # the wait is bounded from when no robot present still streams: a robot
+            start = time.monotonic()  # whose stream ended first stays for the team's final epoch
         gaps = maps.gaps(team())
         now = time.monotonic()
-        if gaps or busy():
+        if gaps or busy() or going_on:
             quiet_since = None
         elif quiet_since is None:
             quiet_since = now

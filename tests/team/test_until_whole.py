@@ -1,0 +1,54 @@
+"""An agent's wait after its final epoch (``team.process.until_whole``, docs/deployment.md): it
+stays while a robot it hears is still streaming, and its ``--linger-max`` counts from when none is.
+Unit test with a stand-in node (the loop only reads the node's maps, states and presence)."""
+
+from __future__ import annotations
+
+import asyncio
+from types import SimpleNamespace
+
+from kimera_multi_py.team.process import until_whole
+
+
+class StreamingPeer:
+    """Robot 0, done, hearing robot 1, which still streams for ``ticks`` ticks; until then robot
+    1's newest submap is always missing here (a gap in the team map)."""
+
+    def __init__(self, ticks: int) -> None:
+        self.ticks = ticks
+        self.ticked = 0
+        self.robot = 0
+        self.settled = True
+        state = SimpleNamespace(finished=False)
+        self.pgo = SimpleNamespace(states={1: state}, busy=False)
+        self.maps = SimpleNamespace(mode="exact", gaps=self._gaps, heard=lambda: {0, 1})
+
+    def _gaps(self, team: set[int]) -> dict[int, list[str]]:
+        return {1: ["submaps_ahead"]} if not self.pgo.states[1].finished else {}
+
+    def alive(self) -> frozenset[int]:
+        return frozenset({1})
+
+    async def drain(self) -> int:
+        return 0
+
+    async def tick(self) -> int:
+        self.ticked += 1
+        if self.ticked >= self.ticks:
+            self.pgo.states[1].finished = True
+        return 0
+
+
+def test_a_robot_waits_for_a_peer_still_streaming_beyond_its_linger_cap() -> None:
+    node = StreamingPeer(ticks=500)
+    out = asyncio.run(until_whole(node, None, cap=0.05, poll=0.001, settle=0.01))  # type: ignore[arg-type]
+    assert node.ticked >= 500  # it did not give up while robot 1 streamed
+    assert out["whole"] and out["missing"] == {}
+
+
+def test_without_a_streaming_peer_the_cap_ends_the_wait() -> None:
+    node = StreamingPeer(ticks=10**9)
+    node.pgo.states[1].finished = True
+    node.maps.gaps = lambda team: {1: ["submaps_ahead"]}  # a gap that never closes
+    out = asyncio.run(until_whole(node, None, cap=0.05, poll=0.001, settle=0.01))  # type: ignore[arg-type]
+    assert not out["whole"] and out["missing"] == {"1": ["submaps_ahead"]}
