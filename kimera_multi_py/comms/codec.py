@@ -42,6 +42,7 @@ from kimera_multi_py.comms.wire import (
     _ext_hook,
     _packb,
     ext_of,
+    unpackb,
     zipped,
 )
 from kimera_multi_py.core.errors import MessageError
@@ -121,12 +122,7 @@ def _unpack(data: bytes | bytearray | memoryview) -> Any:
         env = largemsg.unpack(data)  # type: ignore[arg-type]
         if env is not None:
             return env
-    try:
-        return msgpack.unpackb(data, raw=False, ext_hook=_ext_hook, strict_map_key=True)
-    except MessageError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - msgpack raises many types on hostile input
-        raise CodecError("payload", f"not valid msgpack ({type(exc).__name__}: {exc})") from exc
+    return unpackb(data)
 
 
 def decode_batch(

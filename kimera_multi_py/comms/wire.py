@@ -140,12 +140,18 @@ def _unzip(data: bytes) -> Any:
         raw = compression.decompress(data[_ZHEAD.size:], method, size, "envelope", SCHEMA_DICT)
     except MessageError as exc:
         raise CodecError("payload", str(exc)) from exc
+    return unpackb(raw, _inner_hook, "compressed envelope is ")
+
+
+def unpackb(data: Any, ext_hook: Any = _ext_hook, what: str = "") -> Any:
+    """msgpack's ``unpackb`` with the wire's ext types; hostile bytes (msgpack raises many types
+    on them) become one :class:`CodecError` saying ``what`` was not valid msgpack."""
     try:
-        return msgpack.unpackb(raw, raw=False, ext_hook=_inner_hook, strict_map_key=True)
+        return msgpack.unpackb(data, raw=False, ext_hook=ext_hook, strict_map_key=True)
     except MessageError:
         raise
     except Exception as exc:  # noqa: BLE001 - msgpack raises many types on hostile input
-        raise CodecError("payload", f"compressed envelope is not valid msgpack ({type(exc).__name__})") from exc
+        raise CodecError("payload", f"{what}not valid msgpack ({type(exc).__name__}: {exc})") from exc
 
 
 def zipped(data: bytes, level: int = 3) -> bytes:

@@ -46,13 +46,19 @@ def _tables() -> list[Message]:
     ]
 
 
+
+def _both(tx: Codec, msg: Message) -> tuple[bytes, bytes]:
+    """``msg`` encoded by ``tx`` as it travels (compressed where that pays) and plain."""
+    data = tx.encode(msg)
+    tx.compress = False
+    plain = tx.encode(msg)
+    tx.compress = True
+    return data, plain
+
 def test_tables_travel_compressed_and_come_back_equal() -> None:
     tx, rx = Codec("t0", 0, range(3)), Codec("t0", 1, range(3))
     for msg in _tables():
-        data = tx.encode(msg)
-        tx.compress = False
-        plain = tx.encode(msg)
-        tx.compress = True
+        data, plain = _both(tx, msg)
         assert _is_zipped(data) and not _is_zipped(plain) and len(data) < 0.6 * len(plain)
         assert rx.decode(data).msg == msg == rx.decode(plain).msg
     # a columnar batch compresses too, and compressed envelopes sit in a batch payload like any other
@@ -104,10 +110,7 @@ def test_small_envelopes_shrink_with_the_schema_dictionary() -> None:
     """A status, a command, an ack: mostly field names, which the dictionary both ends hold."""
     tx, rx = Codec("office", 1, range(3)), Codec("office", 0, range(3))
     for msg in _small():
-        data = tx.encode(msg)
-        tx.compress = False
-        plain = tx.encode(msg)
-        tx.compress = True
+        data, plain = _both(tx, msg)
         obj = msgpack.unpackb(data, ext_hook=lambda c, d: msgpack.ExtType(c, d))
         assert obj.data[0] == compression.DEFLATE_DICT and len(data) < 0.7 * len(plain)
         assert rx.decode(data).msg == msg
