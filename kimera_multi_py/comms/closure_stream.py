@@ -75,8 +75,12 @@ def is_full(msg: LoopClosures) -> bool:
 
 
 def compact(full: LoopClosures, acked: tuple[int, _Batch] | None) -> LoopClosures:
-    """``full`` with only the closures ``acked`` (batch number, closures) lacks carrying values."""
-    if acked is None or full.robot == full.peer or not len(full.keys_a):
+    """``full`` with only the closures ``acked`` (batch number, closures) lacks carrying values.
+
+    Only against a base at most :data:`HISTORY` batches older: the receiver keeps its last
+    :data:`HISTORY` batches, and every batch it took after the base pushes one out, so a burst of
+    batches sent before the acks come back would otherwise outrun what the receiver holds."""
+    if acked is None or full.robot == full.peer or not len(full.keys_a) or full.batch - acked[0] > HISTORY:
         return full
     base, held = acked
     fresh = ~held.same(full)

@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from kimera_multi_py.comms.closure_stream import ClosureInbox, ClosureOutbox, is_full
+from kimera_multi_py.comms.closure_stream import HISTORY, ClosureInbox, ClosureOutbox, is_full
 from kimera_multi_py.comms.codec import Codec
 from kimera_multi_py.comms.messages.closures import LoopClosures
 from kimera_multi_py.core.errors import MessageError
@@ -81,6 +81,21 @@ def test_lost_batches_and_a_receiver_without_the_base_refuse_then_the_resend_rep
     assert _same(second, inbox.expand(wire))
     out.forget(1)  # the peer (re)appeared: everything in full again
     assert is_full(out.send(_batch(2, [(1, 2), (3, 4), (5, 6)])))
+
+
+def test_a_burst_sent_before_the_acks_return_never_outruns_the_receivers_history() -> None:
+    """Batches sent in a burst (every one received, every ack still on its way) stay expandable:
+    past :data:`HISTORY` batches beyond the acknowledged one, the sender goes in full."""
+    out, inbox = ClosureOutbox(), ClosureInbox()
+    inbox.expand(out.send(_batch(0, [(1, 2)])))
+    out.acked(1, 0)
+    kfs = [(1, 2)]
+    for batch in range(1, 3 * HISTORY):
+        kfs = kfs + [(batch + 2, batch)]
+        full = _batch(batch, kfs)
+        wire = out.send(full)
+        assert is_full(wire) == (batch > HISTORY)
+        assert _same(full, inbox.expand(wire))
 
 
 def test_intra_robot_batches_and_the_full_format_go_whole() -> None:
