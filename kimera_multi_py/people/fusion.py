@@ -8,6 +8,15 @@ seconds on either side, positions interpolated), the median horizontal distance 
 never joining two tracks of one robot that overlap in time (that robot saw two people). A fused
 person's id is the smallest team id of its tracks (``source << 24 | track id``), so robots that hold
 the same tables give the same people the same ids.
+
+Across gaps. People look alike, so a person seen again after every robot lost sight of them is a
+new group of tracks. Groups are then chained into people as the fewest people that explain them
+(a minimum path cover of the groups, by maximum bipartite matching): a group may follow another
+that ended before it began, when walking at ``max_speed`` from where the first was last seen
+reaches where the second was first seen (plus ``link_distance``). Only the links that every
+minimum cover shares are made (an edge every maximum matching holds): one person lost and seen
+again is chained, while two people lost and two seen again, each reachable from both, stay four
+groups. It assumes nobody enters unseen while somebody known is out of sight and could be them.
 """
 
 from __future__ import annotations
@@ -18,6 +27,8 @@ from typing import Any
 
 import numpy as np
 from scipy.cluster.hierarchy import DisjointSet
+from scipy.sparse import csr_array
+from scipy.sparse.csgraph import maximum_bipartite_matching
 
 from kimera_multi_py.mapping.object_fusion import TEAM_ID_SHIFT
 
@@ -49,10 +60,41 @@ def _overlap(a: TeamTrack, b: TeamTrack) -> bool:
     return bool(a.stamps[0] <= b.stamps[-1] and b.stamps[0] <= a.stamps[-1])
 
 
+def _matching_size(links: np.ndarray, n: int) -> int:
+    if not len(links):
+        return 0
+    g = csr_array((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n))
+    return int((maximum_bipartite_matching(g, perm_type="column") >= 0).sum())
+
+
+def forced_links(starts: np.ndarray, ends: np.ndarray, first: np.ndarray, last: np.ndarray, max_speed: float,
+                 slack: float) -> list[tuple[int, int]]:
+    """The links ``(a, b)`` (group ``b`` is group ``a``'s person seen again) that every minimum path
+    cover of the groups holds (module docstring). ``starts``/``ends``: each group's first and last
+    stamp; ``first``/``last``: its first and last horizontal position."""
+    gap = starts[None, :] - ends[:, None]
+    reach = np.linalg.norm(first[None, :, :2] - last[:, None, :2], axis=2) <= max_speed * gap + slack
+    links = np.argwhere((gap > 0) & reach)
+    n = len(starts)
+    full = _matching_size(links, n)
+    if full == 0:
+        return []
+    g = csr_array((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n))
+    match = maximum_bipartite_matching(g, perm_type="column")
+    out = []
+    for a in np.flatnonzero(match >= 0).tolist():
+        b = int(match[a])
+        rest = links[~((links[:, 0] == a) & (links[:, 1] == b))]
+        if _matching_size(rest, n) < full:
+            out.append((a, b))
+    return out
+
+
 def fuse_people(tracks: Mapping[int, TeamTrack], link_distance: float = 0.6, max_gap: float = 1.5,
-                min_common: int = 2) -> list[dict[str, Any]]:
+                min_common: int = 2, max_speed: float = 2.0) -> list[dict[str, Any]]:
     """Fuse tracks keyed by team id into people: ``id``, ``stamps``, ``positions`` (sorted by stamp),
-    ``members`` (team ids of the tracks fused), ``sources``."""
+    ``members`` (team ids of the tracks fused), ``sources``. ``max_speed`` (m/s) bounds how far a
+    person walks while nobody sees them (0: no chaining across gaps)."""
     ids = sorted(int(k) for k in tracks if len(tracks[k].stamps))
     pairs = []
     for i, a in enumerate(ids):
@@ -71,6 +113,8 @@ def fuse_people(tracks: Mapping[int, TeamTrack], link_distance: float = 0.6, max
         if any(tracks[x].source == tracks[y].source and _overlap(tracks[x], tracks[y]) for x in ga for y in gb):
             continue
         groups.merge(a, b)
+    if max_speed > 0:
+        _chain(tracks, groups, max_speed, link_distance)
     out = []
     for members in sorted((sorted(s) for s in groups.subsets()), key=lambda m: m[0]):
         stamps = np.concatenate([tracks[m].stamps for m in members])
@@ -79,3 +123,18 @@ def fuse_people(tracks: Mapping[int, TeamTrack], link_distance: float = 0.6, max
         out.append({"id": members[0], "stamps": stamps[order].tolist(), "positions": pos[order].tolist(),
                     "members": members, "sources": sorted({m >> TEAM_ID_SHIFT for m in members})})
     return out
+
+
+def _chain(tracks: Mapping[int, TeamTrack], groups: DisjointSet, max_speed: float, slack: float) -> None:
+    """Merge the groups that every minimum cover chains (:func:`forced_links`)."""
+    subsets = sorted((sorted(s) for s in groups.subsets()), key=lambda m: m[0])
+    if len(subsets) < 2:
+        return
+    ends = []
+    for members in subsets:
+        st = np.concatenate([tracks[m].stamps for m in members])
+        pos = np.concatenate([tracks[m].positions for m in members]).reshape(-1, 3)
+        ends.append((st.min(), st.max(), pos[np.argmin(st)], pos[np.argmax(st)]))
+    starts, stops, first, last = (np.array([e[k] for e in ends]) for k in range(4))
+    for a, b in forced_links(starts, stops, first, last, max_speed, slack):
+        groups.merge(subsets[a][0], subsets[b][0])
