@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from scipy.cluster.hierarchy import DisjointSet
 from scipy.sparse import csr_array
-from scipy.sparse.csgraph import maximum_bipartite_matching
+from scipy.sparse.csgraph import breadth_first_order, connected_components, maximum_bipartite_matching
 
 from kimera_multi_py.mapping.object_fusion import TEAM_ID_SHIFT
 
@@ -60,34 +60,41 @@ def _overlap(a: TeamTrack, b: TeamTrack) -> bool:
     return bool(a.stamps[0] <= b.stamps[-1] and b.stamps[0] <= a.stamps[-1])
 
 
-def _matching_size(links: np.ndarray, n: int) -> int:
-    if not len(links):
-        return 0
-    g = csr_array((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n))
-    return int((maximum_bipartite_matching(g, perm_type="column") >= 0).sum())
-
-
 def forced_links(starts: np.ndarray, ends: np.ndarray, first: np.ndarray, last: np.ndarray, max_speed: float,
                  slack: float) -> list[tuple[int, int]]:
     """The links ``(a, b)`` (group ``b`` is group ``a``'s person seen again) that every minimum path
     cover of the groups holds (module docstring). ``starts``/``ends``: each group's first and last
-    stamp; ``first``/``last``: its first and last horizontal position."""
+    stamp; ``first``/``last``: its first and last horizontal position.
+
+    A maximum matching's edge is in every maximum matching unless an alternating path or cycle can
+    swap it out: in the digraph with unmatched edges from "before" to "after" nodes and matched
+    edges back, it lies on a cycle (both ends in one strongly connected component), or its
+    "after" end is reached from an unmatched "before" node, or (in the reverse digraph) its
+    "before" end from an unmatched "after" node. Linear in the links (Tassa, 2012)."""
+    n = len(starts)
     gap = starts[None, :] - ends[:, None]
     reach = np.linalg.norm(first[None, :, :2] - last[:, None, :2], axis=2) <= max_speed * gap + slack
-    links = np.argwhere((gap > 0) & reach)
-    n = len(starts)
-    full = _matching_size(links, n)
-    if full == 0:
+    a, b = np.nonzero((gap > 0) & reach)
+    if not len(a):
         return []
-    g = csr_array((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n))
-    match = maximum_bipartite_matching(g, perm_type="column")
-    out = []
-    for a in np.flatnonzero(match >= 0).tolist():
-        b = int(match[a])
-        rest = links[~((links[:, 0] == a) & (links[:, 1] == b))]
-        if _matching_size(rest, n) < full:
-            out.append((a, b))
-    return out
+    match = maximum_bipartite_matching(csr_array((np.ones(len(a)), (a, b)), shape=(n, n)), perm_type="column")
+    matched = match[a] == b
+    # nodes 0..n-1 "before" (a group's end), n..2n-1 "after" (a group's start); node 2n: the source
+    src = np.where(matched, n + b, a)
+    dst = np.where(matched, a, n + b)
+    D = csr_array((np.ones(len(a)), (src, dst)), shape=(2 * n + 1, 2 * n + 1))
+    _, scc = connected_components(D, directed=True, connection="strong")
+    free_before = np.flatnonzero(match < 0)
+    free_after = n + np.setdiff1d(np.arange(n), match[match >= 0])
+    lo, hi = a[matched], b[matched]
+    swappable = scc[lo] == scc[n + hi]
+    for free, graph, end in ((free_before, D, n + hi), (free_after, D.T.tocsr(), lo)):
+        if len(free):
+            G = graph.tolil()
+            G[2 * n, free] = 1  # one source before every free node
+            seen = breadth_first_order(G.tocsr(), 2 * n, directed=True, return_predecessors=False)
+            swappable |= np.isin(end, seen)
+    return [(int(x), int(y)) for x, y, s in zip(lo, hi, swappable, strict=True) if not s]
 
 
 def fuse_people(tracks: Mapping[int, TeamTrack], link_distance: float = 0.6, max_gap: float = 1.5,

@@ -64,3 +64,36 @@ def test_forced_links_are_the_edges_every_maximum_matching_holds():
     # move group 3 out of everyone's reach: 0 -> 2 and 1 -> 2 compete, neither is forced
     first[3] = [200, 0]
     assert forced_links(starts, ends, first, last, 2.0, 0.5) == []
+
+
+def _forced_by_removal(starts, ends, first, last, max_speed, slack):
+    """The definition itself: matched links whose removal shrinks the maximum matching."""
+    from scipy.sparse import csr_array
+    from scipy.sparse.csgraph import maximum_bipartite_matching
+
+    n = len(starts)
+    gap = starts[None, :] - ends[:, None]
+    reach = np.linalg.norm(first[None, :, :2] - last[:, None, :2], axis=2) <= max_speed * gap + slack
+    links = np.argwhere((gap > 0) & reach)
+
+    def size(ls):
+        if not len(ls):
+            return 0
+        g = csr_array((np.ones(len(ls)), (ls[:, 0], ls[:, 1])), shape=(n, n))
+        return int((maximum_bipartite_matching(g, perm_type="column") >= 0).sum())
+
+    full = size(links)
+    return sorted((int(x), int(y)) for x, y in links
+                  if size(links[~((links[:, 0] == x) & (links[:, 1] == y))]) < full)
+
+
+def test_forced_links_agree_with_the_definition_on_random_groups():
+    rng = np.random.default_rng(7)
+    for trial in range(60):
+        n = int(rng.integers(2, 25))
+        starts = np.sort(rng.uniform(0, 200, n))
+        ends = starts + rng.uniform(1, 20, n)
+        first, last = rng.uniform(0, 30, (n, 2)), rng.uniform(0, 30, (n, 2))
+        speed = float(rng.choice([0.3, 1.0, 2.0]))
+        assert sorted(forced_links(starts, ends, first, last, speed, 0.6)) == \
+            _forced_by_removal(starts, ends, first, last, speed, 0.6), trial
