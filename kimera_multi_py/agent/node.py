@@ -159,8 +159,14 @@ class AgentNode:
         return max(own, self._peer_stamp)
 
     def _accepted_inter(self) -> int:
-        """Inter-robot closures accepted anywhere in the team, as far as this node has heard."""
-        return sum(self._closure_counts.values())
+        """Inter-robot closures accepted anywhere in the team, as far as this node has heard: the
+        closure batches it heard, or, where it lost a batch that the peer then acknowledged (no
+        re-send comes), the robots' periodic states (each counts the closures it received),
+        whichever is more. A late closure so still earns the leader's final epoch."""
+        heard = sum(self._closure_counts.values())
+        states = self.pgo.states if self.pgo is not None else {}
+        held = len(self.agent.inter_edges) + sum(st.closures for r, st in states.items() if r != self.robot)
+        return max(heard, held)
 
     def _count_closures(self, msg: Message) -> None:
         if isinstance(msg, LoopClosures) and msg.robot != msg.peer:

@@ -3,6 +3,7 @@ leader learns robot pairs from the members' states and optimises again with them
 that no reply answered is asked again (docs/deployment.md, faults)."""
 
 import asyncio
+import dataclasses
 
 import numpy as np
 
@@ -74,6 +75,41 @@ def test_a_pair_the_leader_learns_after_the_final_epoch_gets_another_final_epoch
     assert run(400) == [True, True] and pgo.final_done
     assert opened[-1].final and opened[-1].pairs.tolist() == [[0, 2], [1, 2]]
     assert run(600) == [True, True]  # and only once
+
+
+def test_a_closure_whose_batch_the_leader_lost_still_gets_a_final_epoch():
+    """Robots 1 and 2 are joined already; robot 1 verifies one more closure with robot 2 after the
+    final epoch, and the leader loses that batch (robot 2 acknowledged it: no re-send comes). Robot
+    2's periodic state counts the closures it received: the leader's count moves, and the final
+    epoch runs again, once."""
+    async def main() -> None:
+        net = LoopbackNetwork(team="t0", seed=0)
+        sim = Simulation(load_scenario(TINY), seed=0)
+        node = AgentNode(Agent(0, None, agent_params(sim.cfg)), net.bus(0), PgoParams(max_rounds=50),
+                         ScheduleParams(round_timeout=None))
+        await node.start()
+        for kf, _ in zip(sim.keyframes(0), range(6), strict=False):
+            await node.process_keyframe(keyframe_input(kf))
+        pgo, alive = node.pgo, {1, 2}
+        assert pgo is not None
+
+        def run(start: int) -> list[bool]:
+            for t in range(start, start + 200):
+                pgo.tick(50.0, float(t), alive, finished=True, force=True)
+            return [h[2] for h in pgo.history]
+
+        pgo.handle(_state(1, []), alive)
+        pgo.handle(dataclasses.replace(_state(2, [(1, 2)]), closures=3), alive)
+        assert node._accepted_inter() == 3  # no batch heard: the states count them
+        assert run(0) == [True] and pgo.final_done
+        assert run(200) == [True]  # nothing new
+        pgo.handle(dataclasses.replace(_state(2, [(1, 2)]), closures=4), alive)  # the late closure
+        assert node._accepted_inter() == 4
+        assert run(400) == [True, True] and pgo.final_done
+        assert run(600) == [True, True]  # and only once
+        await node.close()
+
+    asyncio.run(main())
 
 
 class _Recorder(AgentNode):
