@@ -104,7 +104,8 @@ class CellStates:
         return self._derived[key]  # type: ignore[return-value]
 
     def registration_target(self) -> tuple[object, object]:
-        """The occupied cells prepared as a registration target (:data:`_REGISTRATION`)."""
+        """The occupied cells prepared for registration (:data:`_REGISTRATION`), as a target or as
+        a source: downsampled, with covariances and a search tree."""
         if "target" not in self._derived:
             self._derived["target"] = _REGISTRATION.prepare(self.centres[self.state == OCCUPIED])
         return self._derived["target"]  # type: ignore[return-value]
@@ -195,8 +196,9 @@ def refined_agreement(a: CellStates, b: CellStates, T_b_a: np.ndarray, coarse: f
     plain = map_agreement(a, b, T, coarse)
     if plain.conflicts == 0:
         return plain
-    src, tgt = a.centres[a.state == OCCUPIED], b.centres[b.state == OCCUPIED]
-    reg = _REGISTRATION.register(b.registration_target(), src, T) if len(src) and len(tgt) else None
+    known = bool((a.state == OCCUPIED).any() and (b.state == OCCUPIED).any())
+    # one map is compared under several hypotheses: its preparation is kept with it
+    reg = _REGISTRATION.register(b.registration_target(), a.registration_target(), T) if known else None
     # GICP's own convergence flag is not asked for: whether it stopped within its iteration cap
     # varies between builds of the same library, and the score of the frame it reached decides
     if reg is None:

@@ -91,9 +91,9 @@ class ScanRegistration:
         :meth:`register` in place of the points to align several sources to one target."""
         return self._cloud(target)
 
-    def register(self, target: np.ndarray | tuple[object, object], source: np.ndarray,
+    def register(self, target: np.ndarray | tuple[object, object], source: np.ndarray | tuple[object, object],
                  T_init: np.ndarray) -> Registration | None:
-        """Align ``source`` ``(n, 3)`` to ``target`` ``(m, 3)`` (or a :meth:`prepare`-d target)
+        """Align ``source`` ``(n, 3)`` to ``target`` ``(m, 3)`` (either may be :meth:`prepare`-d)
         from ``T_init`` (T_target_source).
 
         Returns None when either cloud has fewer than ``min_points`` points after downsampling.
@@ -104,7 +104,7 @@ class ScanRegistration:
         if T0.shape != (4, 4) or not np.all(np.isfinite(T0)):
             raise ValueError(f"registration: the initial guess must be a finite 4x4 pose, not {T0.shape}")
         tgt, tree = target if isinstance(target, tuple) else self._cloud(target)
-        src, _ = self._cloud(source)
+        src, _ = source if isinstance(source, tuple) else self._cloud(source)
         if tgt.size() < self.min_points or src.size() < self.min_points:  # type: ignore[attr-defined]
             return None
         T = T0
