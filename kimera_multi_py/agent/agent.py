@@ -408,6 +408,10 @@ class Agent:
         self._batch[peer] = self._batch.get(peer, 0) + 1
         return [self.closures_message(peer)]
 
+    def verified_inter(self) -> int:
+        """Inter-robot closures this robot verified that PCM accepts now (its newest batches' sizes)."""
+        return sum(sum(1 for c in cs if c.accepted) for peer, cs in self.closures.items() if peer != self.robot)
+
     def closures_message(self, peer: int) -> LoopClosures:
         """The closures with ``peer`` that PCM accepts now, as the newest batch."""
         accepted = [c for c in self.closures.get(peer, []) if c.accepted]

@@ -159,14 +159,16 @@ class AgentNode:
         return max(own, self._peer_stamp)
 
     def _accepted_inter(self) -> int:
-        """Inter-robot closures accepted anywhere in the team, as far as this node has heard: the
-        closure batches it heard, or, where it lost a batch that the peer then acknowledged (no
-        re-send comes), the robots' periodic states (each counts the closures it received),
-        whichever is more. A late closure so still earns the leader's final epoch."""
-        heard = sum(self._closure_counts.values())
+        """Inter-robot closures accepted anywhere in the team, as far as this node has heard: per
+        verifying robot, its newest closure batches heard, or its periodic state's count of them,
+        whichever is more (a batch lost on the way here that its peer then acknowledged is never
+        re-sent; the state is). A late closure so still earns the leader's final epoch."""
+        heard: Counter[int] = Counter()
+        for (sender, _), n in self._closure_counts.items():
+            heard[sender] += n
         states = self.pgo.states if self.pgo is not None else {}
-        held = len(self.agent.inter_edges) + sum(st.closures for r, st in states.items() if r != self.robot)
-        return max(heard, held)
+        told = {r: st.closures for r, st in states.items() if r != self.robot}
+        return sum(max(heard[r], told.get(r, 0)) for r in set(heard) | set(told))
 
     def _count_closures(self, msg: Message) -> None:
         if isinstance(msg, LoopClosures) and msg.robot != msg.peer:
@@ -483,7 +485,7 @@ class AgentNode:
         rounds = self.pgo.stats.rounds if self.pgo is not None else 0
         return AgentState(robot=self.robot, keyframes=self.agent.num_keyframes, stamp=stamp,
                           finished=self.finished, epoch=completed, complete=self.complete,
-                          closures=len(self.agent.inter_edges), rounds=rounds,
+                          closures=self.agent.verified_inter(), rounds=rounds,
                           bytes_sent=self.bus.counters.total("sent").bytes,
                           pairs=np.array(sorted(self.agent.robot_graph), dtype=np.int64).reshape(-1, 2))
 

@@ -80,8 +80,9 @@ def test_a_pair_the_leader_learns_after_the_final_epoch_gets_another_final_epoch
 def test_a_closure_whose_batch_the_leader_lost_still_gets_a_final_epoch():
     """Robots 1 and 2 are joined already; robot 1 verifies one more closure with robot 2 after the
     final epoch, and the leader loses that batch (robot 2 acknowledged it: no re-send comes). Robot
-    2's periodic state counts the closures it received: the leader's count moves, and the final
-    epoch runs again, once."""
+    1's periodic state counts the closures it verified: the leader's count moves, and the final
+    epoch runs again, once. The receiver's count is not added to the verifier's (a closure is
+    counted once, at its verifier)."""
     async def main() -> None:
         net = LoopbackNetwork(team="t0", seed=0)
         sim = Simulation(load_scenario(TINY), seed=0)
@@ -98,12 +99,13 @@ def test_a_closure_whose_batch_the_leader_lost_still_gets_a_final_epoch():
                 pgo.tick(50.0, float(t), alive, finished=True, force=True)
             return [h[2] for h in pgo.history]
 
-        pgo.handle(_state(1, []), alive)
-        pgo.handle(dataclasses.replace(_state(2, [(1, 2)]), closures=3), alive)
-        assert node._accepted_inter() == 3  # no batch heard: the states count them
+        node._closure_counts[(1, 2)] = 3  # robot 1's batch to robot 2, heard
+        pgo.handle(dataclasses.replace(_state(1, [(1, 2)]), closures=3), alive)
+        pgo.handle(dataclasses.replace(_state(2, [(1, 2)]), closures=0), alive)
+        assert node._accepted_inter() == 3
         assert run(0) == [True] and pgo.final_done
         assert run(200) == [True]  # nothing new
-        pgo.handle(dataclasses.replace(_state(2, [(1, 2)]), closures=4), alive)  # the late closure
+        pgo.handle(dataclasses.replace(_state(1, [(1, 2)]), closures=4), alive)  # the late closure's batch: lost
         assert node._accepted_inter() == 4
         assert run(400) == [True, True] and pgo.final_done
         assert run(600) == [True, True]  # and only once

@@ -76,7 +76,7 @@ class AgentState(Message):
     finished: bool = spec_field(Bool())
     epoch: int = spec_field(Int(0, MAX_EPOCH))
     complete: bool = spec_field(Bool())
-    closures: int = count()  # inter-robot closures this robot holds
+    closures: int = count()  # inter-robot closures this robot verified that PCM accepts (its newest batches)
     rounds: int = count()  # PGO rounds it ran
     bytes_sent: int = count()
     # its robot graph (robot pairs joined by accepted inter-robot closures), repeated with every
