@@ -14,8 +14,7 @@ table a robot sends lists the newest version of each source it holds (``held_sou
 from its source. A table that changes at every period is a version ahead of what its neighbours
 said they hold whenever it is relayed; a robot relays another robot's changed table only when a
 neighbour lags it by two versions or more, so such a table too travels once (and a table that
-stopped changing is refreshed at its exact version). A table is small (about 130 B per object),
-so this costs little beside the map.
+stopped changing is refreshed at its exact version). A table is small (about 130 B per object), so this costs little beside the map.
 
 The team object map (:meth:`ObjectExchange.team_objects`) fuses every held table whose source's
 poses are in the robot's frame with :func:`~kimera_multi_py.mapping.object_fusion.fuse_objects`:
