@@ -11,10 +11,7 @@ per version, and every ``refresh_every`` periods all it holds again, which recov
 and partitions; but not a table that every neighbour (the source aside) said it holds: every
 table a robot sends lists the newest version of each source it holds (``held_sources``,
 ``held_versions``), so in a team whose robots all hear each other a table mostly travels once,
-from its source. A table that changes at every period is a version ahead of what its neighbours
-said they hold whenever it is relayed; a robot relays another robot's changed table only when a
-neighbour lags it by two versions or more, so such a table too travels once (and a table that
-stopped changing is refreshed at its exact version). A table is small (about 130 B per object), so this costs little beside the map.
+from its source. A table is small (about 130 B per object), so this costs little beside the map.
 
 The team object map (:meth:`ObjectExchange.team_objects`) fuses every held table whose source's
 poses are in the robot's frame with :func:`~kimera_multi_py.mapping.object_fusion.fuse_objects`:
@@ -167,13 +164,7 @@ class ObjectExchange:
         sources, versions = np.array([s for s, _ in held], np.int32), np.array([v for _, v in held], np.int64)
         out: list[Message] = []
         for src, t in sorted(self.tables.items()):
-            # another robot's table that changed since the last period, and that every neighbour
-            # holds but for that change, is not relayed: the change left its source when it
-            # reached us, and they hear the source too (once it stops changing, the refresh
-            # relays the exact version to a neighbour that lost it)
-            fresh = t.version > self._published.get(src, 0)
-            lag = 1 if fresh and src != self.robot else 0
-            if (refresh or fresh) and not self._all_hold(src, t.version - lag):
+            if (refresh or t.version > self._published.get(src, 0)) and not self._all_hold(src, t.version):
                 out.append(dataclasses.replace(self._relay(t), held_sources=sources, held_versions=versions))
             self._published[src] = t.version
         return out
