@@ -95,9 +95,12 @@ class Acks:
         self._peer[k] = new
 
     def _learn(self, k: int, stream: int, ack: int, now: float) -> None:
-        sent = [t for seq, t in self._stamped[stream] if seq == ack]
-        if sent:
-            took = now - sent[0]
+        stamped = self._stamped[stream]
+        i = ack - stamped[-1][0] + len(stamped) - 1 if stamped else -1  # consecutive since the last renumbering
+        if not 0 <= i < len(stamped) or stamped[i][0] != ack:
+            i = next((j for j, (seq, _) in enumerate(stamped) if seq == ack), -1)
+        if i >= 0:
+            took = now - stamped[i][1]
             self.flight[k] = max(took, 0.7 * self.flight.get(k, took) + 0.3 * took)
 
     def hears(self, k: int, stream: int, publisher: int) -> bool:
