@@ -353,6 +353,28 @@ def decide(hypotheses: list[FrameHypothesis], min_places: int = 2, min_margin: i
             return best, best.places if margin is None else margin
     return None, places_margin
 
+def same_frame(a: FrameHypothesis, b: FrameHypothesis) -> bool:
+    """One frame: the two share at least half of the smaller one's edges, or (disjoint edges, as
+    through two peers) their transforms move every closure pose of either by less than a room."""
+    if len(np.intersect1d(a.edges, b.edges)) * 2 >= min(len(a.edges), len(b.edges)):
+        return True
+    return frames_agree(a, b, SAME_FRAME_M)
+
+
+def unrefuted_rivals(best: FrameHypothesis, hyps: Sequence[FrameHypothesis],
+                     refuted: Sequence[bool] = ()) -> list[FrameHypothesis]:
+    """The hypotheses of ``hyps`` that are another frame than ``best`` and that nothing refuted.
+
+    ``hyps`` are what the maps left (a hypothesis the maps refute is dropped before the decision);
+    ``refuted`` flags, aligned with ``hyps``, those other evidence refuted (the team's object
+    landmarks). With the team map on, a robot adopts a frame only when this is empty: a frame that
+    leads on closures alone is no proof while a rival stands that the maps cannot tell from it
+    (docs/algorithms/pgo.md, "Every rival refuted").
+    """
+    return [h for i, h in enumerate(hyps)
+            if h is not best and not (i < len(refuted) and refuted[i]) and not same_frame(h, best)]
+
+
 def near_identity(T: np.ndarray, max_trans: float = 1.0, max_rot: float = 0.2) -> bool:
     """A frame hypothesis that is (within alignment tolerance) no change of frame."""
     return bool(np.linalg.norm(T[:3, 3]) <= max_trans and np.linalg.norm(so3_log(T[None, :3, :3])[0]) <= max_rot)
@@ -374,13 +396,6 @@ def settled_decision(firm: list[FrameHypothesis] | None, every: list[FrameHypoth
       outvote another peer's true places; neither is evidence against the other;
     * ``"unsettled"``: only every edge decides (or nothing does).
     """
-    def same(a: FrameHypothesis, b: FrameHypothesis) -> bool:
-        # one frame: shared edges, or (two peers' disjoint edges) transforms that move every
-        # closure pose of either by less than a room
-        if len(np.intersect1d(a.edges, b.edges)) * 2 >= min(len(a.edges), len(b.edges)):
-            return True
-        return frames_agree(a, b, SAME_FRAME_M)
-
     def decided(hyps: list[FrameHypothesis]) -> tuple[FrameHypothesis | None, int]:
         return decide(hyps, min_places, min_margin, place_radius=place_radius)
 
@@ -392,11 +407,11 @@ def settled_decision(firm: list[FrameHypothesis] | None, every: list[FrameHypoth
             verdict = "unsettled"
         elif best is None:
             best, margin, verdict = lead, lead_margin, "settled"
-        elif not same(lead, best):
+        elif not same_frame(lead, best):
             return None, 0, "contested"
     leads = [h for h in (decided(hyps)[0] for hyps in per_peer) if h is not None]
     ref = best if best is not None else (leads[0] if leads else None)
-    if ref is not None and any(not same(h, ref) for h in leads):
+    if ref is not None and any(not same_frame(h, ref) for h in leads):
         return None, 0, "contested"
     return best, margin, verdict
 

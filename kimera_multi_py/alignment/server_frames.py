@@ -21,7 +21,9 @@ agents do (:mod:`kimera_multi_py.pgo.frame_decision`):
 With the team map (``cells``: a robot's occupancy cells placed at given keyframe poses), every
 hypothesis first faces the maps, as the agents' do (:mod:`.map_check`): the robot's map moved by
 it against each aligned robot's map at its screened poses; a hypothesis the maps refute is
-dropped, and listed in the robot's report (``map_refuted``).
+dropped, and listed in the robot's report (``map_refuted``). A robot whose leader still has a
+rival the maps did not refute (:func:`.frames.unrefuted_rivals`) does not join on that lead: it
+waits for a later screen, as an agent waits for a later epoch (``MapRule.every_rival``).
 
 Closures that are not kept leave the graph GNC sees, and the poses of the aligned robots start
 in the team frame. Every edge is judged on the same information the agents would have at the
@@ -43,6 +45,7 @@ from kimera_multi_py.alignment.frames import (
     frame_hypotheses,
     near_identity,
     settled_decision,
+    unrefuted_rivals,
 )
 from kimera_multi_py.alignment.map_check import CellStates, MapAgreement, frame_key, refined_agreement, team_agreement
 from kimera_multi_py.core.posegraph import PoseGraph
@@ -60,6 +63,7 @@ class MapRule:
     min_conflicts: int = 20
     min_ratio: float = 0.005
     coarse: float = 0.3
+    every_rival: bool = True  # a frame is adopted only when the maps refute every rival (``align_rivals``)
 
 
 @dataclass
@@ -188,6 +192,7 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
     aligned, settled = {root}, {root}
     report: dict[int, dict[str, object]] = {root: {"status": "root", "settled": True}}
     weighed: dict[int, list[FrameHypothesis]] = {}  # robot -> the hypotheses of its last decision
+    rivals: dict[int, list[FrameHypothesis]] = {}  # robot -> rivals of its leader the maps left standing
     while True:
         leads, lones = [], []
         for r in robots:
@@ -195,6 +200,11 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
                 continue
             best, margin, firm, hyps = s.lead(r, settled, aligned, root)
             weighed[r] = hyps
+            rivals.pop(r, None)
+            if best is not None and s.maps is not None and s.maps.every_rival:
+                rivals[r] = unrefuted_rivals(best, hyps)
+                if rivals[r]:
+                    continue  # a lead on closures alone: the robot waits for maps that tell the frames apart
             if best is not None:
                 leads.append((firm, margin, best.places, -r, best, hyps))
             elif hyps and hyps[0].size >= 3 and margin == hyps[0].places:
@@ -230,6 +240,8 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
     for r in robots:
         if r not in aligned:
             why = "no frame hypothesis leads" if len(s.edges(r, aligned)) else "no closure to the team"
+            if rivals.get(r):
+                why = f"a rival frame on {rivals[r][0].places} places that the maps do not refute"
             report[r] = {"status": "excluded", "settled": False, "reason": why,
                          "evidence": s.evidence(r, weighed.get(r, []), None, aligned, root)}
             if s.refuted.get(r):

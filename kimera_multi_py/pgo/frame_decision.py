@@ -52,6 +52,7 @@ from kimera_multi_py.alignment.frames import (
     near_identity,
     settled_decision,
     supported_edges,
+    unrefuted_rivals,
 )
 from kimera_multi_py.alignment.landmark_check import LandmarkScore, landmark_lead, landmark_scores
 from kimera_multi_py.alignment.map_check import MapAgreement, frame_key
@@ -300,6 +301,17 @@ class FrameDecision:
             self.alignment.update(reason="no frame hypothesis leads: consensus of every edge", margin=int(margin),
                                   competitors=_competitors(hyps), evidence=self._evidence_table(hyps, None))
             return
+        # with the team map on, a frame is adopted only when every rival is refuted: by the maps
+        # (dropped from ``hyps`` already) or by the team's landmarks; a lead on closures alone does
+        # not do, and the robot stays out until a later epoch's maps tell the two apart
+        rivals: list[FrameHypothesis] = []
+        if best is not None and self.map_view is not None and p.align_rivals == "refuted":
+            rivals = unrefuted_rivals(best, hyps, [sc.refuted() for sc in landmarks])
+            if rivals and not landmarks:
+                rival_scores = self._landmark_lead(hyps)[1]
+                rivals = unrefuted_rivals(best, hyps, [sc.refuted() for sc in rival_scores])
+            if rivals:
+                best = None
         # a robot already in the team frame switches frames only on every neighbour's evidence:
         # at the start of an epoch only the root has published, and two of its places that look
         # like the robot's own outvote the one true place they share (an early 2-vs-1 lead can
@@ -308,7 +320,8 @@ class FrameDecision:
         if best is None or (not final and (margin < p.align_early_margin or switch)):
             if final:
                 why = "closures through different peers lead to different frames" if contested \
-                    else "no frame hypothesis leads"
+                    else (f"a rival frame on {rivals[0].places} places that neither the maps nor the landmarks "
+                          "refute" if rivals else "no frame hypothesis leads")
                 # out of patience before every neighbour's poses arrived: out for now, and
                 # decided again as they come (only then is the exclusion news for the log)
                 self._exclude(why, hyps[0] if hyps else None, margin, hyps,

@@ -156,6 +156,13 @@ class PgoParams:
     align_lone_place: bool = True
     """One group from a single place and no competitor: true adopts it once no more edges can arrive;
     false keeps the robot out of the team frame until a second place agrees."""
+    # a lead in places is evidence for a frame but no proof against a rival: a row of identical
+    # rooms lets the alias one room over rest on nearly as many places as the truth, and which
+    # leads can turn on one more visit; the maps and landmarks compare the frames directly
+    align_rivals: Literal["refuted", "lead"] = "refuted"
+    """With the team map on: ``refuted`` adopts a frame only when the maps or the landmarks refute
+    every rival hypothesis (else the robot stays out and a later epoch decides); ``lead`` adopts
+    the clear leader in places, as without the team map."""
     place_radius: float = 2.0
     """Own closure poses closer than this are one place (m)."""
     # A correct frame leaves only residual misalignment, which the one-cell tolerance and the

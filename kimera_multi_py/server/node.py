@@ -222,7 +222,7 @@ class ServerNode:
             maps = self.maps
             self.server.map_rule = MapRule(
                 lambda robot, poses: source_states(maps, robot, poses, keyframes_per_submap, p.map_occupancy),
-                p.map_min_conflicts, p.map_conflict_ratio, p.map_coarse)
+                p.map_min_conflicts, p.map_conflict_ratio, p.map_coarse, p.align_rivals == "refuted")
         # the joint graph's frame: the lowest robot's (it follows the graph, see tick). Evidence is
         # applied only from robots whose pose tables are in it: a robot the frame screen keeps out
         # has its poses, and so its submaps and objects, in its own frame and stays out of the team map
