@@ -166,14 +166,19 @@ def team_frame_robots(outcomes: Sequence[RobotOutcome]) -> list[int]:
 
 
 def traffic_totals(outcomes: Sequence[RobotOutcome]) -> dict[str, Any]:
+    """Bytes sent per robot and per topic, and messages sent per topic (a message's envelope is
+    part of its bytes: many small messages cost more than their fields)."""
     per_robot: dict[str, int] = {}
     per_topic: dict[str, int] = {}
+    messages: dict[str, int] = {}
     for o in outcomes:
         sent = o.traffic.get("counters", {}).get("sent", {})
         per_robot[str(o.robot)] = int(sum(v["bytes"] for v in sent.values()))
         for topic, v in sent.items():
             per_topic[topic] = per_topic.get(topic, 0) + int(v["bytes"])
-    return {"per_robot": per_robot, "per_topic": per_topic, "total": sum(per_robot.values())}
+            messages[topic] = messages.get(topic, 0) + int(v.get("messages", 0))
+    return {"per_robot": per_robot, "per_topic": per_topic, "messages_per_topic": messages,
+            "total": sum(per_robot.values())}
 
 
 def scene_graph_results(world: Any, outcomes: Sequence[RobotOutcome], T_world_team: np.ndarray,
