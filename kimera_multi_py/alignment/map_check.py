@@ -120,10 +120,36 @@ def occupancy_logodds(values: np.ndarray) -> np.ndarray:
     return hmax + np.log(np.exp(h - hmax[:, None]).sum(axis=1))
 
 
+def occupancy_states(values: np.ndarray, threshold: float = 1.0) -> np.ndarray:
+    """``OCCUPIED`` where :func:`occupancy_logodds` exceeds ``threshold``, ``FREE`` where it is
+    below ``-threshold``, else 0; the same states, computing the log-sum-exp only where the
+    largest log-odds ``m`` leaves them open. As computed, ``lse = m + log(s)`` with ``1 <= s <= K``
+    (``K`` terms, the largest exactly ``exp(0)``): ``m > threshold`` is occupied, and
+    ``m + log(K) < -threshold`` (with a margin for rounding) is free."""
+    v = np.asarray(values)
+    state = np.zeros(len(v), dtype=np.int8)
+    k = v.shape[1] - 1 if v.ndim == 2 else 0
+    if k <= 0 or not len(v):
+        lo = np.zeros(len(v))
+        state[lo > threshold] = OCCUPIED
+        state[lo < -threshold] = FREE
+        return state
+    m = v[:, 1:].max(axis=1).astype(np.float64) / SCALE
+    occupied = m > threshold
+    free = m + (np.log(k) + 1e-9) < -threshold
+    state[occupied] = OCCUPIED
+    state[free] = FREE
+    open_ = np.flatnonzero(~(occupied | free))
+    if len(open_):
+        lo = occupancy_logodds(v[open_])
+        state[open_[lo > threshold]] = OCCUPIED
+        state[open_[lo < -threshold]] = FREE
+    return state
+
+
 def cell_states(codes: np.ndarray, values: np.ndarray, resolution: float, threshold: float = 1.0) -> CellStates:
     """The occupied and free cells of finest-level ``codes`` with octree ``values`` (clamped rows)."""
-    lo = occupancy_logodds(values)
-    state = np.where(lo > threshold, OCCUPIED, np.where(lo < -threshold, FREE, np.int8(0))).astype(np.int8)
+    state = occupancy_states(values, threshold)
     keep = state != 0
     centres = morton.node_centers(np.asarray(codes, np.int64)[keep], np.zeros(int(keep.sum()), np.int8), resolution)
     return CellStates(centres, state[keep])

@@ -72,7 +72,7 @@ def map_codes(ref_codes: np.ndarray, C: np.ndarray, resolution: float) -> np.nda
 
 def _group_sum(codes: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unique sorted codes, summed rows and multiplicities."""
-    uniq, (summed, count) = group_sums(codes, rows, np.ones(len(codes), np.int32))
+    uniq, (summed,), count = _grouped(codes, rows)
     return uniq, summed, count
 
 
@@ -80,10 +80,20 @@ def group_sums(codes: np.ndarray, *columns: np.ndarray) -> tuple[np.ndarray, lis
     """Unique sorted codes and, per column array (one row or value per code), its sums over
     equal codes, in the column's dtype. One sort and one ``reduceat`` each (integer sums: the
     order of the terms does not matter)."""
+    uniq, sums, _ = _grouped(codes, *columns)
+    return uniq, sums
+
+
+def _grouped(codes: np.ndarray, *columns: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """:func:`group_sums`, and the multiplicity of each code.
+
+    The sort is stable (timsort on int64): the codes come as concatenations of sorted or nearly
+    sorted runs (a submap's cells, moved a little), which it merges instead of sorting afresh,
+    and the rows are then gathered run by run."""
     codes = np.asarray(codes, dtype=np.int64)
     if len(codes) == 0:
-        return codes.copy(), [np.asarray(c)[:0].copy() for c in columns]
-    order = np.argsort(codes)
+        return codes.copy(), [np.asarray(c)[:0].copy() for c in columns], np.zeros(0, np.int64)
+    order = np.argsort(codes, kind="stable")
     ordered = codes[order]
     first = np.empty(len(ordered), dtype=np.bool_)
     first[0] = True
@@ -94,7 +104,7 @@ def group_sums(codes: np.ndarray, *columns: np.ndarray) -> tuple[np.ndarray, lis
         c = np.asarray(c)
         taken = c.take(order, axis=0)
         sums.append(taken if len(starts) == len(codes) else np.add.reduceat(taken, starts, axis=0, dtype=c.dtype))
-    return ordered[starts], sums
+    return ordered[starts], sums, np.diff(starts, append=len(codes))
 
 
 class SubmapMap:

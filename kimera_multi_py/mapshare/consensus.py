@@ -232,6 +232,7 @@ class MapConsensus:
 
     def _on_poses(self, msg: SubmapPoses) -> None:
         if msg.source == self.robot:
+            self._own_version_seen(msg.version)
             return
         old = self.poses.get(msg.source)
         if old is not None and msg.version <= old[0].version:
@@ -260,6 +261,16 @@ class MapConsensus:
         self.acks.on_summary(msg.robot, msg.ack_robots, msg.ack_evidence, msg.ack_poses, self._now)
         self._nbr[msg.robot] = (versions, pose_versions, self._now)
         self._nbr_frame[msg.robot] = int(msg.frame)
+        self._own_version_seen(int(pose_versions.get(self.robot, 0)))
+
+    def _own_version_seen(self, version: int) -> None:
+        """A neighbour holds this robot's own pose table at ``version``. A robot that restarted
+        (the map consensus is not checkpointed) counts its table's versions from 0 again, and its
+        neighbours would ignore the new tables as duplicates of the old ones they hold: versions
+        continue above every one a neighbour reports, and the current table goes out afresh."""
+        if version > self._pose_version:
+            self._pose_version = version
+            self._own_table = None
 
     # ---- the step --------------------------------------------------------------------------
     def step(self, now: float) -> list[Message]:

@@ -116,6 +116,8 @@ class ObjectExchange:
         msg: Any = message
         if msg.robot != self.robot:
             self.peer_holds[msg.robot] = dict(zip(msg.held_sources.tolist(), msg.held_versions.tolist(), strict=True))
+            self._own_version_seen(max(self.peer_holds[msg.robot].get(self.robot, 0),
+                                       msg.version if msg.source == self.robot else 0))
         if msg.robot == self.robot or msg.source == self.robot:
             return
         if msg.robot not in self.neighbours:
@@ -127,6 +129,15 @@ class ObjectExchange:
             self.ignored[f"{self.WHAT}_duplicate"] += 1
             return
         self.tables[msg.source] = msg
+
+    def _own_version_seen(self, version: int) -> None:
+        """A neighbour holds this robot's own table at ``version``. A robot that restarted (the
+        exchange is not checkpointed) counts its versions from 0 again, and its neighbours would
+        ignore its new tables as duplicates of the old ones they hold: versions continue above
+        every one a neighbour reports, and the current table goes out afresh."""
+        if version > self._version:
+            self._version = int(version)
+            self.tables.pop(self.robot, None)
 
     def _check(self, msg: Any) -> None:
         if msg.probs.shape[1] != self.num_classes:

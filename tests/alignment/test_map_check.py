@@ -84,3 +84,22 @@ def test_a_frame_near_the_truth_is_refined_even_when_gicp_stops_at_its_cap(monke
     assert not refined.refutes(*LIMITS), refined
     for dx in (ROOM, -ROOM, 2 * ROOM):
         assert map_check.refined_agreement(a, b, shift(dx) @ off).refutes(*LIMITS), dx
+
+
+def test_cell_states_skip_the_log_sum_exp_only_where_it_cannot_change_the_state() -> None:
+    """The states from the largest log-odds bound equal the thresholded log-sum-exp, on random
+    rows, strongly free rows and rows whose bound sits exactly at a threshold."""
+    from kimera_multi_py.alignment.map_check import FREE, OCCUPIED, occupancy_logodds, occupancy_states
+
+    rng = np.random.default_rng(0)
+    for t in (0.0, 0.5, 1.0, 2.0):
+        lim = int(5 * SCALE)
+        rows = [rng.integers(-lim, lim + 1, size=(2000, 12)), rng.integers(-lim, -lim // 3, size=(2000, 12)),
+                np.full((50, 12), -lim), np.full((50, 12), int(t * SCALE)), np.full((50, 12), -int(t * SCALE)),
+                np.full((50, 3), int(-(t + np.log(2)) * SCALE))]
+        for r in rows:
+            v = r.astype(np.int16)
+            v[:, 0] = 0
+            lo = occupancy_logodds(v)
+            want = np.where(lo > t, OCCUPIED, np.where(lo < -t, FREE, np.int8(0)))
+            assert np.array_equal(occupancy_states(v, t), want)

@@ -287,3 +287,28 @@ def test_gaps_say_what_stands_between_a_robot_and_a_whole_team_map() -> None:
     nodes[2].step(100.0)
     nodes[0]._on_versions(nodes[2]._versions())
     assert nodes[0].gaps({2})[2]["frame"] == {"mine": 0, "theirs": 2}
+
+
+def test_a_restarted_robot_continues_its_pose_table_versions_above_what_its_neighbours_hold() -> None:
+    """The map consensus is not checkpointed: a robot that restarts counts its pose table's
+    versions from 0 again, while its neighbours hold its old table at higher versions and would
+    ignore the new ones as duplicates (a killed and resumed agent's PGO moves then never reached
+    the team's maps). Hearing their summaries, it continues above them, and the maps end exact."""
+    maps, nodes = team(2)
+    net = MapExchange(nodes, links=lambda now: full_links([0, 1]))
+    t = run(net, 0.0, 3)
+    for k in range(4):  # robot 1's PGO moves its submaps: its pose table goes through versions
+        maps[1].move_submap(0, make_pose(so3_exp([0.0, 0.0, 0.02 * (k + 1)]), [0.1 * (k + 1), 0.0, 0.0]))
+        t = run(net, t, 2)
+    held = nodes[0].poses[1][0].version
+    assert held >= 4
+    assert_exact(maps, nodes)
+    # robot 1 restarts: a fresh map consensus over its map, which its PGO then moves once more
+    nodes[1] = MapConsensus(1, maps[1], MapConsensusParams(mode="exact", hold=0.0), team_size=2)
+    nodes[1].set_frame(0)
+    maps[1].move_submap(1, make_pose(so3_exp([0.0, 0.0, -0.05]), [0.0, 0.25, 0.0]))
+    net = MapExchange(nodes, links=lambda now: full_links([0, 1]))
+    run(net, t, 12)
+    assert nodes[0].poses[1][0].version > held
+    assert all(node.gaps({0, 1}) == {} for node in nodes.values())
+    assert_exact(maps, nodes)

@@ -181,3 +181,35 @@ def test_a_table_every_neighbour_holds_is_not_sent_again() -> None:
         assert sorted(a.ex.tables) == sorted(b.ex.tables) == [0, 1, 2]
         assert all(a.ex.tables[s].version == b.ex.tables[s].version for s in a.ex.tables)
         assert a.ex.team_objects() == b.ex.team_objects()
+
+
+def test_a_restarted_robot_continues_its_versions_above_what_its_neighbours_hold() -> None:
+    """The exchange is not checkpointed: a robot that restarts counts its table versions from 0
+    again. Its neighbour still holds its old table at a higher version, and would ignore the new
+    table as a duplicate; hearing the neighbour's holdings, the restarted robot continues above
+    them, and the neighbour ends with the new table."""
+    a = Robot(0, [((1.0, 1.0), CHAIR)], np.eye(4), 0)
+    b = Robot(1, [((4.0, 1.0), TABLE)], np.eye(4), 1)
+    t = run([a, b], {(0, 1)}, 2)
+    for x in (2.0, 3.0, 4.0):  # robot 0's table goes through several versions
+        a.om = ObjectMap(K, OBJECT_CLASSES, resolution=0.1, confirm_after=2)
+        a.om.set_submap_pose(0, a.T)
+        rng = np.random.default_rng(int(x))
+        for _ in range(3):
+            p = box_points([x, 1.0, 0.45], [0.5, 0.5, 0.9], 40, rng)
+            a.om.update(p, np.full(len(p), CHAIR), 0)
+        a.ex.landmarks = a.om.confirmed
+        t = run([a, b], {(0, 1)}, 1, t0=t)
+    held = b.ex.tables[0].version
+    assert held >= 3
+    # robot 0 restarts: a fresh exchange, its map as before the restart plus one more chair
+    rng = np.random.default_rng(9)
+    for _ in range(3):
+        p = box_points([7.0, 2.0, 0.45], [0.5, 0.5, 0.9], 40, rng)
+        a.om.update(p, np.full(len(p), TABLE), 0)
+    a.ex = ObjectExchange(0, a.om.confirmed, a.held.get, NC, period=1.0, refresh_every=3)
+    run([a, b], {(0, 1)}, 2 * a.ex.refresh_every, t0=t)  # the neighbour's refresh says what it holds
+    assert b.ex.tables[0].version > held
+    assert b.ex.team_objects() == a.ex.team_objects()
+    assert any(o["class"] == TABLE and np.allclose(o["centroid"][:2], [7.0, 2.0], atol=0.1)
+               for o in b.ex.team_objects())

@@ -172,3 +172,23 @@ def test_the_changed_cells_kept_for_the_tree_stay_bounded():
     kept = sum(len(p) for p in m._pending)
     assert len(m._pending) < 65 and kept <= 64 * 2 * len(m.submaps[0].codes)
     assert same(snapshot(m.octree), snapshot(_rebuilt(m)))
+
+
+def test_group_sums_equal_a_dictionary_sum_on_runs_of_sorted_codes() -> None:
+    """Sums and multiplicities per code against a plain dictionary sum, on what the fusions feed
+    it: concatenated runs of sorted codes that overlap, shuffled codes, and no codes."""
+    from kimera_multi_py.mapping.submaps import _group_sum, group_sums
+
+    rng = np.random.default_rng(0)
+    runs = [np.sort(rng.choice(5000, size=800, replace=False)) for _ in range(6)]
+    for codes in (np.concatenate(runs), rng.permutation(np.concatenate(runs)), np.zeros(0, np.int64)):
+        rows = rng.integers(-300, 300, size=(len(codes), 4)).astype(np.int16)
+        uniq, summed, count = _group_sum(codes, rows)
+        want: dict[int, np.ndarray] = {}
+        for c, r in zip(codes.tolist(), rows.astype(np.int64), strict=True):
+            want[c] = want.get(c, 0) + r
+        assert uniq.tolist() == sorted(want)
+        assert all(np.array_equal(summed[i], want[c]) for i, c in enumerate(uniq.tolist()))
+        assert count.sum() == len(codes) and np.array_equal(count, [np.sum(codes == c) for c in uniq])
+        u2, (s2,) = group_sums(codes, rows)
+        assert np.array_equal(u2, uniq) and np.array_equal(s2, summed)
