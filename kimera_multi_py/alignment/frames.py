@@ -353,6 +353,7 @@ def decide(hypotheses: list[FrameHypothesis], min_places: int = 2, min_margin: i
             return best, best.places if margin is None else margin
     return None, places_margin
 
+
 def same_frame(a: FrameHypothesis, b: FrameHypothesis) -> bool:
     """One frame: the two share at least half of the smaller one's edges, or (disjoint edges, as
     through two peers) their transforms move every closure pose of either by less than a room."""
