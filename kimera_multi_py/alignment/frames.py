@@ -363,17 +363,22 @@ def same_frame(a: FrameHypothesis, b: FrameHypothesis) -> bool:
 
 
 def unrefuted_rivals(best: FrameHypothesis, hyps: Sequence[FrameHypothesis],
-                     refuted: Sequence[bool] = ()) -> list[FrameHypothesis]:
-    """The hypotheses of ``hyps`` that are another frame than ``best`` and that nothing refuted.
+                     refuted: Sequence[bool] = (), min_places: int = 2) -> list[FrameHypothesis]:
+    """The hypotheses of ``hyps`` that are another frame than ``best``, rest on ``min_places``
+    places or more, and that nothing refuted.
 
     ``hyps`` are what the maps left (a hypothesis the maps refute is dropped before the decision);
     ``refuted`` flags, aligned with ``hyps``, those other evidence refuted (the team's object
     landmarks). With the team map on, a robot adopts a frame only when this is empty: a frame that
-    leads on closures alone is no proof while a rival stands that the maps cannot tell from it
-    (docs/algorithms/pgo.md, "Every rival refuted").
+    leads on closures alone is no proof while a rival of several places stands that the maps
+    cannot tell from it (docs/algorithms/pgo.md, "Every rival refuted"). A rival on fewer places
+    is what one twin room looks like, and the closures already refute it: the adopted frame
+    rests on more distinct places than it (:func:`decide`), and the maps and the safety net
+    judge the frame afterwards.
     """
     return [h for i, h in enumerate(hyps)
-            if h is not best and not (i < len(refuted) and refuted[i]) and not same_frame(h, best)]
+            if h is not best and h.places >= min_places and not (i < len(refuted) and refuted[i])
+            and not same_frame(h, best)]
 
 
 def near_identity(T: np.ndarray, max_trans: float = 1.0, max_rot: float = 0.2) -> bool:

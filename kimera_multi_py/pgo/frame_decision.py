@@ -306,10 +306,11 @@ class FrameDecision:
         # not do, and the robot stays out until a later epoch's maps tell the two apart
         rivals: list[FrameHypothesis] = []
         if best is not None and self.map_view is not None and p.align_rivals == "refuted":
-            rivals = unrefuted_rivals(best, hyps, [sc.refuted() for sc in landmarks])
+            several = p.align_tie_min_places
+            rivals = unrefuted_rivals(best, hyps, [sc.refuted() for sc in landmarks], several)
             if rivals and not landmarks:
                 rival_scores = self._landmark_lead(hyps)[1]
-                rivals = unrefuted_rivals(best, hyps, [sc.refuted() for sc in rival_scores])
+                rivals = unrefuted_rivals(best, hyps, [sc.refuted() for sc in rival_scores], several)
             if rivals:
                 best = None
         # a robot already in the team frame switches frames only on every neighbour's evidence:

@@ -99,11 +99,11 @@ TRUE_PLACES = [(np.array([ROOM_A, 0.0]),) * 2 + (False,), (CORNER, CORNER, False
 
 
 def test_a_lead_in_places_adopts_a_frame_only_once_the_maps_refute_every_rival() -> None:
-    """The truth rests on four places, the alias one room over on one: a clear lead in places.
+    """The truth rests on four places, the alias one room over on two: a clear lead in places.
     While the maps cannot judge the alias, it stands as a rival and robot 1 stays out of the team
     frame, saying why; once the maps refute it, robot 1 aligns to the truth. The lead alone
     (``align_rivals="lead"``) aligns it without the maps' word."""
-    places = [ALIAS_PLACES[0], *TRUE_PLACES]
+    places = [*ALIAS_PLACES[:2], *TRUE_PLACES]
     error, report = _run(places, map_check=True, alias_per_place=3, true_per_place=2, blind_to_alias=True)
     assert report["status"] == "excluded" and "rival" in report["reason"], report
     assert report["support"] >= 4 and not report.get("map_refuted")
@@ -115,6 +115,10 @@ def test_a_lead_in_places_adopts_a_frame_only_once_the_maps_refute_every_rival()
                          align_rivals="lead")
     assert report["status"] == "aligned" and error < 1.0, report
     assert report["hypotheses"] == 2 and not report.get("map_refuted")
+    # a rival on one place is what one twin room looks like: the four places refute it already
+    error, report = _run([ALIAS_PLACES[0], *TRUE_PLACES], map_check=True, alias_per_place=3, true_per_place=2,
+                         blind_to_alias=True)
+    assert report["status"] == "aligned" and error < 1.0, report
 
 
 def _server_maps(trajs: list[np.ndarray]) -> MapRule:
@@ -150,12 +154,12 @@ def test_the_servers_frame_screen_faces_the_maps_as_the_agents_do() -> None:
 
 
 def test_the_servers_frame_screen_also_waits_while_a_rival_stands() -> None:
-    """The server's screen on a lead in places (the truth on four places, the alias on one) with no
+    """The server's screen on a lead in places (the truth on four places, the alias on two) with no
     map of robot 1 to judge either frame: robot 1 stays out, the rival named as the reason; with
     ``every_rival=False`` the lead decides and robot 1 joins on the truth."""
     rng = np.random.default_rng(3)
     trajs, odo, first = _team()
-    edges = _closures(trajs, first, [ALIAS_PLACES[0]], rng, per_place=3)
+    edges = _closures(trajs, first, ALIAS_PLACES[:2], rng, per_place=3)
     edges += _closures(trajs, first, TRUE_PLACES, rng, per_place=2)
     graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
     seen_by = _server_maps(trajs).cells
