@@ -125,26 +125,24 @@ def occupancy_states(values: np.ndarray, threshold: float = 1.0) -> np.ndarray:
     below ``-threshold``, else 0; the same states, computing the log-sum-exp only where the
     largest log-odds ``m`` leaves them open. As computed, ``lse = m + log(s)`` with ``1 <= s <= K``
     (``K`` terms, the largest exactly ``exp(0)``): ``m > threshold`` is occupied, and
-    ``m + log(K) < -threshold`` (with a margin for rounding) is free."""
+    ``m + log(K) < -|threshold|`` (with a margin for rounding) is free."""
     v = np.asarray(values)
-    state = np.zeros(len(v), dtype=np.int8)
     k = v.shape[1] - 1 if v.ndim == 2 else 0
     if k <= 0 or not len(v):
-        lo = np.zeros(len(v))
-        state[lo > threshold] = OCCUPIED
-        state[lo < -threshold] = FREE
-        return state
+        return _states(np.zeros(len(v)), threshold)
     m = v[:, 1:].max(axis=1).astype(np.float64) / SCALE
     occupied = m > threshold
-    free = m + (np.log(k) + 1e-9) < -threshold
-    state[occupied] = OCCUPIED
-    state[free] = FREE
+    free = ~occupied & (m + (np.log(k) + 1e-9) < -abs(threshold))  # below -|t|: nor can it be occupied
+    state = np.where(occupied, OCCUPIED, np.where(free, FREE, np.int8(0))).astype(np.int8)
     open_ = np.flatnonzero(~(occupied | free))
     if len(open_):
-        lo = occupancy_logodds(v[open_])
-        state[open_[lo > threshold]] = OCCUPIED
-        state[open_[lo < -threshold]] = FREE
+        state[open_] = _states(occupancy_logodds(v[open_]), threshold)
     return state
+
+
+def _states(lo: np.ndarray, threshold: float) -> np.ndarray:
+    """Occupied above ``threshold`` (first), free below ``-threshold``, else 0."""
+    return np.where(lo > threshold, OCCUPIED, np.where(lo < -threshold, FREE, np.int8(0))).astype(np.int8)
 
 
 def cell_states(codes: np.ndarray, values: np.ndarray, resolution: float, threshold: float = 1.0) -> CellStates:

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from kimera_multi_py.alignment.map_check import cell_states, map_agreement
+from kimera_multi_py.alignment.map_check import (
+    FREE,
+    OCCUPIED,
+    cell_states,
+    map_agreement,
+    occupancy_logodds,
+    occupancy_states,
+)
 from kimera_multi_py.core.geometry import make_pose, so3_exp
 from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.semantic_octree import SCALE
@@ -89,10 +96,8 @@ def test_a_frame_near_the_truth_is_refined_even_when_gicp_stops_at_its_cap(monke
 def test_cell_states_skip_the_log_sum_exp_only_where_it_cannot_change_the_state() -> None:
     """The states from the largest log-odds bound equal the thresholded log-sum-exp, on random
     rows, strongly free rows and rows whose bound sits exactly at a threshold."""
-    from kimera_multi_py.alignment.map_check import FREE, OCCUPIED, occupancy_logodds, occupancy_states
-
     rng = np.random.default_rng(0)
-    for t in (0.0, 0.5, 1.0, 2.0):
+    for t in (0.0, 0.5, 1.0, 2.0, -0.5):
         lim = int(5 * SCALE)
         rows = [rng.integers(-lim, lim + 1, size=(2000, 12)), rng.integers(-lim, -lim // 3, size=(2000, 12)),
                 np.full((50, 12), -lim), np.full((50, 12), int(t * SCALE)), np.full((50, 12), -int(t * SCALE)),

@@ -202,7 +202,7 @@ def test_a_restarted_robot_continues_its_versions_above_what_its_neighbours_hold
         t = run([a, b], {(0, 1)}, 1, t0=t)
     held = b.ex.tables[0].version
     assert held >= 3
-    # robot 0 restarts: a fresh exchange, its map as before the restart plus one more chair
+    # robot 0 restarts: a fresh exchange, its map as before the restart plus a table
     rng = np.random.default_rng(9)
     for _ in range(3):
         p = box_points([7.0, 2.0, 0.45], [0.5, 0.5, 0.9], 40, rng)
