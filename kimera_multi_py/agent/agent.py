@@ -302,6 +302,10 @@ class Agent:
                                    query_keyframe=own_kf)
                 for rid, (p, peer_kf, own_kf) in sorted(self._pending.items()) if p == peer]
 
+    def unanswered_requests(self) -> dict[int, int]:
+        """Request id -> peer, of every query of ours no reply has answered yet."""
+        return {rid: p for rid, (p, _, _) in self._pending.items()}
+
     def serve_keyframe(self, keyframe: int, request_id: int = 0, compact: bool = True) -> LoopClosureReply:
         """The constellation of one of our keyframes, for a peer's verification. ``compact``: the
         cloud as the closure registration sees it (one mean per registration voxel, packed

@@ -479,6 +479,13 @@ class AgentNode:
             out["map_store_bytes"] = self.maps.nbytes
         return out
 
+    def verifying(self) -> int:
+        """Our unanswered queries to peers present that we will still ask again (``_reask``):
+        closures may still come of them."""
+        alive = self.alive()
+        return sum(1 for rid, peer in self.agent.unanswered_requests().items()
+                   if peer in alive and self._reasked[rid] < self.params.query_reasks)
+
     def _state(self) -> AgentState:
         completed = self.pgo.completed if self.pgo is not None else 0
         stamp = self.agent.stamps[-1] if self.agent.stamps else 0.0
@@ -487,7 +494,8 @@ class AgentNode:
                           finished=self.finished, epoch=completed, complete=self.complete,
                           closures=self.agent.verified_inter(), rounds=rounds,
                           bytes_sent=self.bus.counters.total("sent").bytes,
-                          pairs=np.array(sorted(self.agent.robot_graph), dtype=np.int64).reshape(-1, 2))
+                          pairs=np.array(sorted(self.agent.robot_graph), dtype=np.int64).reshape(-1, 2),
+                          verifying=self.verifying())
 
     async def _publish_state(self) -> None:
         await self._publish(self._state())

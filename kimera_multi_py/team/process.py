@@ -177,13 +177,14 @@ def _resources(agent: Agent, node: AgentNode) -> dict[str, Any]:
 async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: float = 0.05,
                       settle: float = 2.0) -> dict[str, Any]:
     """After the final epoch, serve the team until this robot's map evidence and pose tables match
-    every team robot's last version summary (``mapshare.consensus.MapConsensus.gaps``) and no
-    epoch runs, and that has held for ``settle`` s (two state periods: a leader that learns of a
-    late closure from a robot's state re-runs the final epoch, and a robot gone by then could
-    never match the new poses), or for ``cap`` s counted from when no robot present is still
-    streaming (a robot whose stream ended first, or that ran a final epoch alone behind a
-    partition, stays for the team's final epoch). ``robots``: the team's size (default: every
-    robot heard of). Returns what ``linger.json`` records: whether the team was whole, the wait,
+    every team robot's last version summary (``mapshare.consensus.MapConsensus.gaps``), no
+    epoch runs and no robot present waits on a verification (``AgentState.verifying``), and that
+    has held for ``settle`` s (two state periods: a leader that learns of a late closure from a
+    robot's state re-runs the final epoch, and a robot gone by then could never match the new
+    poses), or for ``cap`` s counted from when no robot present is still streaming (a robot
+    whose stream ended first, or that ran a final epoch alone behind a partition, stays for the
+    team's final epoch). ``robots``: the team's size (default: every robot heard of). Returns
+    what ``linger.json`` records: whether the team was whole, the wait,
     and what was missing."""
     maps = node.maps
     t0 = time.monotonic()
@@ -194,8 +195,12 @@ async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: flo
         return set(range(robots)) if robots else maps.heard()
 
     def busy() -> bool:  # an epoch still running (robots that met late run another final one),
-        # or the safety net's look at the final frame still to come (it may ask for another)
-        return (node.pgo is not None and node.pgo.busy) or not node.settled
+        # the safety net's look at the final frame still to come (it may ask for another), or a
+        # robot present still waiting on a verification (a closure of it re-runs the final epoch)
+        pgo, alive = node.pgo, node.alive()
+        verifying = node.verifying() > 0 or (pgo is not None and any(
+            st.verifying > 0 for r, st in pgo.states.items() if r != node.robot and r in alive))
+        return (pgo is not None and pgo.busy) or not node.settled or verifying
 
     def streaming() -> bool:  # a robot still present feeds its stream: the team's run goes on
         pgo, alive = node.pgo, node.alive()

@@ -137,9 +137,11 @@ def test_an_unanswered_query_is_asked_again_while_unanswered_and_when_its_target
         # two queries no reply answered: keyframe 7 of robot 1 against our 3, keyframe 9 of robot 2
         agent._pending.update({5: (1, 7, 3), 6: (2, 9, 4)})
         assert [(q.request_id, q.target, q.keyframe, q.query_keyframe) for q in agent.unanswered(1)] == [(5, 1, 7, 3)]
+        assert node.verifying() == 1 and node._state().verifying == 1  # robot 2 is absent: not waited on
         for wall in (0.0, 1.0, 5.0, 10.0, 15.0, 20.0):  # present: asked every resend period, up to the cap
             await node.tick(wall)
         assert [q.request_id for q in node.asked] == [5, 5]  # robot 2 is absent: never asked
+        assert node.verifying() == 0  # asked as often as it will be: nothing more comes of it
         node.asked.clear()
         await node._on_presence(PresenceEvent(robot=2, alive=True))  # it appears: asked now
         await node._on_presence(PresenceEvent(robot=1, alive=True))  # reappears: asked beyond the cap

@@ -1,5 +1,6 @@
 """An agent's wait after its final epoch (``team.process.until_whole``, docs/deployment.md): it
-stays while a robot it hears is still streaming, and its ``--linger-max`` counts from when none is.
+stays while a robot it hears is still streaming or waits on a verification (a closure of it re-runs
+the final epoch), and its ``--linger-max`` counts from when none streams.
 Unit test with a stand-in node (the loop only reads the node's maps, states and presence)."""
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ class StreamingPeer:
         self.ticked = 0
         self.robot = 0
         self.settled = True
-        state = SimpleNamespace(finished=False)
+        self.own_verifying = 0
+        state = SimpleNamespace(finished=False, verifying=0)
         self.pgo = SimpleNamespace(states={1: state}, busy=False)
         self.maps = SimpleNamespace(mode="exact", gaps=self._gaps, heard=lambda: {0, 1})
 
@@ -28,6 +30,9 @@ class StreamingPeer:
 
     def alive(self) -> frozenset[int]:
         return frozenset({1})
+
+    def verifying(self) -> int:
+        return self.own_verifying
 
     async def drain(self) -> int:
         return 0
@@ -52,3 +57,39 @@ def test_without_a_streaming_peer_the_cap_ends_the_wait() -> None:
     node.maps.gaps = lambda team: {1: ["submaps_ahead"]}  # a gap that never closes
     out = asyncio.run(until_whole(node, None, cap=0.05, poll=0.001, settle=0.01))  # type: ignore[arg-type]
     assert not out["whole"] and out["missing"] == {"1": ["submaps_ahead"]}
+
+
+class VerifyingPeer(StreamingPeer):
+    """Every stream over and the team map whole, but robot 1 (or robot 0 itself) still waits on
+    a keyframe it asked for, for ``ticks`` ticks."""
+
+    def __init__(self, ticks: int, own: bool) -> None:
+        super().__init__(ticks)
+        self.pgo.states[1].finished = True
+        self.own = own
+        if own:
+            self.own_verifying = 1
+        else:
+            self.pgo.states[1].verifying = 1
+
+    async def tick(self) -> int:
+        self.ticked += 1
+        if self.ticked >= self.ticks:
+            self.own_verifying = 0
+            self.pgo.states[1].verifying = 0
+        return 0
+
+
+def test_a_robot_stays_while_a_peer_or_itself_still_waits_on_a_verification() -> None:
+    for own in (False, True):
+        node = VerifyingPeer(ticks=200, own=own)
+        out = asyncio.run(until_whole(node, None, cap=10.0, poll=0.001, settle=0.01))  # type: ignore[arg-type]
+        assert node.ticked >= 200, own  # whole and quiet from the start, but a closure may still come
+        assert out["whole"]
+
+
+def test_an_absent_peer_s_verifications_do_not_hold_a_robot() -> None:
+    node = VerifyingPeer(ticks=10**9, own=False)
+    node.alive = lambda: frozenset()  # type: ignore[method-assign]
+    out = asyncio.run(until_whole(node, None, cap=10.0, poll=0.001, settle=0.01))  # type: ignore[arg-type]
+    assert out["whole"] and node.ticked < 10**6

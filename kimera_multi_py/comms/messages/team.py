@@ -68,7 +68,7 @@ class PgoEpoch(Message):
 @message("AgentState", keys.AGENT_STATE)
 class AgentState(Message):
     """A node's progress, published on a period: keyframes, latest stamp, whether its stream
-    ended, and the last PGO epoch it completed."""
+    ended, the last PGO epoch it completed, and the verifications it still waits on."""
 
     robot: int = robot_id()
     keyframes: int = count()
@@ -83,3 +83,6 @@ class AgentState(Message):
     # state so that the leader learns pairs whose closure messages it lost
     pairs: np.ndarray = spec_field(Array("int64", ("p", 2), lo=0, hi=MAX_ROBOT_ID),
                                    factory=lambda: np.zeros((0, 2), np.int64))
+    # its queries for peers' keyframes still unanswered that it will ask again: closures may still
+    # come of them, and a leader re-runs the final epoch for a late one (docs/deployment.md)
+    verifying: int = spec_field(Int(0, INT64_MAX), default=0)
