@@ -180,9 +180,10 @@ class _Screen:
 
 
 def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, place_radius: float = 2.0,
-                  lone: bool = True, maps: MapRule | None = None) -> FrameScreen:
+                  lone: bool = True, maps: MapRule | None = None, rival_places: int = 2) -> FrameScreen:
     """Decide every robot's frame on the joint graph (see the module docstring); ``maps``: the
-    hypotheses face the robots' maps first."""
+    hypotheses face the robots' maps first, and with ``maps.every_rival`` a rival resting on
+    ``rival_places`` places or more must be refuted (the agents' ``align_tie_min_places``)."""
     s = _Screen(graph, min_places, min_margin, place_radius, maps)
     robots = sorted(set(graph.robot.tolist()))
     keep = ~s.inter
@@ -202,7 +203,7 @@ def screen_frames(graph: PoseGraph, min_places: int = 2, min_margin: int = 1, pl
             weighed[r] = hyps
             rivals.pop(r, None)
             if best is not None and s.maps is not None and s.maps.every_rival:
-                rivals[r] = unrefuted_rivals(best, hyps)
+                rivals[r] = unrefuted_rivals(best, hyps, min_places=rival_places)
                 if rivals[r]:
                     continue  # a lead on closures alone: the robot waits for maps that tell the frames apart
             if best is not None:

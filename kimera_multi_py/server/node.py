@@ -58,7 +58,8 @@ class Server:
     """Joint-graph GNC over what the agents stream (see the module docstring)."""
 
     def __init__(self, server_id: int, team: tuple[int, ...] | None, closure_sigmas: tuple[float, float],
-                 odom_sigmas: tuple[float, float], closure_votes: bool = False, frame_screen: bool = True) -> None:
+                 odom_sigmas: tuple[float, float], closure_votes: bool = False, frame_screen: bool = True,
+                 frame_params: PgoParams | None = None) -> None:
         self.id = server_id
         self.team = tuple(team) if team is not None else None  # None: whoever streams to it
         self.odometry: dict[int, list[np.ndarray]] = {r: [] for r in self.team or ()}
@@ -74,6 +75,7 @@ class Server:
         self.closure_votes = closure_votes
         # the agents' frame decision before GNC (:mod:`~kimera_multi_py.alignment.server_frames`); off: all closures
         self.frame_screen = frame_screen
+        self.frame_params = frame_params or PgoParams()  # the agents' frame rule (``align_*``, ``place_radius``)
         self.frames: FrameScreen | None = None  # the last solve's frame decisions
         self.map_rule: MapRule | None = None  # the frame screen faces the team map (ServerNode.fuse_maps)
         self.stats = ServerStats()
@@ -157,7 +159,10 @@ class Server:
         votes = self.votes(g.num_edges, tags)
         keep = np.ones(g.num_edges, dtype=bool)
         if self.frame_screen:
-            self.frames = screen_frames(g, maps=self.map_rule)
+            p = self.frame_params
+            self.frames = screen_frames(g, p.align_min_places, p.align_min_margin, p.place_radius,
+                                        lone=p.align_lone_place, maps=self.map_rule,
+                                        rival_places=p.align_tie_min_places)
             keep = self.frames.keep
             for r in self.frames.excluded():
                 why = self.frames.report[r]["reason"]

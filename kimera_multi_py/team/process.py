@@ -263,7 +263,7 @@ async def _server(job: ServerJob) -> dict[str, Any]:
                           config.to_node_params(), schedule, map_params, config.to_scene_graph_params()).write(d)
     node_params = config.to_node_params()
     bus = job.connection.bus(SERVER_ID, budget_of(node_params.link_budget, node_params.link_policy))
-    server = Server(SERVER_ID, None, params.closure_sigmas, params.odom_sigmas)
+    server = Server(SERVER_ID, None, params.closure_sigmas, params.odom_sigmas, frame_params=config.to_pgo_params())
     node = ServerNode(server, bus, schedule)
     # the agents' map, mapping and PGO parameters (exact fusion; the frame screen faces the maps)
     node.fuse_maps(get_submap_map(params.mapping), params=map_params,

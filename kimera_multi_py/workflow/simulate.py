@@ -247,8 +247,9 @@ class SimRunner:
             self._phi = PhiRecords(self.phi_background) if self.map_report is not None else None
             nodes: list[AgentNode | ServerNode] = list(self.nodes)
             if central:
-                self.server = ServerNode(Server(SERVER_ID, None, self.params.closure_sigmas, self.params.odom_sigmas),
-                                         buses[-1], self.schedule, clock=self.clock.now)
+                server = Server(SERVER_ID, None, self.params.closure_sigmas, self.params.odom_sigmas,
+                                frame_params=self.pgo_params)
+                self.server = ServerNode(server, buses[-1], self.schedule, clock=self.clock.now)
                 if self.map_mode != "off":
                     self.server.fuse_maps(get_submap_map(params.mapping), self.map_mode, self.map_params,
                                           params.mapping.keyframes_per_submap, self.pgo_params)

@@ -13,6 +13,7 @@ from kimera_multi_py.alignment.server_frames import screen_frames
 from kimera_multi_py.comms.messages.closures import KeyframeOdometry, LoopClosures
 from kimera_multi_py.core.geometry import inverse
 from kimera_multi_py.core.posegraph import robot_key
+from kimera_multi_py.pgo.params import PgoParams
 from kimera_multi_py.server.node import Server
 from tests.consensus.test_alignment_switch import CORNER, _closures, _graph, _odometry_start, _team
 from tests.consensus.test_pgo_aliased import ROOM_A, ROOM_B
@@ -26,6 +27,37 @@ def _team_error(trajs: list[np.ndarray], poses: np.ndarray, first: np.ndarray, r
     end = first[robot] + len(trajs[robot])
     true = (inverse(trajs[0][0]) @ trajs[robot])[:, :3, 3]
     return float(np.linalg.norm(poses[first[robot]:end, :3, 3] - true, axis=1).mean())
+
+
+def _server(trajs: list[np.ndarray], first: np.ndarray, edges: list, frame_params: PgoParams | None = None) -> Server:
+    """A server holding two robots' odometry and robot 0's closures with robot 1 (``edges``)."""
+    server = Server(999, (0, 1), closure_sigmas=(0.05, 0.15), odom_sigmas=(0.0026, 0.02), frame_params=frame_params)
+    for r, T in enumerate(trajs):
+        steps = [np.eye(4)] + [inverse(T[k - 1]) @ T[k] for k in range(1, len(T))]
+        server.handle(KeyframeOdometry(robot=r, keyframes=np.arange(len(T)), odometry=np.array(steps)))
+    i, j, Z = (np.array(v) for v in zip(*[(e[0], e[1], e[2]) for e in edges], strict=True))
+    server.handle(LoopClosures(robot=0, peer=1, batch=0, keys_a=[robot_key(0, int(k)) for k in i],
+                               keys_b=[robot_key(1, int(k - first[1])) for k in j], poses=Z,
+                               sigmas=np.tile([0.05] * 3 + [0.15] * 3, (len(i), 1)), inliers=np.ones(len(i), int)))
+    return server
+
+
+def test_the_server_decides_with_the_agents_frame_parameters() -> None:
+    """The truth on four places, an alias on two: with the defaults robot 1 joins on the truth;
+    when the agents ask for five places before a frame is adopted (``align_min_places``), the
+    server keeps it out as they would."""
+    rng = np.random.default_rng(0)
+    trajs, odo, first = _team(rng=rng)
+    alias = _closures(trajs, first, [(A, B, True), (np.array([8.0, 8.0]), np.array([14.0, 8.0]), True)], rng)
+    true = _closures(trajs, first, [(A, A, False), (CORNER, CORNER, False), (FAR[0], FAR[0], False),
+                                    (FAR[2], FAR[2], False)], rng, per_place=2)
+    edges = alias + true
+    server = _server(trajs, first, edges)
+    assert server.optimise()[1].settled and server.frames is not None
+    assert server.frames.report[1]["status"] == "aligned"
+    strict = _server(trajs, first, edges, PgoParams(align_min_places=5))
+    assert not strict.optimise()[1].settled and strict.frames is not None
+    assert strict.frames.report[1]["status"] == "excluded"
 
 
 def test_the_alias_group_is_left_out_and_the_robot_joins_on_the_truth() -> None:
@@ -96,14 +128,7 @@ def test_a_tie_keeps_the_robot_out_and_the_server_says_so() -> None:
     edges = _closures(trajs, first, [(A, B, True), (A, A, False)], rng)
     graph = _graph(trajs, odo + edges, _odometry_start(trajs, odo))
     assert screen_frames(graph).report[1]["status"] == "excluded"
-    server = Server(999, (0, 1), closure_sigmas=(0.05, 0.15), odom_sigmas=(0.0026, 0.02))
-    for r, T in enumerate(trajs):
-        steps = [np.eye(4)] + [inverse(T[k - 1]) @ T[k] for k in range(1, len(T))]
-        server.handle(KeyframeOdometry(robot=r, keyframes=np.arange(len(T)), odometry=np.array(steps)))
-    i, j, Z = (np.array(v) for v in zip(*[(e[0], e[1], e[2]) for e in edges], strict=True))
-    server.handle(LoopClosures(robot=0, peer=1, batch=0, keys_a=[robot_key(0, int(k)) for k in i],
-                               keys_b=[robot_key(1, int(k - first[1])) for k in j], poses=Z,
-                               sigmas=np.tile([0.05] * 3 + [0.15] * 3, (len(i), 1)), inliers=np.ones(len(i), int)))
+    server = _server(trajs, first, edges)
     out = server.optimise()  # one message per robot, by id
     assert not out[1].settled and out[0].settled
     assert np.allclose(out[1].poses[0], np.eye(4), atol=1e-6)  # its own frame
