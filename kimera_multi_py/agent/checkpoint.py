@@ -66,8 +66,10 @@ from kimera_multi_py.io.outdir import reason
 
 MAGIC = b"KMPCKPT\n"
 FORMAT = "kimera-multi-checkpoint"
-FORMAT_VERSION = 8
-READABLE_VERSIONS = (6, 7, 8)  # 6: before people were tracked (loads with an empty tracker); 7: map tree kept current
+FORMAT_VERSION = 9
+# 6: before people were tracked (loads with an empty tracker); 7: map tree kept current; 8: every
+# submap's rows dense
+READABLE_VERSIONS = (6, 7, 8, 9)
 ADDED_FIELDS: dict[str, tuple[str, ...]] = {
     "kimera_multi_py.agent.params.AgentParams": ("people", "max_view_angle"),
     "kimera_multi_py.agent.closures.LoopClosureStats": ("rejected_view_angle",),
@@ -536,6 +538,10 @@ def parse_checkpoint(data: bytes, name: str = "<bytes>") -> tuple[Any, dict[str,
         agent.map._pending = []
         for s in agent.map.submaps.values():
             s.rows = s.rows.astype(np.int16)
+    if version < 9:  # submaps that take no more scans hold their rows as a palette
+        ids = agent.map.submap_ids()
+        for sid in ids[:-1]:
+            agent.map.submaps[sid].compact()
     return agent, extra
 
 

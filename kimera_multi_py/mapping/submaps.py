@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -25,6 +24,7 @@ from kimera_multi_py.core.geometry import inverse, transform_points
 from kimera_multi_py.mapping import morton
 from kimera_multi_py.mapping.observation import SCALE
 from kimera_multi_py.mapping.octree_block import BLOCK_SHIFT
+from kimera_multi_py.mapping.palette import to_palette
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 
 log = logging.getLogger(__name__)
@@ -33,17 +33,71 @@ _PENDING_MERGE = 64  # changed-cell arrays kept before they are merged into one
 _BATCH_CELLS = 1 << 20  # cells gathered before a batch of moves is applied (bounds its memory)
 
 
-@dataclass
 class Submap:
-    """One submap: reference and current pose, and its evidence on the reference grid."""
+    """One submap: reference and current pose, and its evidence on the reference grid.
 
-    id: int
-    T_ref: np.ndarray  # world pose of the submap frame when it was created
-    T: np.ndarray  # world pose at which its contribution is currently in the map
-    codes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    rows: np.ndarray = field(default_factory=lambda: np.zeros((0, 1), dtype=np.int16))  # within +-(h_max - h_min)
-    world_codes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    num_scans: int = 0
+    ``rows`` are int16 (within +-(h_max - h_min)). While a submap still takes scans they are held
+    dense, with the world codes its cells are in (``world_codes``); :meth:`compact` (done when the
+    next submap starts) keeps the rows as a palette of distinct rows and an index per cell
+    (:mod:`.palette`), the same values in a fraction of the bytes, and drops the world codes, which
+    :meth:`SubmapMap.world_codes` recomputes from the pose they were placed at. Reading ``rows``
+    gives them back, and a scan into a compact submap expands it."""
+
+    def __init__(self, id: int, T_ref: np.ndarray, T: np.ndarray, codes: np.ndarray | None = None,
+                 rows: np.ndarray | None = None, world_codes: np.ndarray | None = None,
+                 num_scans: int = 0) -> None:
+        self.id = id
+        self.T_ref = T_ref  # world pose of the submap frame when it was created
+        self.T = T  # world pose at which its contribution is currently in the map
+        self.codes = np.zeros(0, dtype=np.int64) if codes is None else codes
+        self.rows = np.zeros((0, 1), dtype=np.int16) if rows is None else rows
+        # the world codes of the cells (where they are in the map), or None: recomputed when needed
+        self.world_codes: np.ndarray | None = np.zeros(0, dtype=np.int64) if world_codes is None else world_codes
+        self.num_scans = num_scans
+
+    @property
+    def rows(self) -> np.ndarray:
+        """The cells' evidence rows (materialised from the palette when compact: a copy then)."""
+        if self._dense is not None:
+            return self._dense
+        assert self._palette is not None and self._index is not None
+        return self._palette.take(self._index.astype(np.intp), axis=0)
+
+    @rows.setter
+    def rows(self, value: np.ndarray) -> None:
+        self._dense: np.ndarray | None = value
+        self._palette: np.ndarray | None = None
+        self._index: np.ndarray | None = None
+
+    @property
+    def compact_rows(self) -> bool:
+        return self._dense is None
+
+    def rows_at(self, pos: np.ndarray) -> np.ndarray:
+        """The rows of the cells at positions ``pos``."""
+        if self._dense is not None:
+            return self._dense[pos]
+        assert self._palette is not None and self._index is not None
+        return self._palette.take(self._index[pos].astype(np.intp), axis=0)
+
+    def compact(self) -> None:
+        """Hold the rows as a palette and an index (exactly the same values); drop the world codes."""
+        if self._dense is not None:
+            self._palette, self._index = to_palette(self._dense)
+            self._dense = None
+        self.world_codes = None
+
+    def expand(self) -> None:
+        """Hold the rows dense again (to take scans)."""
+        if self._dense is None:
+            self.rows = self.rows
+
+    @property
+    def nbytes(self) -> int:
+        rows = self._dense.nbytes if self._dense is not None else (
+            self._palette.nbytes + self._index.nbytes)  # type: ignore[union-attr]
+        world = self.world_codes.nbytes if self.world_codes is not None else 0
+        return int(self.codes.nbytes + rows + world)
 
     @property
     def correction(self) -> np.ndarray:
@@ -159,6 +213,8 @@ class SubmapMap:
         if submap_id in self.submaps:
             raise KeyError(f"submap {submap_id} already exists")
         T = np.asarray(pose, dtype=np.float64).copy()
+        for older in self.submaps.values():  # they take no more scans: hold their rows compactly
+            older.compact()
         s = Submap(
             int(submap_id), T.copy(), T, rows=np.zeros((0, self.num_classes + 1), dtype=np.int16)
         )
@@ -180,6 +236,10 @@ class SubmapMap:
         into the fused map. Returns the number of cells updated.
         """
         s = self.submaps[submap_id]
+        if s.compact_rows:
+            s.world_codes = self.world_codes(s)
+            s.expand()
+        assert s.world_codes is not None
         T_ref_sensor = s.T_ref @ np.asarray(T_submap_sensor, dtype=np.float64)
         pts = transform_points(T_ref_sensor, np.asarray(points_sensor, dtype=np.float64))
         cells = self._tree.scan_cells(T_ref_sensor[:3, 3], pts, labels, max_range)
@@ -229,18 +289,19 @@ class SubmapMap:
             motion = self._max_cell_motion(s, new_pose)
             if not force and motion <= self.move_threshold:
                 continue
+            old_world = self.world_codes(s)
             s.T = new_pose.copy()
             new_world = self._map_codes(s.codes, s.correction)
             # old contribution out and new one in, for the cells that change world cell (the
             # others' two terms cancel exactly: leaving them out gives the same sums)
-            moved_cells = np.flatnonzero(s.world_codes != new_world)
+            moved_cells = np.flatnonzero(old_world != new_world)
             if len(moved_cells):
-                rows = s.rows[moved_cells]
-                batch.add(s.world_codes[moved_cells], rows, -1)
+                rows = s.rows_at(moved_cells)
+                batch.add(old_world[moved_cells], rows, -1)
                 batch.add(new_world[moved_cells], rows, 1)
                 if batch.size >= _BATCH_CELLS:
                     self._apply(*batch.take())
-            s.world_codes = new_world
+            s.world_codes = None if s.compact_rows else new_world
             moved += 1
             log.debug("re-anchored submap %d (max cell motion %.3f m)", submap_id, motion)
         if batch.size:
@@ -251,7 +312,7 @@ class SubmapMap:
         """Drop a submap and subtract its contribution."""
         s = self.submaps.pop(submap_id)
         if len(s.codes):
-            self._apply(s.world_codes, -s.rows, -np.ones(len(s.codes), dtype=np.int32))
+            self._apply(self.world_codes(s), -s.rows, -np.ones(len(s.codes), dtype=np.int32))
 
     def submap_ids(self) -> list[int]:
         return sorted(self.submaps)
@@ -259,7 +320,12 @@ class SubmapMap:
     def contribution(self, submap_id: int) -> tuple[np.ndarray, np.ndarray]:
         """World codes and evidence rows a submap currently adds to the map."""
         s = self.submaps[submap_id]
-        return s.world_codes.copy(), s.rows.copy()
+        return self.world_codes(s).copy(), s.rows.copy()
+
+    def world_codes(self, s: Submap) -> np.ndarray:
+        """The world codes of a submap's cells: where its contribution is in the map (held while
+        it takes scans, else recomputed from the pose it was placed at, ``s.T``: the same codes)."""
+        return s.world_codes if s.world_codes is not None else self._map_codes(s.codes, s.correction)
 
     # ---- internals -------------------------------------------------------------------------
     def _max_cell_motion(self, s: Submap, new_pose: np.ndarray) -> float:
@@ -318,7 +384,7 @@ class SubmapMap:
     @property
     def nbytes(self) -> int:
         """Bytes held: the submaps' evidence, the fused evidence and the tree's leaves."""
-        subs = sum(s.codes.nbytes + s.rows.nbytes + s.world_codes.nbytes for s in self.submaps.values())
+        subs = sum(s.nbytes for s in self.submaps.values())
         return int(subs + self._fused.nbytes + self._tree.nbytes)
 
 

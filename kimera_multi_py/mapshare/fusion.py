@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kimera_multi_py.mapping.palette import index_dtype, unique_rows
 from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.mapping.submaps import (
     _BATCH_CELLS,
@@ -172,7 +173,7 @@ class _Entry:
         entry is in the map). The palette ends as exactly the distinct rows the cells hold, so
         the bytes held depend on the evidence only, not on its history."""
         m = len(self.palette)
-        uniq, inv = _unique_rows(np.concatenate([self.palette, rows.astype(np.int16)]))
+        uniq, inv = unique_rows(np.concatenate([self.palette, rows.astype(np.int16)]))
         index = inv[:m][self.index.astype(np.intp)] if m else np.zeros(0, np.intp)
         add = inv[m:]
         index[pos[known]] = add[known]
@@ -189,22 +190,12 @@ class _Entry:
             index = (np.cumsum(used) - 1)[index]
             uniq = uniq[used]
         self.palette = uniq
-        self.index = index.astype(np.uint16 if len(uniq) <= 1 << 16 else np.uint32)
+        self.index = index.astype(index_dtype(len(uniq)))
 
     @property
     def nbytes(self) -> int:
         world = self.world.nbytes if self.world is not None else 0
         return int(self.codes.nbytes + self.palette.nbytes + self.index.nbytes + world)
-
-
-def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct rows of a C-contiguous 2-D array (any order) and each row's index among them."""
-    rows = np.ascontiguousarray(rows)
-    if len(rows) == 0:
-        return rows.copy(), np.zeros(0, np.intp)
-    keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).reshape(-1)
-    _, first, inv = np.unique(keys, return_index=True, return_inverse=True)
-    return rows[first], inv.reshape(-1)
 
 
 class EvidenceMap:

@@ -192,3 +192,35 @@ def test_group_sums_equal_a_dictionary_sum_on_runs_of_sorted_codes() -> None:
         assert count.sum() == len(codes) and np.array_equal(count, [np.sum(codes == c) for c in uniq])
         u2, (s2,) = group_sums(codes, rows)
         assert np.array_equal(u2, uniq) and np.array_equal(s2, summed)
+
+
+def test_closed_submaps_hold_their_rows_compactly_with_the_same_values(monkeypatch):
+    """Submaps that take no more scans keep their rows as a palette and no world codes: fewer
+    bytes, and the same rows, contributions and map, through moves and a late scan into one,
+    as a map that keeps every submap dense."""
+    m = build()
+    assert [m.submaps[s].compact_rows for s in (0, 1, 2)] == [True, True, False]
+    monkeypatch.setattr("kimera_multi_py.mapping.submaps.Submap.compact", lambda self: None)
+    dense = build()
+    assert not any(s.compact_rows for s in dense.submaps.values())
+    for sid in (0, 1):
+        s, d = m.submaps[sid], dense.submaps[sid]
+        assert s.world_codes is None and s.nbytes < d.nbytes / 2
+        assert np.array_equal(s.rows, d.rows)
+        assert all(np.array_equal(a, b) for a, b in zip(m.contribution(sid), dense.contribution(sid), strict=True))
+
+    def change(x: SubmapMap) -> None:
+        x.move_submap(0, make_pose(so3_exp([0.0, 0.01, -0.2]), [0.4, 0.3, 0.0]) @ x.submaps[0].T)
+        o = SENSORS[1]
+        p, lab = room_scan(o, 2000, seed=99, noise=0.1)
+        T_w_sensor = make_pose(None, o)
+        x.integrate(1, inverse(x.submaps[1].T_ref) @ T_w_sensor, transform_points(inverse(T_w_sensor), p), lab)
+        x.move_submap(1, make_pose(None, [0.0, -0.3, 0.0]) @ x.submaps[1].T)
+
+    change(m)
+    change(dense)
+    assert not m.submaps[1].compact_rows  # the late scan expanded it
+    assert same(snapshot(m.octree), snapshot(dense.octree))
+    assert same(m.evidence(), dense.evidence())
+    for sid in (0, 1, 2):
+        assert np.array_equal(m.submaps[sid].rows, dense.submaps[sid].rows)
