@@ -138,15 +138,25 @@ def group_sums(codes: np.ndarray, *columns: np.ndarray) -> tuple[np.ndarray, lis
     return uniq, sums
 
 
-def _grouped(codes: np.ndarray, *columns: np.ndarray) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
-    """:func:`group_sums`, and the multiplicity of each code.
+def group_sum_indexed(codes: np.ndarray, palette: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`group_sums` of the rows ``palette[index]`` (one index per code), gathered once in
+    the codes' sorted order: the rows are never built in their own order first."""
+    uniq, (summed,), _ = _grouped(codes, index, palette=palette)
+    return uniq, summed
+
+
+def _grouped(codes: np.ndarray, *columns: np.ndarray,
+             palette: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """:func:`group_sums`, and the multiplicity of each code (with ``palette``: the one column
+    is an index into its rows, which are summed).
 
     The sort is stable (timsort on int64): the codes come as concatenations of sorted or nearly
     sorted runs (a submap's cells, moved a little), which it merges instead of sorting afresh,
     and the rows are then gathered run by run."""
     codes = np.asarray(codes, dtype=np.int64)
     if len(codes) == 0:
-        return codes.copy(), [np.asarray(c)[:0].copy() for c in columns], np.zeros(0, np.int64)
+        empty = [palette[:0].copy()] if palette is not None else [np.asarray(c)[:0].copy() for c in columns]
+        return codes.copy(), empty, np.zeros(0, np.int64)
     order = np.argsort(codes, kind="stable")
     ordered = codes[order]
     first = np.empty(len(ordered), dtype=np.bool_)
@@ -157,6 +167,8 @@ def _grouped(codes: np.ndarray, *columns: np.ndarray) -> tuple[np.ndarray, list[
     for c in columns:
         c = np.asarray(c)
         taken = c.take(order, axis=0)
+        if palette is not None:
+            c, taken = palette, palette.take(taken.astype(np.intp, copy=False), axis=0)
         sums.append(taken if len(starts) == len(codes) else np.add.reduceat(taken, starts, axis=0, dtype=c.dtype))
     return ordered[starts], sums, np.diff(starts, append=len(codes))
 

@@ -30,6 +30,7 @@ from kimera_multi_py.mapping.submaps import (
     _CellStore,
     _group_sum,
     correction,
+    group_sum_indexed,
     group_sums,
     map_codes,
 )
@@ -334,7 +335,8 @@ class EvidenceMap:
     def fused(self, keys: Iterable[Key], at: dict[Key, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The evidence of just these records (placed at their poses, or at ``at[key]`` where
         given; active or not): sorted world codes and int32 rows. Records without a pose are left out."""
-        codes, rows = [], []
+        codes, index, palettes = [], [], []
+        base = 0
         for key in keys:
             e = self.entries.get(key)
             if e is None or e.T is None or e.T_ref is None or not len(e.codes):
@@ -345,11 +347,13 @@ class EvidenceMap:
                 world = e.world if e.world is not None else \
                     map_codes(e.codes, correction(e.T, e.T_ref), self.resolution)
             codes.append(world)
-            rows.append(e.palette.astype(np.int32).take(e.index.astype(np.intp), axis=0))
+            index.append(e.index.astype(np.int64) + base)  # into the records' palettes, one after another
+            palettes.append(e.palette)
+            base += len(e.palette)
         if not codes:
             return np.zeros(0, np.int64), np.zeros((0, self.k1), np.int32)
-        uniq, summed, _ = _group_sum(np.concatenate(codes), np.concatenate(rows))
-        return uniq, summed
+        return group_sum_indexed(np.concatenate(codes), np.concatenate(palettes).astype(np.int32),
+                                 np.concatenate(index))
 
     # ---- internals -------------------------------------------------------------------------
     def _deposit(self, e: _Entry) -> None:

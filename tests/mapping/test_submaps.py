@@ -177,7 +177,8 @@ def test_the_changed_cells_kept_for_the_tree_stay_bounded():
 def test_group_sums_equal_a_dictionary_sum_on_runs_of_sorted_codes() -> None:
     """Sums and multiplicities per code against a plain dictionary sum, on what the fusions feed
     it: concatenated runs of sorted codes that overlap, shuffled codes, and no codes."""
-    from kimera_multi_py.mapping.submaps import _group_sum, group_sums
+    from kimera_multi_py.mapping.palette import to_palette
+    from kimera_multi_py.mapping.submaps import _group_sum, group_sum_indexed, group_sums
 
     rng = np.random.default_rng(0)
     runs = [np.sort(rng.choice(5000, size=800, replace=False)) for _ in range(6)]
@@ -192,6 +193,9 @@ def test_group_sums_equal_a_dictionary_sum_on_runs_of_sorted_codes() -> None:
         assert count.sum() == len(codes) and np.array_equal(count, [np.sum(codes == c) for c in uniq])
         u2, (s2,) = group_sums(codes, rows)
         assert np.array_equal(u2, uniq) and np.array_equal(s2, summed)
+        palette, index = to_palette(rows)  # the same rows as a palette and indices
+        u3, s3 = group_sum_indexed(codes, palette, index)
+        assert np.array_equal(u3, uniq) and np.array_equal(s3, summed) and s3.dtype == palette.dtype
 
 
 def test_closed_submaps_hold_their_rows_compactly_with_the_same_values(monkeypatch):
