@@ -59,7 +59,17 @@ from kimera_multi_py.mapshare.wire import pack_cells, unpack_cells
 log = logging.getLogger(__name__)
 
 MODES = ("roam", "exact", "laplacian")
-_MARK = np.int32  # dtype of the per-cell version marks
+_MARK = np.int32  # the widest dtype of the per-cell version marks (a larger version is refused)
+_MARK_TYPES = (np.uint8, np.uint16, _MARK)  # marks are held in the narrowest that holds every one
+
+
+def _marks_for(marks: np.ndarray, version: int) -> np.ndarray:
+    """``marks`` in a dtype that also holds ``version`` (versions count a submap's scans, so a
+    byte holds most; the values never change)."""
+    if version <= np.iinfo(marks.dtype).max:
+        return marks
+    wide = next(t for t in _MARK_TYPES if version <= np.iinfo(t).max)
+    return marks.astype(wide)
 MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)  # what a MapConsensus handles
 
 
@@ -109,7 +119,7 @@ class _Held:
     with the cells of its record in the team's evidence store (which holds the cells and rows)."""
 
     version: int
-    marks: np.ndarray  # (n,) int32 (versions count scans; a larger one is refused)
+    marks: np.ndarray  # (n,) versions (count scans; beyond int32 refused), narrowest dtype (_marks_for)
     got: float  # local time the current version arrived
     via: tuple[int, int] = (-1, 0)  # the (sender, seq) of the message that brought it (own: none)
 
@@ -226,7 +236,7 @@ class MapConsensus:
         rows = np.zeros((len(codes), self.k + 1), np.int32)
         rows[:, 1:] = values
         if h is None:
-            h = self.held[key] = _Held(0, np.zeros(0, _MARK), self._now)
+            h = self.held[key] = _Held(0, np.zeros(0, _MARK_TYPES[0]), self._now)
         self._merge(key, h, codes, rows, msg.version)
         h.version, h.got, h.via = msg.version, self._now, (msg.robot, msg.seq)
 
@@ -314,7 +324,7 @@ class MapConsensus:
             key = (self.robot, sid)
             h = self.held.get(key)
             if h is None:
-                h = self.held[key] = _Held(0, np.zeros(0, _MARK), self._now)
+                h = self.held[key] = _Held(0, np.zeros(0, _MARK_TYPES[0]), self._now)
             if sid == newest and self._now - h.got < self.params.hold:
                 continue
             if s.num_scans > h.version:
@@ -352,6 +362,7 @@ class MapConsensus:
         pos = np.searchsorted(held, codes)
         known = pos < len(held)
         known[known] = held[pos[known]] == codes[known]
+        h.marks = _marks_for(h.marks, version)
         h.marks[pos[known]] = version
         if not known.all():
             h.marks = np.insert(h.marks, pos[~known], version)

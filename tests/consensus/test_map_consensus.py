@@ -312,3 +312,15 @@ def test_a_restarted_robot_continues_its_pose_table_versions_above_what_its_neig
     assert nodes[0].poses[1][0].version > held
     assert all(node.gaps({0, 1}) == {} for node in nodes.values())
     assert_exact(maps, nodes)
+
+
+def test_version_marks_are_held_in_the_narrowest_dtype_that_holds_them() -> None:
+    """Marks count scans, so a byte holds most; a larger version widens them without changing any."""
+    from kimera_multi_py.mapshare.consensus import _marks_for
+
+    marks = np.array([3, 200], np.uint8)
+    assert _marks_for(marks, 255) is marks
+    wide = _marks_for(marks, 256)
+    assert wide.dtype == np.uint16 and wide.tolist() == [3, 200]
+    wider = _marks_for(wide, 70_000)
+    assert wider.dtype == np.int32 and wider.tolist() == [3, 200]

@@ -188,14 +188,14 @@ def test_the_evidence_store_does_not_grow_with_new_versions_of_a_submap() -> Non
 def test_a_robots_map_consensus_holds_each_submap_once() -> None:
     """The evidence a robot holds of a submap lives in one place (the team store), as cells, a
     palette index per cell and the palette of distinct rows; what the map consensus adds beyond
-    it is a version mark per cell."""
+    it is a version mark per cell (a byte: versions count the submap's scans)."""
     local = robot_map(0)
     mc = MapConsensus(0, local, MapConsensusParams(hold=0.0))  # every submap versioned at once
     mc.step(0.0)
     cells = sum(len(s.codes) for s in local.submaps.values())
     entries = list(mc.team.entries.values())
     palettes = sum(e.palette.nbytes for e in entries)
-    assert cells > 0 and mc.nbytes - mc.team.nbytes == 4 * cells  # int32 marks
+    assert cells > 0 and mc.nbytes - mc.team.nbytes == cells  # uint8 marks
     assert sum(e.nbytes for e in entries) == cells * (8 + 2 + 8) + palettes  # codes, index, world codes
     assert palettes < cells * 2 * (K + 1) / 4  # rows repeat: the palette is far smaller than the rows
     for sid, s in local.submaps.items():  # and gives back every row
