@@ -138,6 +138,7 @@ class AgentNode:
         self._recent_descriptors: list[KeyframeDescriptor] = []  # the last ones sent (repeated)
         self.queries_retried = 0
         self._reasked: Counter[int] = Counter()  # request id -> times asked again after its retries
+        self._heard_peers: set[int] = set()  # robots whose presence we have seen
         self._reask_at = -math.inf
 
     @property
@@ -307,6 +308,15 @@ class AgentNode:
 
     async def _on_presence(self, event: PresenceEvent) -> None:
         """A robot (re)appeared: give it what it may have missed."""
+        if event.robot <= MAX_AGENT_ID and event.robot != self.robot:  # a fault's trace in the log
+            state = self.pgo.states.get(event.robot) if self.pgo is not None else None
+            if not event.alive:
+                if state is not None and not state.finished:  # gone before its stream ended
+                    log.warning("robot %d: robot %d is out of reach", self.robot, event.robot,
+                                extra={"robot": self.robot})
+            elif event.robot in self._heard_peers:
+                log.warning("robot %d: robot %d is back", self.robot, event.robot, extra={"robot": self.robot})
+            self._heard_peers.add(event.robot)
         if not event.alive or event.robot > MAX_AGENT_ID:
             if event.alive:  # the server: it needs our state to know who has finished
                 await self._publish_state()

@@ -177,3 +177,28 @@ def test_a_robot_that_was_the_root_of_its_own_frame_is_not_taken_for_in_the_team
     assert epoch(2, [1], [])  # alone again: its own frame, which it is in
     assert pgo.last_pgo is not None and pgo.last_pgo.root
     assert not epoch(3, [0, 1], [(0, 1)])  # another root: decided afresh
+
+
+def test_a_peer_gone_before_its_stream_ended_and_its_return_are_logged(caplog):
+    """A fault leaves a trace in a robot's log: a peer out of reach while it still streamed, and
+    its return; a peer leaving after its stream ended (a normal exit) does not."""
+    async def main() -> None:
+        net = LoopbackNetwork(team="t0", seed=0)
+        sim = Simulation(load_scenario(TINY), seed=0)
+        node = _Recorder(Agent(0, None, agent_params(sim.cfg)), net.bus(0))
+        node.asked = []
+        await node.start()
+        assert node.pgo is not None
+        for r in (1, 2):
+            await node._on_presence(PresenceEvent(robot=r, alive=True))
+        node.pgo.handle(dataclasses.replace(_state(1, []), finished=False), {1, 2})
+        node.pgo.handle(_state(2, []), {1, 2})  # robot 2's stream ended
+        with caplog.at_level("WARNING", logger="kimera_multi_py.agent.node"):
+            await node._on_presence(PresenceEvent(robot=1, alive=False))
+            await node._on_presence(PresenceEvent(robot=2, alive=False))
+            await node._on_presence(PresenceEvent(robot=1, alive=True))
+        assert [r.getMessage() for r in caplog.records] == ["robot 0: robot 1 is out of reach",
+                                                            "robot 0: robot 1 is back"]
+        await node.close()
+
+    asyncio.run(main())
