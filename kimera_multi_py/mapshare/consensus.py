@@ -52,6 +52,7 @@ from kimera_multi_py.mapping.semantic_octree import SemanticOctree
 from kimera_multi_py.mapping.submaps import SubmapMap
 from kimera_multi_py.mapshare.acks import EVIDENCE, POSES, Acks, Send
 from kimera_multi_py.mapshare.fusion import EvidenceMap, Key, octree_cells, view_rows
+from kimera_multi_py.mapshare.held import MAX_VERSION, HeldSubmap, marks_for
 from kimera_multi_py.mapshare.laplacian import LaplacianState
 from kimera_multi_py.mapshare.roam import ROAM_NODE_BYTES, RoamFusion
 from kimera_multi_py.mapshare.wire import pack_cells, unpack_cells
@@ -59,17 +60,6 @@ from kimera_multi_py.mapshare.wire import pack_cells, unpack_cells
 log = logging.getLogger(__name__)
 
 MODES = ("roam", "exact", "laplacian")
-_MARK = np.int32  # the widest dtype of the per-cell version marks (a larger version is refused)
-_MARK_TYPES = (np.uint8, np.uint16, _MARK)  # marks are held in the narrowest that holds every one
-
-
-def _marks_for(marks: np.ndarray, version: int) -> np.ndarray:
-    """``marks`` in a dtype that also holds ``version`` (versions count a submap's scans, so a
-    byte holds most; the values never change)."""
-    if version <= np.iinfo(marks.dtype).max:
-        return marks
-    wide = next(t for t in _MARK_TYPES if version <= np.iinfo(t).max)
-    return marks.astype(wide)
 MAP_MESSAGES = (SubmapEvidence, SubmapPoses, MapVersions, MapState, RoamMap)  # what a MapConsensus handles
 
 
@@ -113,17 +103,6 @@ class MapConsensusParams:
             raise ValueError(f"map consensus hold must be non-negative, got {self.hold}")
 
 
-@dataclass
-class _Held:
-    """A submap's versions as held: its version and the version each cell last changed in, aligned
-    with the cells of its record in the team's evidence store (which holds the cells and rows)."""
-
-    version: int
-    marks: np.ndarray  # (n,) versions (count scans; beyond int32 refused), narrowest dtype (_marks_for)
-    got: float  # local time the current version arrived
-    via: tuple[int, int] = (-1, 0)  # the (sender, seq) of the message that brought it (own: none)
-
-
 class MapConsensus:
     """One robot's map consensus (see the module docstring)."""
 
@@ -145,7 +124,7 @@ class MapConsensus:
         self._next_roam = -np.inf
         # exact
         self.team = EvidenceMap(local.template)
-        self.held: dict[Key, _Held] = {}
+        self.held: dict[Key, HeldSubmap] = {}
         self.poses: dict[int, tuple[SubmapPoses, float]] = {}  # source -> (latest table, got)
         self._own_table: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._pose_version = 0
@@ -219,7 +198,7 @@ class MapConsensus:
             raise MessageError(f"SubmapEvidence.classes: expected {self.k} classes, got {msg.classes}")
         if msg.base >= msg.version:
             raise MessageError(f"SubmapEvidence: base {msg.base} not below version {msg.version}")
-        if msg.version > np.iinfo(_MARK).max:
+        if msg.version > MAX_VERSION:
             raise MessageError(f"SubmapEvidence: version {msg.version} out of range")
         if msg.source == self.robot:
             return
@@ -236,7 +215,7 @@ class MapConsensus:
         rows = np.zeros((len(codes), self.k + 1), np.int32)
         rows[:, 1:] = values
         if h is None:
-            h = self.held[key] = _Held(0, np.zeros(0, _MARK_TYPES[0]), self._now)
+            h = self.held[key] = HeldSubmap.empty(self._now)
         self._merge(key, h, codes, rows, msg.version)
         h.version, h.got, h.via = msg.version, self._now, (msg.robot, msg.seq)
 
@@ -324,7 +303,7 @@ class MapConsensus:
             key = (self.robot, sid)
             h = self.held.get(key)
             if h is None:
-                h = self.held[key] = _Held(0, np.zeros(0, _MARK_TYPES[0]), self._now)
+                h = self.held[key] = HeldSubmap.empty(self._now)
             if sid == newest and self._now - h.got < self.params.hold:
                 continue
             if s.num_scans > h.version:
@@ -353,7 +332,7 @@ class MapConsensus:
                               submaps=sids, T_ref=T_ref, T=T)
             self.poses[self.robot] = (msg, self._now)
 
-    def _merge(self, key: Key, h: _Held, codes: np.ndarray, rows: np.ndarray, version: int) -> None:
+    def _merge(self, key: Key, h: HeldSubmap, codes: np.ndarray, rows: np.ndarray, version: int) -> None:
         """Set cells of a held submap (sorted unique ``codes``): rows into the team's record,
         ``version`` into the marks of the cells it changes."""
         if len(codes) == 0:
@@ -362,7 +341,7 @@ class MapConsensus:
         pos = np.searchsorted(held, codes)
         known = pos < len(held)
         known[known] = held[pos[known]] == codes[known]
-        h.marks = _marks_for(h.marks, version)
+        h.marks = marks_for(h.marks, version)
         h.marks[pos[known]] = version
         if not known.all():
             h.marks = np.insert(h.marks, pos[~known], version)

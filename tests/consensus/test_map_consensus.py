@@ -316,11 +316,11 @@ def test_a_restarted_robot_continues_its_pose_table_versions_above_what_its_neig
 
 def test_version_marks_are_held_in_the_narrowest_dtype_that_holds_them() -> None:
     """Marks count scans, so a byte holds most; a larger version widens them without changing any."""
-    from kimera_multi_py.mapshare.consensus import _marks_for
+    from kimera_multi_py.mapshare.held import marks_for
 
     marks = np.array([3, 200], np.uint8)
-    assert _marks_for(marks, 255) is marks
-    wide = _marks_for(marks, 256)
+    assert marks_for(marks, 255) is marks
+    wide = marks_for(marks, 256)
     assert wide.dtype == np.uint16 and wide.tolist() == [3, 200]
-    wider = _marks_for(wide, 70_000)
+    wider = marks_for(wide, 70_000)
     assert wider.dtype == np.int32 and wider.tolist() == [3, 200]
