@@ -164,9 +164,7 @@ class AgentNode:
         verifying robot, its newest closure batches heard, or its periodic state's count of them,
         whichever is more (a batch lost on the way here that its peer then acknowledged is never
         re-sent; the state is). A late closure so still earns the leader's final epoch."""
-        heard: Counter[int] = Counter()
-        for (sender, _), n in self._closure_counts.items():
-            heard[sender] += n
+        heard: Counter[int] = sum((Counter({s: n}) for (s, _), n in self._closure_counts.items()), Counter())
         states = self.pgo.states if self.pgo is not None else {}
         told = {r: st.closures for r, st in states.items() if r != self.robot}
         return sum(max(heard[r], told.get(r, 0)) for r in set(heard) | set(told))
@@ -309,13 +307,11 @@ class AgentNode:
     async def _on_presence(self, event: PresenceEvent) -> None:
         """A robot (re)appeared: give it what it may have missed."""
         if event.robot <= MAX_AGENT_ID and event.robot != self.robot:  # a fault's trace in the log
-            state = self.pgo.states.get(event.robot) if self.pgo is not None else None
-            if not event.alive:
-                if state is not None and not state.finished:  # gone before its stream ended
-                    log.warning("robot %d: robot %d is out of reach", self.robot, event.robot,
-                                extra={"robot": self.robot})
-            elif event.robot in self._heard_peers:
-                log.warning("robot %d: robot %d is back", self.robot, event.robot, extra={"robot": self.robot})
+            st = self.pgo.states.get(event.robot) if self.pgo is not None else None
+            gone = not event.alive and st is not None and not st.finished  # before its stream ended
+            if gone or (event.alive and event.robot in self._heard_peers):
+                log.warning("robot %d: robot %d is %s", self.robot, event.robot, "out of reach" if gone else "back",
+                            extra={"robot": self.robot})
             self._heard_peers.add(event.robot)
         if not event.alive or event.robot > MAX_AGENT_ID:
             if event.alive:  # the server: it needs our state to know who has finished
@@ -482,19 +478,15 @@ class AgentNode:
         return self.pgo is not None and self.pgo.blocked()
 
     def memory(self) -> dict[str, int]:
-        """Bytes the robot's maps hold: its own map (submaps, fused evidence, octree) and, with
-        a team map, the map consensus's evidence store (docs/performance.md)."""
-        out = {"own_map_bytes": self.agent.map.nbytes}
-        if self.maps is not None:
-            out["map_store_bytes"] = self.maps.nbytes
-        return out
+        """Bytes the robot's own map holds (submaps, fused evidence, octree) and, with a team map,
+        the map consensus's evidence store (docs/performance.md)."""
+        store = {"map_store_bytes": self.maps.nbytes} if self.maps is not None else {}
+        return {"own_map_bytes": self.agent.map.nbytes, **store}
 
     def verifying(self) -> int:
-        """Our unanswered queries to peers present that we will still ask again (``_reask``):
-        closures may still come of them."""
-        alive = self.alive()
-        return sum(1 for rid, peer in self.agent.unanswered_requests().items()
-                   if peer in alive and self._reasked[rid] < self.params.query_reasks)
+        """Our unanswered queries to peers present that we will ask again: closures may come of them."""
+        alive, cap = self.alive(), self.params.query_reasks
+        return sum(p in alive and self._reasked[r] < cap for r, p in self.agent.unanswered_requests().items())
 
     def _state(self) -> AgentState:
         completed = self.pgo.completed if self.pgo is not None else 0
