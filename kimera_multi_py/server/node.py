@@ -215,14 +215,15 @@ class ServerNode:
         self.closures_in = ClosureInbox()  # the robots' closure batches, expanded
 
     def fuse_maps(self, local: SubmapMap, mode: str = "exact", params: MapConsensusParams | None = None,
-                  keyframes_per_submap: int = 10, pgo: PgoParams | None = None) -> None:
+                  keyframes_per_submap: int = 10) -> None:
         """Also fuse every robot's map evidence (a star: the agents' only map neighbour) and serve
         the team map back. ``local`` is an empty map with the agents' map parameters; ``params``
-        the agents' map consensus knobs (default: the defaults); ``keyframes_per_submap`` and
-        ``pgo`` the agents' mapping and PGO parameters: with exact fusion and ``pgo.map_check``,
-        the server's frame screen faces the robots' maps as the agents' frame decisions do."""
+        the agents' map consensus knobs (default: the defaults); ``keyframes_per_submap`` the
+        agents' mapping parameter: with exact fusion and the server's ``frame_params.map_check``
+        (the agents' PGO parameters), its frame screen faces the robots' maps as the agents'
+        frame decisions do."""
         self.maps = get_map_consensus(self.robot, local, mode, base=params)
-        p = pgo or PgoParams()
+        p = self.server.frame_params
         if self.maps.mode == "exact" and p.map_check:
             maps = self.maps
             self.server.map_rule = MapRule(

@@ -267,7 +267,7 @@ async def _server(job: ServerJob) -> dict[str, Any]:
     node = ServerNode(server, bus, schedule)
     # the agents' map, mapping and PGO parameters (exact fusion; the frame screen faces the maps)
     node.fuse_maps(get_submap_map(params.mapping), params=map_params,
-                   keyframes_per_submap=params.mapping.keyframes_per_submap, pgo=config.to_pgo_params())
+                   keyframes_per_submap=params.mapping.keyframes_per_submap)
     try:
         await node.start()
         await node.run()

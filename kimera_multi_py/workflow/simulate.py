@@ -252,7 +252,7 @@ class SimRunner:
                 self.server = ServerNode(server, buses[-1], self.schedule, clock=self.clock.now)
                 if self.map_mode != "off":
                     self.server.fuse_maps(get_submap_map(params.mapping), self.map_mode, self.map_params,
-                                          params.mapping.keyframes_per_submap, self.pgo_params)
+                                          params.mapping.keyframes_per_submap)
                 nodes.append(self.server)
             for node in nodes:
                 if node.robot not in self.join:
