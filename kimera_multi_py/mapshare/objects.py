@@ -35,6 +35,7 @@ from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.geometry import inverse, transform_points
 from kimera_multi_py.mapping.landmark import Landmark
 from kimera_multi_py.mapping.object_fusion import fuse_objects, team_id
+from kimera_multi_py.mapshare.table_delta import TableHistory, delta_rows, expand_rows
 
 OBJECT_MESSAGES = (ObjectUpdate,)
 
@@ -66,21 +67,23 @@ def own_table(robot: int, version: int, frame: int, landmarks: Iterable[Landmark
                         sightings=np.array([r[6] for r in rows], np.int32))
 
 
-def _content(t: ObjectUpdate) -> bytes:
-    return b"".join(a.tobytes() for a in (t.ids, t.submaps, t.classes, t.probs, t.centroids, t.extents, t.sightings))
-
-
 class ObjectExchange:
     """One robot's object sharing (see the module docstring).
 
     ``landmarks`` gives the robot's confirmed landmarks; ``poses(source)`` the newest pose table
     the robot holds for ``source`` (its own included), or None. Subclasses share other tables
-    (:class:`~kimera_multi_py.mapshare.people.PeopleExchange`) through ``MESSAGE``, ``_check``,
-    ``_own_table``, ``_relay`` and ``_content``.
+    (:class:`~kimera_multi_py.mapshare.people.PeopleExchange`) through ``MESSAGE``, ``ROWS`` (the
+    row fields), ``_check`` and ``_own_table``.
+
+    A table goes as a row delta (:mod:`.table_delta`) against the oldest version of it that a
+    neighbour (its source aside) said it holds, when this robot still holds that version;
+    refreshes go whole. A delta against a version the receiver no longer holds is ignored and
+    counted (``ignored["objects_no_base"]``): a later version or the refresh brings the table.
     """
 
     MESSAGE: type[Message] = ObjectUpdate
     WHAT = "objects"
+    ROWS: tuple[str, ...] = ("ids", "submaps", "classes", "probs", "centroids", "extents", "sightings")
 
     def __init__(self, robot: int, landmarks: Callable[[], Iterable[Landmark]],
                  poses: Callable[[int], SubmapPoses | None], num_classes: int, period: float = 5.0,
@@ -101,6 +104,7 @@ class ObjectExchange:
         self._version = 0
         self._published: dict[int, int] = {}  # source -> version last published
         self.peer_holds: dict[int, dict[int, int]] = {}  # neighbour -> source -> newest version it holds
+        self.history = TableHistory()  # the bases of deltas, sent and received
         self._next = -np.inf
 
     def set_neighbours(self, ids: Iterable[int]) -> None:
@@ -123,12 +127,23 @@ class ObjectExchange:
         if msg.robot not in self.neighbours:
             self.ignored["not_neighbour"] += 1
             return
-        self._check(msg)
         old = self.tables.get(msg.source)
         if old is not None and msg.version <= old.version:
             self.ignored[f"{self.WHAT}_duplicate"] += 1
             return
+        if msg.base:
+            base = self.history.get(msg.source, msg.base)
+            if base is None:
+                self.ignored[f"{self.WHAT}_no_base"] += 1
+                return
+            msg = dataclasses.replace(msg, base=0, reuse=np.zeros(0, np.int32), **expand_rows(
+                type(msg).__name__, {f: getattr(base, f) for f in self.ROWS},
+                {f: getattr(msg, f) for f in self.ROWS}, msg.reuse))
+        elif len(msg.reuse):
+            raise MessageError(f"{type(msg).__name__}.reuse: a whole table (base 0) reuses no rows")
+        self._check(msg)
         self.tables[msg.source] = msg
+        self.history.add(msg.source, msg.version, msg)
 
     def _own_version_seen(self, version: int) -> None:
         """A neighbour holds this robot's own table at ``version``. A robot that restarted (the
@@ -148,14 +163,22 @@ class ObjectExchange:
     def _own_table(self, version: int) -> Any:
         return own_table(self.robot, version, self.frame, self.landmarks(), self.num_classes, self.poses(self.robot))
 
-    def _relay(self, t: Any) -> Message:
-        return ObjectUpdate(robot=self.robot, source=t.source, version=t.version, frame=self.frame, ids=t.ids,
-                            submaps=t.submaps, classes=t.classes, probs=t.probs, centroids=t.centroids,
-                            extents=t.extents, sightings=t.sightings)
+    def _content(self, t: Any) -> bytes:
+        return b"".join(getattr(t, f).tobytes() for f in self.ROWS)
 
-    @staticmethod
-    def _content(t: Any) -> bytes:
-        return _content(t)
+    def _send(self, t: Any, refresh: bool, sources: np.ndarray, versions: np.ndarray) -> Message:
+        """``t`` as this robot sends it: whole, or a row delta against the oldest version of it a
+        neighbour (the source aside) holds, when that is older than ``t`` and still held here."""
+        fields: dict[str, Any] = {}
+        held = [self.peer_holds.get(nb, {}).get(t.source, -1) for nb in self.neighbours if nb != t.source]
+        b = min(held, default=-1)
+        base = None if refresh or not 0 < b < t.version else self.history.get(t.source, b)
+        if base is not None:
+            reuse, fresh = delta_rows([getattr(base, f) for f in self.ROWS], [getattr(t, f) for f in self.ROWS])
+            fields = {f: getattr(t, f)[fresh] for f in self.ROWS}
+            fields.update(base=b, reuse=reuse)
+        return dataclasses.replace(t, robot=self.robot, frame=self.frame, held_sources=sources,
+                                   held_versions=versions, **fields)
 
     def step(self, now: float) -> list[Message]:
         """Publish what is due at time ``now`` (seconds): nothing between periods."""
@@ -168,6 +191,7 @@ class ObjectExchange:
         if (old is None and self._content(table)) or (old is not None and self._content(old) != self._content(table)):
             self._version += 1
             self.tables[self.robot] = table
+            self.history.add(self.robot, self._version, table)
         if not self.neighbours:
             return []
         refresh = self.rounds % self.refresh_every == 0
@@ -176,7 +200,7 @@ class ObjectExchange:
         out: list[Message] = []
         for src, t in sorted(self.tables.items()):
             if (refresh or t.version > self._published.get(src, 0)) and not self._all_hold(src, t.version):
-                out.append(dataclasses.replace(self._relay(t), held_sources=sources, held_versions=versions))
+                out.append(self._send(t, refresh, sources, versions))
             self._published[src] = t.version
         return out
 

@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 
-from kimera_multi_py.comms.messages.base import Message
 from kimera_multi_py.comms.messages.maps import PeopleUpdate, SubmapPoses
 from kimera_multi_py.core.errors import MessageError
 from kimera_multi_py.core.geometry import inverse, transform_points
@@ -57,6 +56,7 @@ class PeopleExchange(ObjectExchange):
 
     MESSAGE = PeopleUpdate
     WHAT = "people"
+    ROWS = ("tracks", "stamps", "submaps", "positions")
 
     def __init__(self, robot: int, tracker: Callable[[], PeopleTracker],
                  poses: Callable[[int], SubmapPoses | None], period: float = 5.0, refresh_every: int = 4) -> None:
@@ -70,14 +70,6 @@ class PeopleExchange(ObjectExchange):
 
     def _own_table(self, version: int) -> Any:
         return people_table(self.robot, version, self.frame, self.tracker(), self.poses(self.robot))
-
-    def _relay(self, t: Any) -> Message:
-        return PeopleUpdate(robot=self.robot, source=t.source, version=t.version, frame=self.frame, tracks=t.tracks,
-                            stamps=t.stamps, submaps=t.submaps, positions=t.positions)
-
-    @staticmethod
-    def _content(t: Any) -> bytes:
-        return b"".join(a.tobytes() for a in (t.tracks, t.stamps, t.submaps, t.positions))
 
     def team_tracks(self) -> dict[int, TeamTrack]:
         """Every held track placed in this robot's frame, by team id (tables whose source's submap

@@ -49,7 +49,7 @@ from kimera_multi_py.comms.messages.pgo import (
 from kimera_multi_py.comms.messages.team import AgentState, Heartbeat, PgoEpoch, Ping
 from kimera_multi_py.core.errors import MessageError
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 
 # every message type by its wire name, in the order they were first defined (samples and
 # tests iterate it)

@@ -155,6 +155,11 @@ class ObjectUpdate(Message):
     ``frame`` is the sender's frame when sent. Relayed unchanged except for ``robot`` and
     ``held_sources`` / ``held_versions``: the newest version of each source's table the sender
     holds (so its neighbours need not send it what it has).
+
+    ``base`` > 0 makes the message a row delta (:mod:`kimera_multi_py.mapshare.table_delta`):
+    the table is version ``base`` of the same source with ``reuse`` (one entry per row: a base
+    row's index, or -1) and the row fields hold only the rows marked -1. ``base`` 0 is the table
+    itself, with ``reuse`` empty.
     """
 
     robot: int = robot_id()
@@ -171,6 +176,8 @@ class ObjectUpdate(Message):
     held_sources: np.ndarray = spec_field(Array("int32", ("h",), lo=0, hi=MAX_ROBOT_ID),
                                           factory=lambda: np.zeros(0, np.int32))
     held_versions: np.ndarray = spec_field(Array("int64", ("h",), lo=0), factory=lambda: np.zeros(0, np.int64))
+    base: int = spec_field(Int(0, INT64_MAX), default=0)
+    reuse: np.ndarray = spec_field(Array("int32", ("r",), lo=-1), factory=lambda: np.zeros(0, np.int32))
 
 
 @message("PeopleUpdate", keys.PEOPLE)
@@ -179,7 +186,8 @@ class PeopleUpdate(Message):
     sample: the track's id (the source's), the sample's stamp, the submap it was seen from and its
     position in that submap's reference frame (``T_ref`` of the source's :class:`SubmapPoses`), so
     a PGO correction moves it as it moves objects. ``frame`` is the sender's frame when sent.
-    Relayed unchanged except for ``robot``.
+    Relayed unchanged except for ``robot``. ``held_sources``, ``held_versions``, ``base`` and
+    ``reuse`` as in :class:`ObjectUpdate`.
     """
 
     robot: int = robot_id()
@@ -193,3 +201,5 @@ class PeopleUpdate(Message):
     held_sources: np.ndarray = spec_field(Array("int32", ("h",), lo=0, hi=MAX_ROBOT_ID),
                                           factory=lambda: np.zeros(0, np.int32))
     held_versions: np.ndarray = spec_field(Array("int64", ("h",), lo=0), factory=lambda: np.zeros(0, np.int64))
+    base: int = spec_field(Int(0, INT64_MAX), default=0)
+    reuse: np.ndarray = spec_field(Array("int32", ("r",), lo=-1), factory=lambda: np.zeros(0, np.int32))
