@@ -4,7 +4,8 @@
 The sender's :class:`PoseEncoder` turns each round's full :class:`PublicPoses` into
 
 * the full message itself (a *keyframe*: float64, every key) on the first round, every
-  ``full_every`` rounds, and whenever the keys or the ``settled`` flag change;
+  ``full_every`` rounds while poses move (a delta went out since the last keyframe) and every
+  ``quiet_every`` rounds while none does, and whenever the keys or the ``settled`` flag change;
 * otherwise a :class:`PoseDeltas` of only the poses that moved more than ``translation_tol`` /
   ``rotation_tol`` from what the receivers hold: float32 deltas against the keyframe;
 * or nothing, when no pose moved that far.
@@ -43,7 +44,10 @@ class PoseStreamParams:
     rotation_tol: float = 1e-7
     """... or turned this much (rad)."""
     full_every: int = 20
-    """Rounds between keyframes (full float64 messages), the repair of lost messages."""
+    """Rounds between keyframes (full float64 messages), the repair of lost messages, while poses move."""
+    quiet_every: int = 80
+    """Rounds between keyframes while no pose moved since the last one: what a receiver of every
+    message holds is then the keyframe itself, and a keyframe repairs only a lost one."""
 
 
 def _moved(held: np.ndarray, poses: np.ndarray, p: PoseStreamParams) -> np.ndarray:
@@ -65,6 +69,7 @@ class _Keyframe:
     poses: np.ndarray  # the keyframe's poses
     held: np.ndarray  # what a receiver holds now
     stamp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # round of each held pose
+    moved: bool = False  # a delta went out against it
 
 
 class PoseEncoder:
@@ -80,7 +85,7 @@ class PoseEncoder:
         k, p = self._key, self.params
         poses = np.asarray(msg.poses, dtype=np.float64)
         if (k is None or msg.settled != self._settled or not np.array_equal(msg.keys, k.keys)
-                or not 0 <= msg.round - k.round < p.full_every):
+                or not 0 <= msg.round - k.round < (p.full_every if k.moved else p.quiet_every)):
             self._key = _Keyframe(msg.round, np.array(msg.keys), poses.copy(), poses.copy())
             self._settled = msg.settled
             return msg
@@ -90,6 +95,7 @@ class PoseEncoder:
         rel = inverse(k.poses[idx]) @ poses[idx]
         deltas = np.concatenate([so3_log(rel[:, :3, :3]), rel[:, :3, 3]], axis=1).astype(np.float32)
         k.held[idx] = _apply(k.poses[idx], deltas)
+        k.moved = True
         return PoseDeltas(robot=msg.robot, round=msg.round, base=k.round, index=idx.astype(np.int32),
                           deltas=deltas, settled=msg.settled)
 
