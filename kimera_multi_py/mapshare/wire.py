@@ -5,7 +5,7 @@ rows column by column; both are byte-shuffled (all low bytes, then all high byte
 does) and compressed (:mod:`kimera_multi_py.comms.compression`: zstd where it is installed,
 zlib otherwise; the payload's first byte names which): on map cells zstd costs a small fraction
 of zlib level 6's time and makes smaller payloads, and zstd's level 15 takes 12 % off level 3's
-bytes for about 4 ms per MB of cells (docs/performance.md).
+bytes for about 50 ms per MB of raw cells (docs/performance.md).
 Unpacking checks every size before trusting the payload, so a corrupt or hostile payload raises
 :class:`MessageError` instead of allocating without bound.
 
