@@ -183,9 +183,11 @@ async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: flo
     robot's state re-runs the final epoch, and a robot gone by then could never match the new
     poses), or for ``cap`` s counted from when no robot present is still streaming (a robot
     whose stream ended first, or that ran a final epoch alone behind a partition, stays for the
-    team's final epoch). ``robots``: the team's size (default: every robot heard of). Returns
-    what ``linger.json`` records: whether the team was whole, the wait,
-    and what was missing."""
+    team's final epoch). A robot out of reach whose stream had not ended when last heard also
+    holds the wait, within the cap: a partition that heals late brings it back with evidence no
+    summary announced yet. ``robots``: the team's size (default: every robot heard of). Returns
+    what ``linger.json`` records: whether the team was whole, the wait, what was missing and
+    which robots stayed out of reach mid-stream."""
     maps = node.maps
     t0 = time.monotonic()
     if maps is None or maps.mode != "exact":  # no version summaries to compare
@@ -207,6 +209,11 @@ async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: flo
         return pgo is not None and any(not st.finished for r, st in pgo.states.items()
                                        if r != node.robot and r in alive)
 
+    def out_of_reach() -> list[int]:  # gone before its stream ended: it may come back
+        pgo, alive = node.pgo, node.alive()
+        return [] if pgo is None else sorted(r for r, st in pgo.states.items()
+                                             if r != node.robot and r not in alive and not st.finished)
+
     quiet_since: float | None = None
     start = t0
     while time.monotonic() - start < cap:
@@ -215,7 +222,7 @@ async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: flo
             start = time.monotonic()  # whose stream ended first stays for the team's final epoch
         gaps = maps.gaps(team())
         now = time.monotonic()
-        if gaps or busy() or going_on:
+        if gaps or busy() or going_on or out_of_reach():
             quiet_since = None
         elif quiet_since is None:
             quiet_since = now
@@ -224,13 +231,16 @@ async def until_whole(node: AgentNode, robots: int | None, cap: float, poll: flo
         await node.drain()
         await node.tick()
         await asyncio.sleep(poll)
-    gaps = maps.gaps(team())
+    gaps, gone = maps.gaps(team()), out_of_reach()
     waited = round(time.monotonic() - t0, 2)
     if gaps:
         log.warning("robot %d: the team map is not whole after %.0f s (--linger-max): %s", node.robot, waited,
                     "; ".join(f"robot {r}: {', '.join(g)}" for r, g in gaps.items()), extra={"robot": node.robot})
-    return {"checked": True, "whole": not gaps, "waited_s": waited, "robots": sorted(team()),
-            "missing": {str(r): g for r, g in gaps.items()}}
+    if gone:
+        log.warning("robot %d: robot(s) %s out of reach since before their streams ended, after %.0f s "
+                    "(--linger-max)", node.robot, ", ".join(map(str, gone)), waited, extra={"robot": node.robot})
+    return {"checked": True, "whole": not gaps and not gone, "waited_s": waited, "robots": sorted(team()),
+            "missing": {str(r): g for r, g in gaps.items()}, "out_of_reach": gone}
 
 
 def _node_state(node: AgentNode, source: KeyframeSource) -> dict[str, Any]:

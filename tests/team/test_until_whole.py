@@ -93,3 +93,28 @@ def test_an_absent_peer_s_verifications_do_not_hold_a_robot() -> None:
     node.alive = lambda: frozenset()  # type: ignore[method-assign]
     out = asyncio.run(until_whole(node, None, cap=10.0, poll=0.001, settle=0.01))  # type: ignore[arg-type]
     assert out["whole"] and node.ticked < 200  # left after the settle window, not at the cap (10 s of 1 ms polls)
+
+
+class GonePeer(StreamingPeer):
+    """Every map gap closed, but robot 1 went out of reach before its stream ended; it comes back
+    (its stream then over) after ``ticks`` ticks, or never."""
+
+    def __init__(self, ticks: int) -> None:
+        super().__init__(ticks)
+        self.maps.gaps = lambda team: {}
+
+    def alive(self) -> frozenset[int]:
+        return frozenset({1}) if self.ticked >= self.ticks else frozenset()
+
+
+def test_a_peer_gone_mid_stream_holds_a_robot_until_it_returns() -> None:
+    node = GonePeer(ticks=200)
+    out = asyncio.run(until_whole(node, None, cap=10.0, poll=0.001, settle=0.01))  # type: ignore[arg-type]
+    assert node.ticked >= 200  # it did not leave in the settle window while robot 1 could come back
+    assert out["whole"] and out["out_of_reach"] == []
+
+
+def test_a_peer_gone_mid_stream_for_good_ends_the_wait_at_the_cap_and_is_reported() -> None:
+    node = GonePeer(ticks=10**9)
+    out = asyncio.run(until_whole(node, None, cap=0.3, poll=0.001, settle=0.01))  # type: ignore[arg-type]
+    assert not out["whole"] and out["out_of_reach"] == [1] and out["missing"] == {}
