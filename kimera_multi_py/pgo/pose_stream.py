@@ -4,8 +4,9 @@
 The sender's :class:`PoseEncoder` turns each round's full :class:`PublicPoses` into
 
 * the full message itself (a *keyframe*: float64, every key) on the first round, every
-  ``full_every`` rounds while poses move (a delta went out since the last keyframe) and every
-  ``quiet_every`` rounds while none does, and whenever the keys or the ``settled`` flag change;
+  ``full_every`` rounds, and whenever the keys or the ``settled`` flag change; but a keyframe
+  that repeats an unchanged one (no delta went out against it) waits ``quiet_every`` rounds for
+  the next, so every keyframe still goes out twice ``full_every`` rounds apart;
 * otherwise a :class:`PoseDeltas` of only the poses that moved more than ``translation_tol`` /
   ``rotation_tol`` from what the receivers hold: float32 deltas against the keyframe;
 * or nothing, when no pose moved that far.
@@ -46,8 +47,8 @@ class PoseStreamParams:
     full_every: int = 20
     """Rounds between keyframes (full float64 messages), the repair of lost messages, while poses move."""
     quiet_every: int = 80
-    """Rounds between keyframes while no pose moved since the last one: what a receiver of every
-    message holds is then the keyframe itself, and a keyframe repairs only a lost one."""
+    """Rounds after a keyframe that repeats an unchanged one, while still no pose moves: a receiver
+    of either copy holds the keyframe itself, and a further copy repairs only two lost ones."""
 
 
 def _moved(held: np.ndarray, poses: np.ndarray, p: PoseStreamParams) -> np.ndarray:
@@ -70,6 +71,7 @@ class _Keyframe:
     held: np.ndarray  # what a receiver holds now
     stamp: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # round of each held pose
     moved: bool = False  # a delta went out against it
+    repeat: bool = False  # it repeats a keyframe against which no delta went out
 
 
 class PoseEncoder:
@@ -84,9 +86,11 @@ class PoseEncoder:
         """What to send for ``msg``: itself, its :class:`PoseDeltas`, or None (nothing moved)."""
         k, p = self._key, self.params
         poses = np.asarray(msg.poses, dtype=np.float64)
-        if (k is None or msg.settled != self._settled or not np.array_equal(msg.keys, k.keys)
-                or not 0 <= msg.round - k.round < (p.full_every if k.moved else p.quiet_every)):
-            self._key = _Keyframe(msg.round, np.array(msg.keys), poses.copy(), poses.copy())
+        same = k is not None and msg.settled == self._settled and np.array_equal(msg.keys, k.keys)
+        if k is None or not same or not 0 <= msg.round - k.round < (
+                p.quiet_every if k.repeat and not k.moved else p.full_every):
+            self._key = _Keyframe(msg.round, np.array(msg.keys), poses.copy(), poses.copy(),
+                                  repeat=same and k is not None and not k.moved)
             self._settled = msg.settled
             return msg
         idx = np.flatnonzero(_moved(k.held, poses, p))

@@ -71,17 +71,18 @@ def test_keyframes_when_the_keys_or_the_settled_flag_change() -> None:
     assert isinstance(enc.encode(fewer), PublicPoses)
 
 
-def test_while_no_pose_moves_the_keyframes_come_every_quiet_every_rounds() -> None:
+def test_while_no_pose_moves_a_repeated_keyframe_waits_quiet_every_rounds() -> None:
     enc = PoseEncoder(P)
     poses = _walk(2)
-    kinds = [type(enc.encode(_msg(0, poses[0]))).__name__]
-    kinds += [type(enc.encode(_msg(r, poses[0]))).__name__ for r in range(1, 2 * P.quiet_every + 1)]
-    assert [r for r, k in enumerate(kinds) if k == "PublicPoses"] == [0, P.quiet_every, 2 * P.quiet_every]
+    end = P.full_every + 2 * P.quiet_every
+    kinds = [type(enc.encode(_msg(r, poses[0]))).__name__ for r in range(end + 1)]
+    # every keyframe goes out twice, full_every rounds apart; then one every quiet_every rounds
+    assert [r for r, k in enumerate(kinds) if k == "PublicPoses"] == \
+        [0, P.full_every, P.full_every + P.quiet_every, end]
     # once a pose moves, the next keyframe is full_every rounds after the last one again
-    r0 = 2 * P.quiet_every
-    assert isinstance(enc.encode(_msg(r0 + 1, poses[1])), PoseDeltas)
-    assert enc.encode(_msg(r0 + P.full_every - 1, poses[1])) is None
-    assert isinstance(enc.encode(_msg(r0 + P.full_every, poses[1])), PublicPoses)
+    assert isinstance(enc.encode(_msg(end + 1, poses[1])), PoseDeltas)
+    assert enc.encode(_msg(end + P.full_every - 1, poses[1])) is None
+    assert isinstance(enc.encode(_msg(end + P.full_every, poses[1])), PublicPoses)
 
 
 def test_lost_and_reordered_messages_are_repaired_by_the_next_keyframe() -> None:
