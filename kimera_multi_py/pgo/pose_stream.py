@@ -45,7 +45,7 @@ class PoseStreamParams:
     rotation_tol: float = 1e-7
     """... or turned this much (rad)."""
     full_every: int = 20
-    """Rounds between keyframes (full float64 messages), the repair of lost messages, while poses move."""
+    """Rounds between keyframes (full float64 messages), the repair of lost messages."""
     quiet_every: int = 80
     """Rounds after a keyframe that repeats an unchanged one, while still no pose moves: a receiver
     of either copy holds the keyframe itself, and a further copy repairs only two lost ones."""
