@@ -106,7 +106,10 @@ async def _probe(out: Path, proc: subprocess.Popen[bytes]) -> None:
 def test_a_launched_tls_team_refuses_strangers_and_impersonation(tmp_path: Path) -> None:
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "kimera_multi_py.cli.main", "launch", str(FAULTS), "--robots",
-                             "2", "--out", str(out), "--rate", "1", "--tls", "--pgo-period", "20"],
+                             "2", "--out", str(out), "--rate", "1", "--tls", "--pgo-period", "20",
+                             # robots 0 and 1 of this floor close no loop with each other, so their frames stay
+                             # apart and each would wait the whole default cap (60 s) for a frame gap
+                             "--linger-max", "5"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=REPO)
     try:
         asyncio.run(_probe(out, proc))
