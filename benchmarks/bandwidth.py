@@ -2,13 +2,18 @@
 
     python benchmarks/bandwidth.py --json                       # office, 3 robots, seed 0, both formats
     python benchmarks/bandwidth.py --formats compact --robots 5 --scenario sims/aliased_wing.toml
+    python benchmarks/bandwidth.py --json --suite               # office 3 and 8, aliased_wing 5 (hours)
 
 Each format runs in a fresh process (``node.compact_wire`` true or false; docs/architecture.md,
 "Bytes on the wire"): the full-size run is the reference measured in the same invocation. Per run
 it reports bytes per topic, the total, MB per km of team travel (the true paths' length), the
 team ATE, the true and false inter-robot closures, the map agreement with the centralised fusion
-and the team map's F1 / mIoU; then each compact figure beside the full-size one.
-Also ``--from-results DIR/results.json``: the same figures of a run made with ``kimera-multi sim``.
+and the team map's F1 / mIoU, kB per robot per simulated second (flat or falling with the team
+size is the aim), and each robot's share of the map evidence against the size of the final
+lossless team map (``robot0/team_map.kmo``); then each compact figure beside the full-size one.
+``--suite`` runs the three cases of docs/benchmarks.md ("Bytes per topic") one after the other.
+Also ``--from-results DIR/results.json``: the same figures of a run made with ``kimera-multi sim``
+(the team map's size read from ``DIR/robot0/team_map.kmo`` when it is there).
 
 The link-budget sweep (docs/deployment.md, "Link budget") runs the compact format once per budget:
 
@@ -32,6 +37,7 @@ FORMATS = {"compact": True, "full": False}
 
 _CHILD = r"""
 import json, sys, tempfile
+from pathlib import Path
 sys.path.insert(0, {repo!r})
 from kimera_multi_py.sim import load_scenario
 from kimera_multi_py.team.config import KimeraConfig
@@ -41,20 +47,30 @@ config = KimeraConfig.defaults().updated({{"node": {{"compact_wire": {compact!r}
                                                     "link_policy": {policy!r}}}}})
 with tempfile.TemporaryDirectory() as d:
     res = SimRunner(cfg, seed={seed}, mode="distributed", out_dir=d, config=config).run().to_dict()
+    kmo = Path(d) / "robot0" / "team_map.kmo"
+    res["team_map_file_bytes"] = kmo.stat().st_size if kmo.exists() else None
 print(json.dumps(res, default=str))
 """
+SUITE = (("office.toml", 3), ("office.toml", 8), ("aliased_wing.toml", 5))
 
 
 def summarise(res: dict) -> dict:
-    """The figures of one run from its ``results.json`` dict."""
+    """The figures of one run from its ``results.json`` dict (and ``team_map_file_bytes``, the size
+    of robot 0's final team map file, when the caller read it)."""
     sent = res["bytes_sent"]
     travel_km = res["team"]["trajectory_length_m"] / 1e3
+    robots, seconds = len(res["robots"]), res.get("sim_seconds")
+    kmo = res.get("team_map_file_bytes")
+    evidence = sent["per_topic"].get("map/evidence", 0)
     agreement = [a["identical"] for a in res.get("map_consensus", {}).get("agreement", {}).values()]
     lc = res["loop_closures"]
     return {
-        "robots": len(res["robots"]), "travel_m": res["team"]["trajectory_length_m"],
+        "robots": robots, "travel_m": res["team"]["trajectory_length_m"],
         "bytes_total": sent["total"], "bytes_by_topic": dict(sent["per_topic"]),
         "mb_per_km": sent["total"] / 1e6 / travel_km if travel_km else None,
+        "kb_per_robot_per_s": sent["total"] / 1e3 / robots / seconds if seconds else None,
+        "team_map_file_bytes": kmo,
+        "evidence_per_robot_vs_team_map": evidence / robots / kmo if kmo else None,
         "team_ate_m": res["team"]["ate_rmse_m"],
         "true_accepted_inter": lc["true_accepted_inter"], "false_accepted_inter": lc["false_accepted_inter"],
         "map_agreement_min": min(agreement) if agreement else None,
@@ -116,15 +132,23 @@ def main() -> None:
     ap.add_argument("--budgets", nargs="+", default=[], metavar="KBPS",
                     help="link-budget sweep (compact format): 'unlimited' or kB/s per link, e.g. unlimited 200 50 20")
     ap.add_argument("--policy", choices=["priority", "fifo"], default="priority", help="the sweep's link scheduling")
+    ap.add_argument("--suite", action="store_true",
+                    help="office with 3 and 8 robots and aliased_wing with 5, each in --formats")
     ap.add_argument("--json", action="store_true", help="print the JSON summary only")
     args = ap.parse_args()
     if args.budgets:
         sweep(args)
         return
+    if args.suite:
+        suite(args)
+        return
     runs = {}
     for item in args.from_results:
         name, _, path = item.partition("=")
-        runs[name] = summarise(json.loads(Path(path).read_text()))
+        res = json.loads(Path(path).read_text())
+        kmo = Path(path).parent / "robot0" / "team_map.kmo"
+        res.setdefault("team_map_file_bytes", kmo.stat().st_size if kmo.exists() else None)
+        runs[name] = summarise(res)
     for name in [] if runs else args.formats:
         runs[name] = run_one(args.scenario, args.robots, args.seed, FORMATS[name])
         print(json.dumps({name: runs[name]}), file=sys.stderr, flush=True)  # progress: one run per line
@@ -143,6 +167,30 @@ def main() -> None:
     print(f"{'topic':>22} " + " ".join(f"{n:>10}" for n in runs))
     for t in topics:
         print(f"{t:>22} " + " ".join(f"{r['bytes_by_topic'].get(t, 0) / 1e6:>9.3f}M" for r in runs.values()))
+
+
+def suite(args: argparse.Namespace) -> None:
+    """The three cases of the issue's table, each in every format of ``--formats``; the compact
+    kB per robot per second side by side, to see whether it stays flat as the team grows."""
+    cases: dict[str, dict[str, object]] = {}
+    per_second: dict[str, float] = {}
+    for name, robots in SUITE:
+        runs = {}
+        for fmt in args.formats:
+            runs[fmt] = run_one(str(REPO / "sims" / name), robots, args.seed, FORMATS[fmt])
+            print(json.dumps({f"{name}:{robots}:{fmt}": runs[fmt]}), file=sys.stderr, flush=True)
+        case: dict[str, object] = {"scenario": name, "robots": robots, "runs": runs}
+        if set(runs) == set(FORMATS):
+            case["compact_vs_full"] = compare(runs)
+        cases[f"{name}:{robots}"] = case
+        if "compact" in runs:
+            per_second[f"{name}:{robots}"] = runs["compact"]["kb_per_robot_per_s"]
+    summary = {"seed": args.seed, "cases": cases, "compact_kb_per_robot_per_s": per_second}
+    if args.json:
+        print(json.dumps(summary, indent=1))
+        return
+    for key, rate in per_second.items():
+        print(f"{key:>24} {rate:>8.2f} kB per robot per s")
 
 
 def budget_value(label: str) -> float | None:

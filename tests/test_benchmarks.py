@@ -34,3 +34,29 @@ def test_the_makefile_names_every_benchmark():
     makefile = (REPO / "Makefile").read_text()
     missing = [p.name for p in BENCHMARKS if f"benchmarks/{p.name}" not in makefile and p.name not in makefile]
     assert not missing, f"run these in `make bench`, or say in the Makefile why not: {missing}"
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", REPO / "benchmarks" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bandwidth_figures_per_robot_second_and_against_the_team_map() -> None:
+    """Two teams that send the same bytes per robot per second score the same, whatever their size;
+    each robot's share of the evidence is set against the final team map file."""
+    bw = _load("bandwidth")
+
+    def results(robots: int, seconds: float, evidence: int, other: int) -> dict:
+        return {"bytes_sent": {"total": evidence + other, "per_topic": {"map/evidence": evidence, "pgo/status": other}},
+                "team": {"trajectory_length_m": 500.0, "ate_rmse_m": 0.03}, "robots": [{}] * robots,
+                "loop_closures": {"true_accepted_inter": 1, "false_accepted_inter": 0},
+                "sim_seconds": seconds, "wall_s": 1.0, "team_map_file_bytes": 100_000}
+
+    small, large = bw.summarise(results(3, 200.0, 600_000, 600_000)), bw.summarise(results(8, 100.0, 800_000, 800_000))
+    assert small["kb_per_robot_per_s"] == pytest.approx(2.0) and large["kb_per_robot_per_s"] == pytest.approx(2.0)
+    assert small["evidence_per_robot_vs_team_map"] == pytest.approx(2.0)
+    assert large["evidence_per_robot_vs_team_map"] == pytest.approx(1.0)
+    assert small["mb_per_km"] == pytest.approx(2.4)
