@@ -166,7 +166,9 @@ class BagSource:
         return kf
 
     def close(self) -> None:
-        self._reader.close()
+        """Close the bag; a second call (the iterator closes it at its end) does nothing."""
+        if self._reader.stack is not None:
+            self._reader.close()
 
     def ground_truth(self) -> np.ndarray | None:
         """The true T_world_keyframe at every keyframe, from the bag's ``ground_truth`` topic (poses
