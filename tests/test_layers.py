@@ -7,6 +7,8 @@ function or under ``TYPE_CHECKING``: a deferred import is still a dependency.
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import networkx as nx
@@ -98,3 +100,15 @@ def test_modules_stay_small():
     long = {str(p.relative_to(ROOT.parent)): n for p in _modules().values()
             if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not long, f"modules over {MAX_LINES} lines: {long}"
+
+
+def test_an_agent_process_imports_neither_scipy_stats_nor_matplotlib() -> None:
+    """What an agent process loads costs every robot memory and start-up time (docs/performance.md):
+    scipy.stats (for a χ² quantile) and matplotlib (pulled in by igraph's drawing package) stay
+    out, and matplotlib can still be imported afterwards."""
+    code = ("import sys, kimera_multi_py.team.process, kimera_multi_py.cli.main, kimera_multi_py.core.clique as c\n"
+            "assert c.igraph.Graph.Full(3).clique_number() == 3\n"
+            "print(sorted(m for m in ('scipy.stats', 'matplotlib') if m in sys.modules))\n"
+            "import matplotlib\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

@@ -8,8 +8,29 @@ consistent set), then by the lowest indices: the answer does not depend on the s
 
 from __future__ import annotations
 
-import igraph
+import sys
+from types import ModuleType
+
 import numpy as np
+
+
+def _import_igraph() -> ModuleType:
+    """igraph without its plotting back end. On import, igraph's drawing package imports
+    ``matplotlib.pyplot`` whenever matplotlib is installed (about 1 s and 40 MB in every
+    process; docs/performance.md), and nothing here draws: while igraph loads, ``import
+    matplotlib`` fails, so igraph keeps its stand-in, and matplotlib stays importable after."""
+    hide = "matplotlib" not in sys.modules
+    if hide:
+        sys.modules["matplotlib"] = None  # type: ignore[assignment]  # makes `import matplotlib` raise ImportError
+    try:
+        import igraph
+    finally:
+        if hide:
+            del sys.modules["matplotlib"]
+    return igraph
+
+
+igraph = _import_igraph()
 
 
 def max_clique(adj: np.ndarray, cost: np.ndarray | None = None) -> np.ndarray:

@@ -17,10 +17,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from kimera_multi_py.core.clique import max_clique
 from kimera_multi_py.core.geometry import inverse, se3_log
+from kimera_multi_py.core.robust import chi2_quantile
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,8 @@ def odometry_consistent(Z: np.ndarray, A_i: np.ndarray, A_j: np.ndarray, path_i:
                         noise: PcmNoise) -> np.ndarray:
     """Intra-robot closures ``Z ≈ A_i^{-1} A_j`` that agree with the robot's own odometry (mask)."""
     xi = se3_log(inverse(Z) @ inverse(A_i) @ A_j)
-    return _drift_r2(xi, np.abs(np.asarray(path_i) - np.asarray(path_j)), 1, noise) <= chi2.ppf(noise.probability, 6)
+    r2 = _drift_r2(xi, np.abs(np.asarray(path_i) - np.asarray(path_j)), 1, noise)
+    return r2 <= chi2_quantile(noise.probability, 6)
 
 
 def max_consistent_set(r2: np.ndarray, threshold: float) -> np.ndarray:
@@ -103,7 +104,7 @@ def pcm(Z: np.ndarray, A_i: np.ndarray, B_j: np.ndarray, path_a: np.ndarray, pat
         return mask
     r2 = consistency_errors(Z, np.asarray(A_i, float), np.asarray(B_j, float), np.asarray(path_a, float),
                             np.asarray(path_b, float), noise)
-    threshold = float(chi2.ppf(noise.probability, 6))
+    threshold = chi2_quantile(noise.probability, 6)
     left = np.arange(len(Z))
     for _ in range(groups):
         if len(left) == 0:
@@ -150,4 +151,4 @@ def odometry_consistent_path(Z: np.ndarray, kf_i: np.ndarray, kf_j: np.ndarray, 
     var_trans = (noise.closure_trans**2 + noise.odom_trans_per_m**2 * span
                  + 2.0 * noise.odom_rot_per_m**2 * keyframe_distance * lever2)
     r2 = (xi[:, :3] ** 2).sum(-1) / var_rot + (xi[:, 3:] ** 2).sum(-1) / var_trans
-    return np.asarray(r2 <= chi2.ppf(noise.probability, 6))
+    return np.asarray(r2 <= chi2_quantile(noise.probability, 6))

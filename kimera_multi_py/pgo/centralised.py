@@ -19,12 +19,11 @@ from dataclasses import dataclass
 import gtsam
 import networkx as nx
 import numpy as np
-from scipy.stats import chi2
 
 from kimera_multi_py.core.errors import GraphError
 from kimera_multi_py.core.geometry import to_gtsam
 from kimera_multi_py.core.posegraph import ODOMETRY, PoseGraph
-from kimera_multi_py.core.robust import MU_STEP, initial_mu, tls_weights
+from kimera_multi_py.core.robust import MU_STEP, chi2_quantile, initial_mu, tls_weights
 from kimera_multi_py.pgo.chordal import chordal_poses
 from kimera_multi_py.pgo.factors import (
     CostEvaluator,
@@ -192,7 +191,7 @@ def solve_centralized(graph: PoseGraph, robust: bool = False, chordal: bool = Tr
     if robust:
         # chordal relaxation sees the outliers too: run GNC from it and from the given values,
         # keep the lower truncated (TLS) cost
-        barc2 = float(chi2.ppf(inlier_probability, dof))
+        barc2 = chi2_quantile(inlier_probability, dof)
         best = None
         starts = [(init, values)]
         if chordal:

@@ -8,6 +8,7 @@ import pytest
 from kimera_multi_py.core.robust import (
     MU_STEP,
     GncSchedule,
+    chi2_quantile,
     initial_mu,
     precision_recall,
     tls_threshold,
@@ -62,3 +63,11 @@ def test_initial_mu_is_clamped_to_its_bounds():
     assert s.initial_mu(np.array([1e8]), lo=1e-4, hi=1e-3) == pytest.approx(1e-4)
     assert s.initial_mu(np.array([1.0]), lo=1e-4, hi=1e-3) == pytest.approx(1e-3)  # nothing exceeds c̄²: 1e6
     assert s.initial_mu(np.array([1e8]), hi=1e-3) == pytest.approx(raw)
+
+
+@pytest.mark.parametrize("dof", [1, 2, 3, 6, 12])
+def test_chi2_quantile_is_scipy_stats_to_the_bit(dof: int) -> None:
+    from scipy.stats import chi2
+
+    for p in (0.5, 0.9, 0.95, 0.99, 0.997, 0.999, 0.9999):
+        assert chi2_quantile(p, dof) == chi2.ppf(p, dof)
