@@ -10,8 +10,12 @@ Tables spread by flooding: a robot publishes a table (its own, or a neighbour's 
 per version, and every ``refresh_every`` periods all it holds again, which recovers lost messages
 and partitions; but not a table that every neighbour (the source aside) said it holds: every
 table a robot sends lists the newest version of each source it holds (``held_sources``,
-``held_versions``), so in a team whose robots all hear each other a table mostly travels once,
-from its source. A table is small (about 130 B per object), so this costs little beside the map.
+``held_versions``). A table of another source that arrived since the robot's last step is
+relayed only to neighbours that lag behind the version the robot held at that step: those that
+hear the source get the new version from it, and say so in their next tables. So in a team
+whose robots all hear each other a table travels once, from its source, while a neighbour that
+hears the source only through this robot gets every version a step later. A table is small
+(about 130 B per object), so this costs little beside the map.
 
 The team object map (:meth:`ObjectExchange.team_objects`) fuses every held table whose source's
 poses are in the robot's frame with :func:`~kimera_multi_py.mapping.object_fusion.fuse_objects`:
@@ -103,6 +107,7 @@ class ObjectExchange:
         self.rounds = 0
         self._version = 0
         self._published: dict[int, int] = {}  # source -> version last published
+        self._held_last: dict[int, int] = {}  # source -> the version held at the last step
         self.peer_holds: dict[int, dict[int, int]] = {}  # neighbour -> source -> newest version it holds
         self.history = TableHistory()  # the bases of deltas, sent and received
         self._next = -np.inf
@@ -199,14 +204,19 @@ class ObjectExchange:
         sources, versions = np.array([s for s, _ in held], np.int32), np.array([v for _, v in held], np.int64)
         out: list[Message] = []
         for src, t in sorted(self.tables.items()):
-            if (refresh or t.version > self._published.get(src, 0)) and not self._all_hold(src, t.version):
+            due = refresh or t.version > self._published.get(src, 0)
+            bar = t.version if src == self.robot else min(t.version, self._held_last.get(src, 0))
+            if due and self._lagging(src, bar):
                 out.append(self._send(t, refresh, sources, versions))
-            self._published[src] = t.version
+                self._published[src] = t.version
+            elif not self._lagging(src, t.version):  # every neighbour holds it
+                self._published[src] = t.version
+        self._held_last = {src: t.version for src, t in self.tables.items()}
         return out
 
-    def _all_hold(self, src: int, version: int) -> bool:
-        """Every neighbour but the source said it holds ``src``'s table ``version`` or newer."""
-        return all(self.peer_holds.get(nb, {}).get(src, -1) >= version for nb in self.neighbours if nb != src)
+    def _lagging(self, src: int, version: int) -> bool:
+        """Some neighbour but the source said it holds ``src``'s table only older than ``version``."""
+        return any(self.peer_holds.get(nb, {}).get(src, 0) < version for nb in self.neighbours if nb != src)
 
     def team_objects(self, min_sightings: int = 1) -> list[dict[str, Any]]:
         """The team object map in the robot's frame: every held table whose source's submap poses
