@@ -11,7 +11,7 @@ team ATE, the true and false inter-robot closures, the map agreement with the ce
 and the team map's F1 / mIoU, kB per robot per simulated second (flat or falling with the team
 size is the aim), and each robot's share of the map evidence against the size of the final
 lossless team map (``robot0/team_map.kmo``); then each compact figure beside the full-size one.
-``--suite`` runs the three cases of docs/benchmarks.md ("Bytes per topic") one after the other.
+``--suite`` runs the three cases of docs/benchmarks.md ("Larger teams") one after the other.
 Also ``--from-results DIR/results.json``: the same figures of a run made with ``kimera-multi sim``
 (the team map's size read from ``DIR/robot0/team_map.kmo`` when it is there).
 
@@ -170,7 +170,7 @@ def main() -> None:
 
 
 def suite(args: argparse.Namespace) -> None:
-    """The three cases of the issue's table, each in every format of ``--formats``; the compact
+    """The three cases of docs/benchmarks.md ("Larger teams"), each in every format of ``--formats``; the compact
     kB per robot per second side by side, to see whether it stays flat as the team grows."""
     cases: dict[str, dict[str, object]] = {}
     per_second: dict[str, float] = {}
