@@ -222,27 +222,24 @@ def test_in_a_team_that_hears_itself_a_changing_table_is_not_relayed() -> None:
     relay waited a period); every robot still ends with every table's newest version."""
     robots = [Robot(i, [((1.0 + 3 * i, 1.0), CHAIR)], np.eye(4), i) for i in range(3)]
     links = {(0, 1), (1, 2), (0, 2)}
-    relayed, t = [], 0.0
+    relayed: list = []
+    for r in robots:
+        def counted(now: float, step=r.ex.step) -> list:
+            out = step(now)
+            relayed.extend(m for m in out if m.source != m.robot)
+            return out
+        r.ex.step = counted  # type: ignore[method-assign]
+    t = 0.0
     for period in range(6):
         for r in robots:  # a new object, seen three times: a new version of the robot's table
             rng = np.random.default_rng(10 * period + r.robot)
             for _ in range(3):
                 p = box_points([1.0 + 3 * r.robot, 3.0 + period, 0.45], [0.5, 0.5, 0.9], 40, rng)
                 r.om.update(p, np.full(len(p), TABLE), 0)
-        for r in robots:
-            step = r.ex.step
-
-            def counted(now: float, step=step) -> list:
-                out = step(now)
-                relayed.extend(m for m in out if m.source != m.robot)
-                return out
-            r.ex.step = counted  # type: ignore[method-assign]
         t = run(robots, links, 1, t0=t)
-        for r in robots:
-            del r.ex.step  # the class's step again
-    assert relayed == []
     newest = {r.robot: r.ex.tables[r.robot].version for r in robots}
-    assert all(newest[s] >= 6 for s in newest)
-    t = run(robots, links, 1, t0=t)
+    run(robots, links, 1, t0=t)
+    assert relayed == []
+    assert all(v >= 6 for v in newest.values())
     for r in robots:
         assert {s: tab.version for s, tab in r.ex.tables.items()} == newest
