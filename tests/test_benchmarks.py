@@ -16,13 +16,19 @@ def test_the_benchmarks_are_found():
     assert len(BENCHMARKS) >= 10
 
 
-@pytest.mark.parametrize("path", BENCHMARKS, ids=lambda p: p.stem)
-def test_benchmark_imports_and_has_main(path: Path) -> None:
+def _load(path: Path):
+    """A benchmark script as a module (the scripts run nothing on import: a __main__ guard)."""
     spec = importlib.util.spec_from_file_location(f"benchmark_{path.stem}", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("path", BENCHMARKS, ids=lambda p: p.stem)
+def test_benchmark_imports_and_has_main(path: Path) -> None:
     try:
-        spec.loader.exec_module(module)  # the scripts run nothing on import (a __main__ guard)
+        module = _load(path)
     except ModuleNotFoundError as exc:
         if exc.name and exc.name.split(".")[0] in ("kimera_multi_py", "tests"):
             raise
@@ -36,18 +42,10 @@ def test_the_makefile_names_every_benchmark():
     assert not missing, f"run these in `make bench`, or say in the Makefile why not: {missing}"
 
 
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", REPO / "benchmarks" / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_bandwidth_figures_per_robot_second_and_against_the_team_map() -> None:
     """Two teams that send the same bytes per robot per second score the same, whatever their size;
     each robot's share of the evidence is set against the final team map file."""
-    bw = _load("bandwidth")
+    bw = _load(REPO / "benchmarks" / "bandwidth.py")
 
     def results(robots: int, seconds: float, evidence: int, other: int) -> dict:
         return {"bytes_sent": {"total": evidence + other, "per_topic": {"map/evidence": evidence, "pgo/status": other}},

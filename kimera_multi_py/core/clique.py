@@ -16,9 +16,9 @@ import numpy as np
 
 def _import_igraph() -> ModuleType:
     """igraph without its plotting back end. On import, igraph's drawing package imports
-    ``matplotlib.pyplot`` whenever matplotlib is installed (about 1 s and 40 MB in every
-    process; docs/performance.md), and nothing here draws: while igraph loads, ``import
-    matplotlib`` fails, so igraph keeps its stand-in, and matplotlib stays importable after."""
+    ``matplotlib.pyplot`` whenever matplotlib is installed (in every process; what that costs:
+    docs/performance.md), and nothing here draws: while igraph loads, ``import matplotlib``
+    fails, so igraph keeps its stand-in, and matplotlib stays importable after."""
     hide = "matplotlib" not in sys.modules
     if hide:
         sys.modules["matplotlib"] = None  # type: ignore[assignment]  # makes `import matplotlib` raise ImportError

@@ -18,8 +18,8 @@ MU_STEP = 1.4
 
 def chi2_quantile(probability: float, dof: int) -> float:
     """The χ² quantile ``q`` with ``P(X ≤ q) = probability`` at ``dof`` degrees of freedom:
-    ``scipy.stats.chi2.ppf``'s own formula, to the bit, without importing ``scipy.stats`` (about
-    1.4 s and 80 MB in every process; docs/performance.md)."""
+    ``scipy.stats.chi2.ppf``'s own formula, to the bit, without importing ``scipy.stats``, which
+    every process would load for this alone (what that saves: docs/performance.md)."""
     return float(2.0 * gammaincinv(dof / 2.0, probability))
 
 
